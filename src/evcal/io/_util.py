@@ -1,0 +1,57 @@
+"""Small helpers shared by the readers and writers (not public API)."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..events import SensorSize
+from ..recording import RecordingError
+
+
+def to_jsonable(value: Any) -> Any:
+    """``value`` with numpy scalars and arrays turned into plain Python (for JSON)."""
+    if isinstance(value, dict):
+        return {str(k): to_jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [to_jsonable(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return to_jsonable(value.tolist())
+    if isinstance(value, np.generic):
+        return to_jsonable(value.item())
+    if isinstance(value, Path):
+        return str(value)
+    if isinstance(value, SensorSize):
+        return str(value)
+    if isinstance(value, float) and not math.isfinite(value):
+        return str(value)  # JSON has no NaN / inf
+    return value
+
+
+def metadata_to_json(metadata: dict[str, Any]) -> str:
+    """Serialise recording metadata; values JSON cannot hold become their ``repr``."""
+    return json.dumps(to_jsonable(metadata), default=repr, sort_keys=True)
+
+
+def metadata_from_json(text: str, where: str) -> dict[str, Any]:
+    try:
+        meta = json.loads(text) if text else {}
+    except ValueError as exc:
+        raise RecordingError(f"{where}: metadata is not valid JSON ({exc})") from None
+    if not isinstance(meta, dict):
+        raise RecordingError(f"{where}: metadata JSON is a {type(meta).__name__}, expected "
+                             "an object")
+    return meta
+
+
+def check_sensor_arg(found: SensorSize, given: SensorSize | None, where: str) -> SensorSize:
+    """The sensor a file declares, checked against the one the caller passed (if any)."""
+    if given is not None and given != found:
+        raise RecordingError(
+            f"{where}: the file declares a {found} sensor, but sensor={given} was given"
+        )
+    return found

@@ -1,0 +1,301 @@
+"""The msgpack envelopes of event chunks and frames (MCAP messages and network payloads).
+
+One events message is a msgpack map::
+
+    {"version": 1, "height": H, "width": W, "seq": n, "n": count,
+     "t_us": <bin, count x little-endian int64>,
+     "x": <bin, count x little-endian uint16>, "y": <bin, count x <u2>,
+     "p": <bin, count x int8 in {-1, +1}>}
+
+One frame message is a msgpack map::
+
+    {"version": 1, "height": H, "width": W, "seq": n, "t_us": int, "exposure_us": int,
+     "dtype": "uint8" | "float32", "data": <bin, H * W values, row-major [y, x], little-endian>}
+
+Decoding is strict: every key must be present with the right type, no unknown keys, array
+lengths must match ``n`` and the dtype, sizes must be in 1..65535, events must be sorted and
+inside ``W x H`` with polarity +1/-1, float frames must be finite. Any violation raises
+:class:`WireError` (a ``ValueError``) with a message naming the field; decoding never raises
+another exception type. The arrays are read with ``np.frombuffer``: no Python loop over events.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import msgpack
+import numpy as np
+
+from ..events import EVENTS_DTYPE, EventError, SensorSize, validate_events
+
+WIRE_VERSION = 1
+MAX_SIZE = 65535  # largest height or width accepted (uint16 coordinates)
+FRAME_DTYPES = {"uint8": np.dtype("u1"), "float32": np.dtype("<f4")}
+
+_EVENT_KEYS = frozenset({"version", "height", "width", "seq", "n", "t_us", "x", "y", "p"})
+_FRAME_KEYS = frozenset(
+    {"version", "height", "width", "seq", "t_us", "exposure_us", "dtype", "data"}
+)
+# Bytes per event of each column, in the order of EVENTS_DTYPE.
+_COLUMNS = (("t_us", np.dtype("<i8")), ("x", np.dtype("<u2")), ("y", np.dtype("<u2")),
+            ("p", np.dtype("i1")))
+_INT64_MIN, _INT64_MAX = -(2**63), 2**63 - 1
+
+
+class WireError(ValueError):
+    """A message that is not a valid evcal envelope (or a value that cannot be encoded)."""
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+def _unpack(buf: Any, what: str) -> dict[str, Any]:
+    if not isinstance(buf, (bytes, bytearray, memoryview)):
+        raise WireError(f"{what}: expected bytes, got {type(buf).__name__}")
+    if len(buf) == 0:
+        raise WireError(f"{what}: empty message")
+    try:
+        obj = msgpack.unpackb(buf, raw=False, strict_map_key=True, use_list=True)
+    except Exception as exc:  # msgpack raises several types (ExtraData, FormatError, ...)
+        raise WireError(f"{what}: not a valid msgpack message ({exc or type(exc).__name__})") \
+            from None
+    if not isinstance(obj, dict):
+        raise WireError(f"{what}: expected a msgpack map, got {type(obj).__name__}")
+    return obj
+
+
+def _check_keys(obj: dict[str, Any], expected: frozenset[str], what: str) -> None:
+    keys = set(obj)
+    missing = expected - keys
+    if missing:
+        raise WireError(f"{what}: missing field(s) {sorted(missing)}")
+    extra = keys - expected
+    if extra:
+        raise WireError(f"{what}: unknown field(s) {sorted(map(str, extra))}")
+
+
+def _int(obj: dict[str, Any], key: str, what: str, lo: int, hi: int) -> int:
+    v = obj[key]
+    # bool is an int subclass in Python: reject it explicitly.
+    if not isinstance(v, int) or isinstance(v, bool):
+        raise WireError(f"{what}: field {key!r} must be an integer, got {type(v).__name__}")
+    if not lo <= v <= hi:
+        raise WireError(f"{what}: field {key!r} = {v} is outside {lo}..{hi}")
+    return v
+
+
+def _bin(obj: dict[str, Any], key: str, what: str) -> bytes:
+    v = obj[key]
+    if not isinstance(v, bytes):
+        raise WireError(f"{what}: field {key!r} must be binary (msgpack bin), got "
+                        f"{type(v).__name__}")
+    return v
+
+
+def _check_version(obj: dict[str, Any], what: str) -> None:
+    v = obj["version"]
+    if not isinstance(v, int) or isinstance(v, bool) or v != WIRE_VERSION:
+        raise WireError(f"{what}: unsupported version {v!r}, this reader knows version "
+                        f"{WIRE_VERSION}")
+
+
+def _size_arg(value: int, name: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise WireError(f"cannot encode: {name} must be an integer, got {type(value).__name__}")
+    if not 1 <= int(value) <= MAX_SIZE:
+        raise WireError(f"cannot encode: {name}={int(value)} is outside 1..{MAX_SIZE}")
+    return int(value)
+
+
+def _seq_arg(seq: int) -> int:
+    if isinstance(seq, bool) or not isinstance(seq, (int, np.integer)) or not 0 <= seq < 2**64:
+        raise WireError(f"cannot encode: seq={seq!r} must be an integer in 0..2**64-1")
+    return int(seq)
+
+
+# ----------------------------------------------------------------------------- events
+
+
+def encode_events(events: np.ndarray, *, height: int, width: int, seq: int) -> bytes:
+    """Pack an event chunk into one msgpack message.
+
+    Parameters
+    ----------
+    events : ndarray of EVENTS_DTYPE
+        Sorted by ``t_us``, inside ``width x height``, polarity +1/-1 (checked). May be empty.
+    height, width : int
+        Sensor size in pixels, 1..65535.
+    seq : int
+        Message sequence number (0-based, lets a receiver detect loss).
+
+    Raises
+    ------
+    WireError
+        If the events or sizes break the invariants.
+    """
+    h, w = _size_arg(height, "height"), _size_arg(width, "width")
+    seq = _seq_arg(seq)
+    try:
+        validate_events(events, SensorSize(height=h, width=w), where="cannot encode events")
+    except EventError as exc:
+        raise WireError(str(exc)) from None
+    msg: dict[str, Any] = {"version": WIRE_VERSION, "height": h, "width": w, "seq": seq,
+                           "n": int(events.shape[0])}
+    for name, dt in _COLUMNS:
+        msg[name] = np.ascontiguousarray(events[name], dtype=dt).tobytes()
+    return msgpack.packb(msg, use_bin_type=True)
+
+
+def decode_events(buf: bytes | bytearray | memoryview) -> tuple[np.ndarray, dict[str, Any]]:
+    """Unpack one events message.
+
+    Returns
+    -------
+    events : ndarray of EVENTS_DTYPE
+        A new (writable) array, sorted, inside the sensor.
+    header : dict
+        ``version``, ``height``, ``width``, ``seq``, ``n``.
+
+    Raises
+    ------
+    WireError
+        With a message naming the first problem found.
+
+    Examples
+    --------
+    >>> from evcal.events import make_events
+    >>> ev = make_events([1, 2], [3, 4], [5, 6], [1, 0])
+    >>> out, header = decode_events(encode_events(ev, height=10, width=20, seq=7))
+    >>> bool((out == ev).all()), header["seq"], header["n"]
+    (True, 7, 2)
+    """
+    what = "events message"
+    obj = _unpack(buf, what)
+    _check_keys(obj, _EVENT_KEYS, what)
+    _check_version(obj, what)
+    h = _int(obj, "height", what, 1, MAX_SIZE)
+    w = _int(obj, "width", what, 1, MAX_SIZE)
+    seq = _int(obj, "seq", what, 0, 2**64 - 1)
+    what = f"events message seq {seq}"
+    n = _int(obj, "n", what, 0, 2**62)
+    columns = {}
+    for name, dt in _COLUMNS:
+        raw = _bin(obj, name, what)
+        expected = n * dt.itemsize
+        if len(raw) != expected:
+            state = "truncated" if len(raw) < expected else "too long"
+            raise WireError(
+                f"{what}: field {name!r} is {state}: {len(raw)} bytes, expected {expected} "
+                f"({n} events x {dt.itemsize} bytes of {dt.str})"
+            )
+        columns[name] = np.frombuffer(raw, dtype=dt)
+    events = np.empty(n, dtype=EVENTS_DTYPE)
+    for name, col in columns.items():
+        events[name] = col
+    try:
+        validate_events(events, SensorSize(height=h, width=w), where=what)
+    except EventError as exc:
+        raise WireError(str(exc)) from None
+    header = {"version": WIRE_VERSION, "height": h, "width": w, "seq": seq, "n": n}
+    return events, header
+
+
+# ----------------------------------------------------------------------------- frames
+
+
+def encode_frame(t_us: int, image: np.ndarray, *, exposure_us: int, seq: int) -> bytes:
+    """Pack one intensity frame into one msgpack message.
+
+    Parameters
+    ----------
+    t_us : int
+        Time the frame represents, µs (int64).
+    image : ndarray, shape (H, W), dtype uint8 or float32
+        Indexed ``[y, x]``; float32 frames must be finite.
+    exposure_us : int
+        Exposure time in µs, 0 when unknown.
+    seq : int
+        Message sequence number.
+
+    Raises
+    ------
+    WireError
+        On a wrong dtype, shape or value.
+    """
+    seq = _seq_arg(seq)
+    for name, v in (("t_us", t_us), ("exposure_us", exposure_us)):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)):
+            raise WireError(f"cannot encode frame: {name} must be an integer, got "
+                            f"{type(v).__name__}")
+    if not _INT64_MIN <= int(t_us) <= _INT64_MAX:
+        raise WireError(f"cannot encode frame: t_us={int(t_us)} does not fit int64")
+    if not 0 <= int(exposure_us) <= _INT64_MAX:
+        raise WireError(f"cannot encode frame: exposure_us={int(exposure_us)} must be >= 0")
+    image = np.asarray(image)
+    if image.ndim != 2:
+        raise WireError(f"cannot encode frame: image has shape {image.shape}, expected (H, W)")
+    h, w = image.shape
+    _size_arg(h, "frame height")
+    _size_arg(w, "frame width")
+    names = {dt: name for name, dt in FRAME_DTYPES.items()}
+    dt = image.dtype.newbyteorder("<") if image.dtype.kind == "f" else image.dtype
+    if dt not in names:
+        raise WireError(f"cannot encode frame: dtype {image.dtype} is not uint8 or float32")
+    if image.dtype.kind == "f" and not np.isfinite(image).all():
+        raise WireError("cannot encode frame: image contains NaN or infinite values")
+    msg = {
+        "version": WIRE_VERSION, "height": h, "width": w, "seq": seq, "t_us": int(t_us),
+        "exposure_us": int(exposure_us), "dtype": names[dt],
+        "data": np.ascontiguousarray(image, dtype=dt).tobytes(),
+    }
+    return msgpack.packb(msg, use_bin_type=True)
+
+
+def decode_frame(
+    buf: bytes | bytearray | memoryview,
+) -> tuple[int, int, np.ndarray, dict[str, Any]]:
+    """Unpack one frame message.
+
+    Returns
+    -------
+    t_us : int
+    exposure_us : int
+    image : ndarray, shape (H, W), uint8 or float32
+        A read-only view of the message bytes (copy it to modify it).
+    header : dict
+        ``version``, ``height``, ``width``, ``seq``, ``dtype``.
+
+    Raises
+    ------
+    WireError
+        With a message naming the first problem found.
+    """
+    what = "frame message"
+    obj = _unpack(buf, what)
+    _check_keys(obj, _FRAME_KEYS, what)
+    _check_version(obj, what)
+    h = _int(obj, "height", what, 1, MAX_SIZE)
+    w = _int(obj, "width", what, 1, MAX_SIZE)
+    seq = _int(obj, "seq", what, 0, 2**64 - 1)
+    what = f"frame message seq {seq}"
+    t_us = _int(obj, "t_us", what, _INT64_MIN, _INT64_MAX)
+    exposure_us = _int(obj, "exposure_us", what, 0, _INT64_MAX)
+    name = obj["dtype"]
+    if not isinstance(name, str) or name not in FRAME_DTYPES:
+        raise WireError(f"{what}: dtype {name!r} is not one of {sorted(FRAME_DTYPES)}")
+    dt = FRAME_DTYPES[name]
+    data = _bin(obj, "data", what)
+    expected = h * w * dt.itemsize
+    if len(data) != expected:
+        state = "truncated" if len(data) < expected else "too long"
+        raise WireError(f"{what}: field 'data' is {state}: {len(data)} bytes, expected "
+                        f"{expected} ({h}x{w} {name})")
+    image = np.frombuffer(data, dtype=dt).reshape(h, w)
+    if dt.kind == "f":
+        bad = ~np.isfinite(image)
+        if bad.any():
+            y, x = (int(v) for v in np.argwhere(bad)[0])
+            raise WireError(f"{what}: float32 image has {int(bad.sum())} NaN or infinite "
+                            f"values, the first at (x={x}, y={y})")
+    header = {"version": WIRE_VERSION, "height": h, "width": w, "seq": seq, "dtype": name}
+    return t_us, exposure_us, image, header
