@@ -248,8 +248,8 @@ class OffEIConfig:
     residual_correction: str | float = "auto"
     saturation_dn: tuple[float, float] = (0.0, 255.0)
     limits: SolveLimits = field(default_factory=SolveLimits)
-    offset_grid: tuple[float, float, int] = (1.0, 400.0, 33)
-    offset_pixels: int = 20000
+    offset_grid: tuple[float, float, int] = (1.0, 400.0, 21)
+    offset_pixels: int = 10000
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -375,21 +375,22 @@ def _events_per_pixel(rec: Recording, t0_us: int, t1_us: int) -> np.ndarray:
 # log offset
 
 
-def _unexplained_fraction(sp: np.ndarray, se: np.ndarray, dl: np.ndarray, w: np.ndarray
-                          ) -> float:
-    """Mean over pixels of RSS / TSS of the per-pixel fit (columns are pixels)."""
-    a11 = (w * sp * sp).sum(0)
-    a12 = (w * sp * se).sum(0)
-    a22 = (w * se * se).sum(0)
-    r1 = (w * sp * dl).sum(0)
-    r2 = (w * se * dl).sum(0)
+def _unexplained_fraction(sp: np.ndarray, se: np.ndarray, dl: np.ndarray, w: np.ndarray,
+                          dq: np.ndarray) -> float:
+    """Mean over pixels of RSS / TSS of the per-pixel fit ``dL ~ P + E + Q``.
+
+    Columns are pixels. ``Q`` (change of last polarity) takes up the sub-threshold residual
+    so that it does not pull the offset.
+    """
+    x = np.stack([sp, se, dq], axis=-1)  # windows, pixels, 3
+    xw = x * w[..., None]
+    ata = np.einsum("wpi,wpj->pij", xw, x)
+    aty = np.einsum("wpi,wp->pi", xw, dl)
     yy = (w * dl * dl).sum(0)
-    det = a11 * a22 - a12 * a12
-    ok = (det > 1e-3 * a11 * a22) & (yy > 0)
-    det = np.where(ok, det, 1.0)
-    c = (a22 * r1 - a12 * r2) / det
-    b = (a11 * r2 - a12 * r1) / det
-    rss = yy - (c * r1 + b * r2)
+    ata += np.eye(3) * 1e-9 * np.trace(ata, axis1=1, axis2=2)[:, None, None]
+    ok = (np.linalg.cond(ata) < 1e8) & (yy > 0)
+    sol = np.linalg.solve(np.where(ok[:, None, None], ata, np.eye(3)), np.where(ok[:, None], aty, 0.0)[..., None])[..., 0]
+    rss = yy - (sol * aty).sum(-1)
     frac = np.where(ok, np.maximum(rss, 0.0) / np.where(ok, yy, 1.0), np.nan)
     return float(np.nanmean(frac))
 
@@ -410,13 +411,14 @@ def estimate_log_offset(rec: Recording, cfg: OffEIConfig) -> tuple[float, dict]:
         raise CalibrationError("no pixel has enough events to estimate the log offset")
     rng = np.random.default_rng(cfg.seed)
     pix = np.sort(rng.choice(busy, size=min(cfg.offset_pixels, busy.size), replace=False))
-    sps, ses, f_j, f_k, ws = [], [], [], [], []
+    sps, ses, dqs, f_j, f_k, ws = [], [], [], [], [], []
     ring: deque[Snapshot] = deque(maxlen=d + 1)
     for snap in frame_snapshots(rec):
         ring.append(snap)
         if len(ring) == d + 1:
             s_j, s_k = ring[0], ring[-1]
-            sp, se, _, _ = _window_terms(s_j, s_k)
+            sp, se, dq, _ = _window_terms(s_j, s_k)
+            dqs.append(dq[pix])
             ij = s_j.image.ravel()[pix]
             ik = s_k.image.ravel()[pix]
             sps.append(sp[pix])
@@ -424,7 +426,7 @@ def estimate_log_offset(rec: Recording, cfg: OffEIConfig) -> tuple[float, dict]:
             f_j.append(ij)
             f_k.append(ik)
             ws.append((usable(ij, cfg.saturation_dn) & usable(ik, cfg.saturation_dn)))
-    sp_a, se_a = np.asarray(sps), np.asarray(ses)
+    sp_a, se_a, dq_a = np.asarray(sps), np.asarray(ses), np.asarray(dqs)
     fj = np.asarray(f_j, np.float64)
     fk = np.asarray(f_k, np.float64)
     w = np.asarray(ws, np.float64)
@@ -433,7 +435,7 @@ def estimate_log_offset(rec: Recording, cfg: OffEIConfig) -> tuple[float, dict]:
 
     def crit(o: float) -> float:
         dl = np.log(np.maximum(fk, 0) + o) - np.log(np.maximum(fj, 0) + o)
-        return _unexplained_fraction(sp_a, se_a, dl, w)
+        return _unexplained_fraction(sp_a, se_a, dl, w, dq_a)
 
     vals = np.array([crit(o) for o in grid])
     i = int(np.nanargmin(vals))
