@@ -299,3 +299,162 @@ def decode_frame(
                             f"values, the first at (x={x}, y={y})")
     header = {"version": WIRE_VERSION, "height": h, "width": w, "seq": seq, "dtype": name}
     return t_us, exposure_us, image, header
+
+
+# ----------------------------------------------------------------------------- calibrations
+#
+# One calibration message is a msgpack map:
+#
+#     {"version": 1, "height": H, "width": W, "seq": n, "t_us": int, "n_events_used": int,
+#      "method": str, "log_offset": float, "params_json": str,
+#      "maps": {name: <bin, H * W values, row-major [y, x], little-endian>, ...}}
+#
+# ``maps`` holds any subset of CALIBRATION_MAP_DTYPES (a query may ask for some fields only);
+# each map's dtype is fixed by its name. A full message converts to a Calibration.
+
+CALIBRATION_MAP_DTYPES: dict[str, np.dtype] = {
+    "contrast": np.dtype("<f4"),
+    "bias": np.dtype("<f4"),
+    "valid": np.dtype("u1"),  # 0 / 1
+    "reason": np.dtype("u1"),
+    "stderr_contrast": np.dtype("<f4"),
+    "stderr_bias": np.dtype("<f4"),
+    "special": np.dtype("u1"),
+    "n_events": np.dtype("<i8"),
+}
+_CALIBRATION_KEYS = frozenset({"version", "height", "width", "seq", "t_us", "n_events_used",
+                               "method", "log_offset", "params_json", "maps"})
+
+
+def encode_calibration(cal: Any, *, t_us: int, seq: int,
+                       fields: Any = None) -> bytes:
+    """Pack a :class:`~evcal.calibration.Calibration` (or the ``fields`` subset of its maps).
+
+    ``t_us`` is the sensor time of the calibration (the last frame used), ``seq`` the
+    message counter of the camera's calibration stream.
+
+    Raises
+    ------
+    WireError
+        For an unknown field name or a value that cannot be encoded.
+    """
+    import json
+    import math
+
+    from ._util import to_jsonable
+
+    seq = _seq_arg(seq)
+    names = list(CALIBRATION_MAP_DTYPES) if fields is None else list(fields)
+    unknown = sorted(set(names) - set(CALIBRATION_MAP_DTYPES))
+    if unknown:
+        raise WireError(f"cannot encode calibration: unknown field(s) {unknown}; known: "
+                        f"{sorted(CALIBRATION_MAP_DTYPES)}")
+    h, w = cal.shape
+    _size_arg(h, "height")
+    _size_arg(w, "width")
+    if isinstance(t_us, bool) or not isinstance(t_us, (int, np.integer)):
+        raise WireError(f"cannot encode calibration: t_us must be an integer, got {t_us!r}")
+    log_offset = float(cal.log_offset)
+    if not math.isfinite(log_offset):
+        raise WireError(f"cannot encode calibration: log_offset={log_offset} is not finite")
+    maps = {name: np.ascontiguousarray(getattr(cal, name),
+                                       dtype=CALIBRATION_MAP_DTYPES[name]).tobytes()
+            for name in names}
+    msg = {
+        "version": WIRE_VERSION, "height": int(h), "width": int(w), "seq": seq,
+        "t_us": int(t_us), "n_events_used": int(np.asarray(cal.n_events).sum()),
+        "method": str(cal.method), "log_offset": log_offset,
+        "params_json": json.dumps(to_jsonable(cal.params), default=repr, sort_keys=True),
+        "maps": maps,
+    }
+    return msgpack.packb(msg, use_bin_type=True)
+
+
+def decode_calibration_maps(
+    buf: bytes | bytearray | memoryview,
+) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """Unpack a calibration message into its maps (any subset) and header.
+
+    Returns ``(maps, header)``: maps are ``[H, W]`` arrays of the dtypes of
+    :data:`CALIBRATION_MAP_DTYPES` (``valid`` as bool); the header holds ``version``,
+    ``height``, ``width``, ``seq``, ``t_us``, ``n_events_used``, ``method``, ``log_offset``
+    and ``params`` (a dict).
+
+    Raises
+    ------
+    WireError
+        Naming the first problem found.
+    """
+    import json
+    import math
+
+    what = "calibration message"
+    obj = _unpack(buf, what)
+    _check_keys(obj, _CALIBRATION_KEYS, what)
+    _check_version(obj, what)
+    h = _int(obj, "height", what, 1, MAX_SIZE)
+    w = _int(obj, "width", what, 1, MAX_SIZE)
+    seq = _int(obj, "seq", what, 0, 2**64 - 1)
+    what = f"calibration message seq {seq}"
+    t_us = _int(obj, "t_us", what, _INT64_MIN, _INT64_MAX)
+    n_used = _int(obj, "n_events_used", what, 0, _INT64_MAX)
+    method = obj["method"]
+    if not isinstance(method, str):
+        raise WireError(f"{what}: field 'method' must be a string")
+    lo = obj["log_offset"]
+    if isinstance(lo, bool) or not isinstance(lo, (int, float)) or not math.isfinite(lo):
+        raise WireError(f"{what}: field 'log_offset' must be a finite number, got {lo!r}")
+    pj = obj["params_json"]
+    try:
+        params = json.loads(pj) if isinstance(pj, str) else None
+    except ValueError:
+        params = None
+    if not isinstance(params, dict):
+        raise WireError(f"{what}: field 'params_json' must be a JSON object string")
+    raw_maps = obj["maps"]
+    if not isinstance(raw_maps, dict):
+        raise WireError(f"{what}: field 'maps' must be a map, got {type(raw_maps).__name__}")
+    maps: dict[str, np.ndarray] = {}
+    for name, raw in raw_maps.items():
+        if name not in CALIBRATION_MAP_DTYPES:
+            raise WireError(f"{what}: unknown map {name!r}")
+        if not isinstance(raw, bytes):
+            raise WireError(f"{what}: map {name!r} must be binary (msgpack bin)")
+        dt = CALIBRATION_MAP_DTYPES[name]
+        expected = h * w * dt.itemsize
+        if len(raw) != expected:
+            state = "truncated" if len(raw) < expected else "too long"
+            raise WireError(f"{what}: map {name!r} is {state}: {len(raw)} bytes, expected "
+                            f"{expected} ({w}x{h} {dt.str})")
+        a = np.frombuffer(raw, dtype=dt).reshape(h, w)
+        maps[name] = a.astype(bool) if name == "valid" else a.copy()
+    for name in ("contrast", "bias"):
+        if name in maps and not np.isfinite(maps[name]).all():
+            raise WireError(f"{what}: map {name!r} contains NaN or infinite values")
+    header = {"version": WIRE_VERSION, "height": h, "width": w, "seq": seq, "t_us": t_us,
+              "n_events_used": n_used, "method": method, "log_offset": float(lo),
+              "params": params}
+    return maps, header
+
+
+def decode_calibration(buf: bytes | bytearray | memoryview) -> tuple[Any, dict[str, Any]]:
+    """Unpack a full calibration message into ``(Calibration, header)``.
+
+    Raises
+    ------
+    WireError
+        If the message is malformed or does not carry every map.
+    """
+    from ..calibration import Calibration
+
+    maps, header = decode_calibration_maps(buf)
+    missing = sorted(set(CALIBRATION_MAP_DTYPES) - set(maps))
+    if missing:
+        raise WireError(f"calibration message seq {header['seq']}: map(s) {missing} missing "
+                        "(a partial message: query without fields= to get all maps)")
+    try:
+        cal = Calibration(log_offset=header["log_offset"], method=header["method"],
+                          params=header["params"], **maps)
+    except ValueError as exc:
+        raise WireError(f"calibration message seq {header['seq']}: {exc}") from None
+    return cal, header

@@ -1,0 +1,69 @@
+"""Key expressions and payload encodings of the evcal network protocol (see docs/WIRE.md).
+
+A camera id is one or more key chunks (``cam0``, ``lab/rig1/cam0``). Under a prefix
+(default ``evcal``, may itself have several chunks) a camera has::
+
+    <prefix>/<camera>/events        in:  event chunks        (msgpack, evcal.io.wire)
+    <prefix>/<camera>/frames        in:  intensity frames    (msgpack, evcal.io.wire)
+    <prefix>/<camera>/calibration   out: calibration maps    (msgpack; queryable: msgpack | npz)
+    <prefix>/<camera>/status        out: counters and rates  (JSON; also a queryable)
+    <prefix>/<camera>/errors        out: rejected inputs     (JSON, one per error, rate-limited)
+    <prefix>/cameras                queryable: each service instance's cameras (JSON)
+    <prefix>/@service/<instance>    liveliness token of a running service instance
+"""
+
+from __future__ import annotations
+
+INPUT_KINDS = ("events", "frames")
+OUTPUT_KINDS = ("calibration", "status", "errors")
+
+ENC_EVENTS = "application/msgpack;evcal.events.v1"
+ENC_FRAME = "application/msgpack;evcal.frame.v1"
+ENC_CALIBRATION = "application/msgpack;evcal.calibration.v1"
+ENC_CALIBRATION_NPZ = "application/x-npz;evcal.calibration.v1"
+ENC_STATUS = "application/json;evcal.status.v1"
+ENC_ERROR = "application/json;evcal.error.v1"
+ENC_CAMERAS = "application/json;evcal.cameras.v1"
+
+SERVICE_CHUNK = "@service"
+
+
+def _strip(s: str) -> str:
+    return s.strip("/")
+
+
+def camera_key(prefix: str, camera: str, kind: str) -> str:
+    """``<prefix>/<camera>/<kind>``."""
+    return f"{_strip(prefix)}/{_strip(camera)}/{kind}"
+
+
+def cameras_key(prefix: str) -> str:
+    return f"{_strip(prefix)}/cameras"
+
+
+def service_token_key(prefix: str, instance: str = "*") -> str:
+    return f"{_strip(prefix)}/{SERVICE_CHUNK}/{instance}"
+
+
+def split_camera_key(prefix: str, key: str) -> tuple[str, str] | None:
+    """``(camera, kind)`` of a concrete key ``<prefix>/<camera>/<kind>``, else ``None``."""
+    head = _strip(prefix) + "/"
+    if not key.startswith(head):
+        return None
+    rest = key[len(head):]
+    camera, sep, kind = rest.rpartition("/")
+    if not sep or not camera:
+        return None
+    return camera, kind
+
+
+def check_camera_id(camera: str) -> str:
+    """A camera id: non-empty chunks of printable characters, no wildcards, no ``@`` chunk."""
+    chunks = camera.split("/")
+    bad = (not camera or any(not c for c in chunks) or any(c.startswith("@") for c in chunks)
+           or any(ch in camera for ch in "*$?#") or not camera.isprintable())
+    if bad:
+        raise ValueError(f"camera id {camera!r} is not valid: expected '/'-separated non-empty "
+                         "chunks without '*', '$', '?', '#' or a leading '@', e.g. "
+                         "'lab/rig1/cam0'")
+    return camera

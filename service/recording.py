@@ -1,0 +1,311 @@
+"""Rerun recording of a service run (``evcal serve --rrd PATH``): the only module importing rerun.
+
+Entities, per camera (``<cam>`` is the camera id, which may have several chunks)::
+
+    cameras/<cam>/maps/contrast      DepthImage, viridis, robust range      (at most every
+    cameras/<cam>/maps/bias          DepthImage, cyan-to-yellow              map_period_s of
+    cameras/<cam>/maps/special       SegmentationImage + legend              sensor time)
+    cameras/<cam>/hist/contrast      BarChart of valid pixels' c
+    cameras/<cam>/hist/bias          BarChart of valid pixels' b
+    cameras/<cam>/recon/calibrated   Image: events integrated with the live calibration
+    cameras/<cam>/recon/di           Image: the same with direct integration (c=0.1, b=0)
+    cameras/<cam>/recon/frame        Image: the reference frame at the end of the window
+    cameras/<cam>/series/<name>      Scalars: event_rate_hz, latency_ms, valid_fraction,
+                                     psnr_calibrated_db, psnr_di_db, psnr_gain_db, errors
+    cameras/<cam>/log                TextLog: discovery, rejected inputs (rate-limited)
+
+Timelines: ``sensor_time`` (the camera's t_us as a duration) and ``wall_time``.
+
+File growth is bounded: maps and reconstructions at most once per ``map_period_s`` /
+``recon_period_s`` of sensor time, and no more images once ``max_image_bytes`` were logged
+(a warning says so in the file); scalars at most every ``scalar_period_s`` (tens of bytes
+each). A blueprint with one tab per camera is stored in the file and re-sent when a camera
+appears.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+
+from ..calibration import SPECIAL_LEGEND, Calibration, Special
+from ..lsq import log_intensity
+
+log = logging.getLogger("evcal.service.recording")
+
+APP_ID = "evcal-service"
+_SPECIAL_COLORS = {
+    Special.UNOBSERVED: (40, 40, 40),
+    Special.NORMAL: (150, 150, 150),
+    Special.HOT: (230, 60, 40),
+    Special.COLD: (60, 120, 230),
+    Special.WARM: (240, 170, 30),
+    Special.COOL: (40, 200, 200),
+}
+SERIES = ("event_rate_hz", "latency_ms", "valid_fraction", "psnr_calibrated_db", "psnr_di_db",
+          "psnr_gain_db", "errors_total")
+
+
+def entity(camera: str, *parts: str) -> str:
+    return "/".join(("cameras", camera, *parts))
+
+
+def camera_blueprint(camera: str) -> Any:
+    base = "/" + entity(camera)
+    maps = rrb.Grid(
+        rrb.Spatial2DView(origin=f"{base}/maps/contrast", name="contrast c"),
+        rrb.Spatial2DView(origin=f"{base}/maps/bias", name="bias b"),
+        rrb.Spatial2DView(origin=f"{base}/maps/special", name="special pixels"),
+        rrb.Spatial2DView(origin=f"{base}/recon/calibrated", name="calibrated reconstruction"),
+        rrb.Spatial2DView(origin=f"{base}/recon/di", name="DI reconstruction"),
+        rrb.Spatial2DView(origin=f"{base}/recon/frame", name="reference frame"),
+        grid_columns=3,
+    )
+    hists = rrb.Horizontal(
+        rrb.BarChartView(origin=f"{base}/hist/contrast", name="histogram of c"),
+        rrb.BarChartView(origin=f"{base}/hist/bias", name="histogram of b"),
+    )
+    series = rrb.Horizontal(
+        rrb.TimeSeriesView(origin=f"{base}/series", name="rates and latency",
+                           contents=[f"{base}/series/event_rate_hz",
+                                     f"{base}/series/latency_ms",
+                                     f"{base}/series/errors_total"]),
+        rrb.TimeSeriesView(origin=f"{base}/series", name="PSNR (dB)",
+                           contents=[f"{base}/series/psnr_calibrated_db",
+                                     f"{base}/series/psnr_di_db",
+                                     f"{base}/series/psnr_gain_db"]),
+    )
+    return rrb.Vertical(maps, hists, series, rrb.TextLogView(origin=f"{base}/log", name="log"),
+                        row_shares=[3, 1.2, 1.2, 0.6], name=camera)
+
+
+def make_blueprint(cameras: list[str]) -> Any:
+    if not cameras:
+        return rrb.Blueprint(rrb.TextLogView(origin="/service", name="service"),
+                             collapse_panels=False)
+    return rrb.Blueprint(rrb.Tabs(*[camera_blueprint(c) for c in cameras]),
+                         collapse_panels=False)
+
+
+def _psnr(a: np.ndarray, b: np.ndarray) -> float:
+    try:
+        from ..metrics import psnr
+    except ImportError:  # pragma: no cover - metrics is part of the core
+        mse = float(np.mean((a - b) ** 2))
+        return float("inf") if mse == 0 else 10 * np.log10(255.0**2 / mse)
+    return psnr(a, b, 255.0)
+
+
+def _reconstruct(log_start: np.ndarray, events: np.ndarray, cal: Calibration) -> np.ndarray:
+    from ..reconstruct import integrate, to_intensity
+
+    return to_intensity(integrate(log_start, events, cal), cal.log_offset)
+
+
+@dataclass
+class _CameraLog:
+    shape: tuple[int, int]
+    last_map_t_us: int | None = None
+    last_recon_t_us: int | None = None
+    last_scalar_t_us: int | None = None
+    cal: Calibration | None = None
+    # an open reconstruction window
+    recon_start: np.ndarray | None = None
+    recon_t0_us: int = 0
+    recon_frames: int = 0
+    recon_events: list[np.ndarray] = field(default_factory=list)
+    recon_n: int = 0
+
+
+class RrdLogger:
+    """Writes one ``.rrd`` per service run; implements :class:`evcal.service.core.Observer`."""
+
+    def __init__(self, path: str | Path, *, map_period_s: float = 2.0,
+                 recon_period_s: float = 2.0, recon_frames: int = 5,
+                 scalar_period_s: float = 0.2, max_image_bytes: int = 300 << 20,
+                 max_recon_events: int = 5_000_000, recording_id: str | None = None):
+        self.path = Path(path)
+        self.map_period_us = int(map_period_s * 1e6)
+        self.recon_period_us = int(recon_period_s * 1e6)
+        self.recon_frames = int(recon_frames)
+        self.scalar_period_us = int(scalar_period_s * 1e6)
+        self.max_image_bytes = int(max_image_bytes)
+        self.max_recon_events = int(max_recon_events)
+        self.image_bytes = 0
+        self._images_stopped = False
+        self._cams: dict[str, _CameraLog] = {}
+        self._lock = threading.Lock()
+        self.rec = rr.RecordingStream(APP_ID, recording_id=recording_id)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.rec.save(self.path, default_blueprint=make_blueprint([]))
+        self._set_time(None)
+        self.rec.log("service", rr.TextLog("evcal service started", level="INFO"))
+        self._closed = False
+
+    # -- helpers ---------------------------------------------------------------------------
+
+    def _set_time(self, t_us: int | None) -> None:
+        if t_us is not None:
+            self.rec.set_time("sensor_time", duration=t_us * 1e-6)
+        self.rec.set_time("wall_time", timestamp=time.time())
+
+    def _image_budget(self, nbytes: int, camera: str) -> bool:
+        with self._lock:
+            if self.image_bytes + nbytes > self.max_image_bytes:
+                if not self._images_stopped:
+                    self._images_stopped = True
+                    self.rec.log("service", rr.TextLog(
+                        f"image budget of {self.max_image_bytes >> 20} MiB reached: no more "
+                        "maps or reconstructions in this file (scalars continue)",
+                        level="WARN"))
+                return False
+            self.image_bytes += nbytes
+            return True
+
+    def _camera(self, camera: str, shape: tuple[int, int]) -> _CameraLog:
+        cl = self._cams.get(camera)
+        if cl is None:
+            with self._lock:
+                cl = self._cams[camera] = _CameraLog(shape)
+                names = sorted(self._cams)
+            self._log_static(camera)
+            self.rec.send_blueprint(make_blueprint(names), make_active=True, make_default=True)
+            self.rec.log(entity(camera, "log"), rr.TextLog(
+                f"camera {camera}: {shape[1]}x{shape[0]} sensor", level="INFO"))
+        return cl
+
+    def _log_static(self, camera: str) -> None:
+        self.rec.log(entity(camera, "maps", "special"), rr.AnnotationContext([
+            rr.AnnotationInfo(id=int(k), label=SPECIAL_LEGEND[int(k)], color=c)
+            for k, c in _SPECIAL_COLORS.items()]), static=True)
+
+    # -- Observer --------------------------------------------------------------------------
+
+    def events(self, camera: str, events: np.ndarray) -> None:
+        cl = self._cams.get(camera)
+        if cl is None or cl.recon_start is None:
+            return
+        if cl.recon_n + events.size > self.max_recon_events:
+            cl.recon_start, cl.recon_events, cl.recon_n = None, [], 0  # too busy: skip
+            return
+        cl.recon_events.append(events)
+        cl.recon_n += int(events.size)
+
+    def frame(self, camera: str, t_us: int, image: np.ndarray) -> None:
+        cl = self._cams.get(camera)
+        if cl is None or cl.cal is None:
+            return
+        if cl.recon_start is not None:
+            cl.recon_frames += 1
+            if cl.recon_frames >= self.recon_frames:
+                self._finish_recon(camera, cl, t_us, image)
+            return
+        due = cl.last_recon_t_us is None or t_us - cl.last_recon_t_us >= self.recon_period_us
+        if due and not self._images_stopped:
+            cl.recon_start = log_intensity(np.asarray(image).ravel(), cl.cal.log_offset
+                                           ).reshape(cl.shape)
+            cl.recon_t0_us = t_us
+            cl.recon_frames = 0
+            cl.recon_events, cl.recon_n = [], 0
+
+    def _finish_recon(self, camera: str, cl: _CameraLog, t_us: int, image: np.ndarray) -> None:
+        assert cl.recon_start is not None and cl.cal is not None
+        ev = (np.concatenate(cl.recon_events) if cl.recon_events
+              else np.zeros(0, dtype=[("t_us", "<i8"), ("x", "<u2"), ("y", "<u2"), ("p", "i1")]))
+        ev = ev[(ev["t_us"] >= cl.recon_t0_us) & (ev["t_us"] < t_us)]
+        start = cl.recon_start
+        cl.recon_start, cl.recon_events, cl.recon_n = None, [], 0
+        cl.last_recon_t_us = t_us
+        ref = np.asarray(image, np.float64)
+        if image.dtype.kind == "f" and ref.max() <= 1.0:
+            ref = ref * 255.0
+        ours = _reconstruct(start, ev, cl.cal)
+        di = _reconstruct(start, ev, Calibration.uniform(cl.shape, log_offset=cl.cal.log_offset))
+        p_ours, p_di = _psnr(ours, ref), _psnr(di, ref)
+        self._set_time(t_us)
+        if self._image_budget(3 * ref.size, camera):
+            for name, img in (("calibrated", ours), ("di", di), ("frame", ref)):
+                self.rec.log(entity(camera, "recon", name),
+                             rr.Image(np.clip(np.rint(img), 0, 255).astype(np.uint8)))
+        for name, v in (("psnr_calibrated_db", p_ours), ("psnr_di_db", p_di),
+                        ("psnr_gain_db", p_ours - p_di)):
+            if np.isfinite(v):
+                self.rec.log(entity(camera, "series", name), rr.Scalars([float(v)]))
+
+    def updated(self, camera: str, cal: Calibration, t_us: int, status: dict[str, Any]
+                ) -> None:
+        cl = self._camera(camera, cal.shape)
+        cl.cal = cal
+        self._set_time(t_us)
+        if cl.last_scalar_t_us is None or t_us - cl.last_scalar_t_us >= self.scalar_period_us:
+            cl.last_scalar_t_us = t_us
+            lat = status.get("latency_ms", {}).get("last")
+            values = {"event_rate_hz": status.get("event_rate_hz"), "latency_ms": lat,
+                      "valid_fraction": cal.valid_fraction,
+                      "errors_total": status.get("errors_total")}
+            for name, v in values.items():
+                if v is not None:
+                    self.rec.log(entity(camera, "series", name), rr.Scalars([float(v)]))
+        if cl.last_map_t_us is not None and t_us - cl.last_map_t_us < self.map_period_us:
+            return
+        if not self._image_budget(cal.contrast.nbytes * 2 + cal.special.nbytes, camera):
+            return
+        cl.last_map_t_us = t_us
+        self._log_maps(camera, cal)
+
+    def _log_maps(self, camera: str, cal: Calibration) -> None:
+        v = cal.valid
+        c_lo, c_hi = (np.percentile(cal.contrast[v], [2, 98]) if v.any() else (0.0, 0.5))
+        b_abs = float(np.percentile(np.abs(cal.bias[v]), 98)) if v.any() else 0.1
+        c_hi = max(float(c_hi), float(c_lo) + 1e-3)
+        b_abs = max(b_abs, 1e-3)
+        self.rec.log(entity(camera, "maps", "contrast"), rr.DepthImage(
+            cal.contrast, colormap="viridis", depth_range=(float(c_lo), c_hi)))
+        self.rec.log(entity(camera, "maps", "bias"), rr.DepthImage(
+            cal.bias, colormap="cyantoyellow", depth_range=(-b_abs, b_abs)))
+        self.rec.log(entity(camera, "maps", "special"), rr.SegmentationImage(cal.special))
+        for name, values, rng in (("contrast", cal.contrast[v], (float(c_lo), c_hi)),
+                                  ("bias", cal.bias[v], (-b_abs, b_abs))):
+            if values.size == 0:
+                continue
+            lo, hi = rng
+            pad = 0.25 * (hi - lo)
+            counts, edges = np.histogram(values, bins=50, range=(lo - pad, hi + pad))
+            self.rec.log(entity(camera, "hist", name), rr.BarChart(
+                counts.astype(np.float64), abscissa=0.5 * (edges[:-1] + edges[1:])))
+
+    def note(self, camera: str, text: str, level: str = "WARN") -> None:
+        if camera in self._cams:
+            self._set_time(None)
+            self.rec.log(entity(camera, "log"), rr.TextLog(text, level=level))
+
+    def close(self) -> None:
+        """Flush and finish the file (footer included): the ``.rrd`` is complete after this."""
+        if self._closed:
+            return
+        self._closed = True
+        self._set_time(None)
+        self.rec.log("service", rr.TextLog("evcal service stopped", level="INFO"))
+        self.rec.flush()
+        self.rec.disconnect()
+
+
+def read_entities(path: str | Path) -> dict[str, int]:
+    """``{entity_path: rows}`` of a ``.rrd`` (for tests and the demo's summary)."""
+    from rerun.chunk import RrdReader
+
+    counts: dict[str, int] = {}
+    reader = RrdReader(str(path))
+    for store in reader.recordings():
+        for chunk in reader.stream(store=store).collect().stream():
+            p = str(chunk.entity_path)
+            counts[p] = counts.get(p, 0) + int(chunk.num_rows)
+    return counts

@@ -1,0 +1,328 @@
+"""Zenoh transport: the only module of evcal that imports :mod:`zenoh`.
+
+Everything else talks to the network through :class:`Transport` (an open session) with plain
+Python types: key strings, ``bytes`` payloads, encoding strings, and :class:`Request` for a
+query. Connection options are a :class:`ZenohOptions` (no zenoh objects), built from the
+command-line flags of zenoh's own examples by :func:`add_zenoh_arguments` /
+:func:`options_from_args`.
+
+Facts this module relies on (eclipse-zenoh 1.10):
+
+- A callback handler with ``indirect=False`` runs in zenoh's receive thread; with the default
+  (``indirect=True``) zenoh queues samples for a Python thread in an *unbounded* queue. We
+  always use ``indirect=False`` and keep our own bounded queues (see ``core.CameraQueue``).
+- Sessions must be closed: an open session holding callback subscribers keeps the process
+  alive. :class:`Transport` is a context manager.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import threading
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from typing import Any
+
+import zenoh
+
+log = logging.getLogger("evcal.transport")
+
+MODES = ("peer", "client", "router")
+
+
+class TransportError(RuntimeError):
+    """The session could not be opened or an operation on it failed."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class ZenohOptions:
+    """How to open a session; ``None`` keeps zenoh's default (or the config file's value)."""
+
+    mode: str | None = None
+    connect: tuple[str, ...] = ()
+    listen: tuple[str, ...] = ()
+    config_file: str | None = None
+    multicast_scouting: bool | None = None
+    extra: tuple[tuple[str, str], ...] = field(default=())  # (key, json5 value)
+
+    def __post_init__(self) -> None:
+        if self.mode is not None and self.mode not in MODES:
+            raise ValueError(f"zenoh mode {self.mode!r} is not one of {MODES}")
+
+    @classmethod
+    def loopback(cls, *, listen: Iterable[str] = (), connect: Iterable[str] = (),
+                 mode: str = "peer") -> ZenohOptions:
+        """Options for tests and the embedded demo: explicit endpoints, no scouting."""
+        return cls(mode=mode, listen=tuple(listen), connect=tuple(connect),
+                   multicast_scouting=False)
+
+    def to_config(self) -> zenoh.Config:
+        try:
+            conf = (zenoh.Config.from_file(self.config_file) if self.config_file
+                    else zenoh.Config())
+            if self.mode is not None:
+                conf.insert_json5("mode", json.dumps(self.mode))
+            if self.connect:
+                conf.insert_json5("connect/endpoints", json.dumps(list(self.connect)))
+            if self.listen:
+                conf.insert_json5("listen/endpoints", json.dumps(list(self.listen)))
+            if self.multicast_scouting is not None:
+                conf.insert_json5("scouting/multicast/enabled",
+                                  json.dumps(bool(self.multicast_scouting)))
+            for key, value in self.extra:
+                conf.insert_json5(key, value)
+        except Exception as exc:  # zenoh raises ZError for bad config values
+            raise TransportError(f"invalid zenoh configuration: {exc}") from None
+        return conf
+
+
+def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
+    """The connection flags of zenoh's examples: --mode, --connect, --listen, --config."""
+    g = parser.add_argument_group("zenoh")
+    g.add_argument("--mode", "-m", choices=MODES, help="zenoh session mode (default: peer)")
+    g.add_argument("--connect", "-e", metavar="ENDPOINT", action="append", default=[],
+                   help="endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable)")
+    g.add_argument("--listen", "-l", metavar="ENDPOINT", action="append", default=[],
+                   help="endpoint to listen on (repeatable)")
+    g.add_argument("--config", "-c", metavar="FILE", help="a zenoh JSON5 configuration file")
+    g.add_argument("--no-multicast-scouting", action="store_true",
+                   help="disable multicast scouting (find peers only through --connect)")
+    g.add_argument("--cfg", metavar="KEY:VALUE", action="append", default=[],
+                   help="any zenoh configuration change, VALUE in JSON5, e.g. "
+                        "--cfg='transport/unicast/max_links:2' (repeatable)")
+
+
+def options_from_args(args: argparse.Namespace) -> ZenohOptions:
+    extra = []
+    for item in args.cfg:
+        key, sep, value = item.partition(":")
+        if not sep or not key:
+            raise ValueError(f"--cfg {item!r}: expected KEY:VALUE, e.g. "
+                             "'transport/unicast/max_links:2'")
+        extra.append((key, value))
+    return ZenohOptions(
+        mode=args.mode, connect=tuple(args.connect), listen=tuple(args.listen),
+        config_file=args.config,
+        multicast_scouting=False if args.no_multicast_scouting else None,
+        extra=tuple(extra),
+    )
+
+
+# ----------------------------------------------------------------------------- key helpers
+
+
+def check_key(key: str, what: str = "key expression") -> str:
+    """``key`` if it is a valid zenoh key expression (canonical form), else ValueError."""
+    try:
+        zenoh.KeyExpr(key)
+    except Exception as exc:
+        raise ValueError(f"{what} {key!r} is not a valid zenoh key expression ({exc}); "
+                         "chunks are separated by '/', may not be empty and may not contain "
+                         "'?', '#' or '$' other than in '$*'") from None
+    return key
+
+
+def intersects(a: str, b: str) -> bool:
+    """True when the key expressions ``a`` and ``b`` share at least one key."""
+    return bool(zenoh.KeyExpr(a).intersects(b))
+
+
+def includes(a: str, b: str) -> bool:
+    """True when every key of ``b`` is a key of ``a``."""
+    return bool(zenoh.KeyExpr(a).includes(b))
+
+
+# ----------------------------------------------------------------------------- the session
+
+
+class Request:
+    """One query, handed to a queryable's callback."""
+
+    def __init__(self, query: Any, queryable_key: str):
+        self._query = query
+        self.key = str(query.key_expr)
+        self.queryable_key = queryable_key
+        self.parameters: dict[str, str] = {k: v for k, v in query.parameters}
+
+    def matches(self, key: str) -> bool:
+        """Whether a reply on concrete ``key`` answers this query."""
+        return intersects(self.key, key)
+
+    def reply(self, key: str, payload: bytes, encoding: str) -> None:
+        self._query.reply(key, payload, encoding=zenoh.Encoding(encoding))
+
+    def reply_err(self, message: str) -> None:
+        self._query.reply_err(message.encode(), encoding=zenoh.Encoding.TEXT_PLAIN)
+
+
+
+@dataclass(frozen=True)
+class Reply:
+    """One answer to :meth:`Transport.get`: ``ok`` False for a queryable's error reply."""
+
+    ok: bool
+    key: str
+    payload: bytes
+    encoding: str
+
+
+class Publisher:
+    """A declared publisher: one key, one encoding."""
+
+    def __init__(self, pub: Any):
+        self._pub = pub
+
+    def put(self, payload: bytes) -> None:
+        self._pub.put(payload)
+
+    @property
+    def has_subscribers(self) -> bool:
+        status = self._pub.matching_status
+        return bool(getattr(status, "matching", status))
+
+
+class Transport:
+    """An open zenoh session; use as ``with Transport(options) as t: ...``.
+
+    Callbacks run in zenoh's receive threads (``indirect=False``): they must be quick and must
+    not raise (exceptions are logged and swallowed so a bad message never kills a thread).
+    """
+
+    def __init__(self, options: ZenohOptions):
+        self.options = options
+        self._session: Any = None
+        self._entities: list[Any] = []
+        self._lock = threading.Lock()
+
+    def __enter__(self) -> Transport:
+        self.open()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def open(self) -> None:
+        try:
+            self._session = zenoh.open(self.options.to_config())
+        except TransportError:
+            raise
+        except Exception as exc:
+            raise TransportError(f"cannot open a zenoh session ({self.options}): {exc}") \
+                from None
+
+    def close(self) -> None:
+        with self._lock:
+            entities, self._entities = self._entities, []
+        for e in reversed(entities):
+            try:
+                e.undeclare()
+            except Exception:  # already gone with the session
+                pass
+        if self._session is not None:
+            self._session.close()
+            self._session = None
+
+    @property
+    def session(self) -> Any:
+        if self._session is None:
+            raise TransportError("the zenoh session is not open")
+        return self._session
+
+    @property
+    def zid(self) -> str:
+        return str(self.session.zid())
+
+    def _keep(self, entity: Any) -> Any:
+        with self._lock:
+            self._entities.append(entity)
+        return entity
+
+    def subscribe(self, key: str, callback: Callable[[str, bytes, str], None]) -> None:
+        """Call ``callback(key, payload, encoding)`` for every sample on ``key`` (a glob)."""
+
+        def on_sample(sample: Any) -> None:
+            try:
+                callback(str(sample.key_expr), sample.payload.to_bytes(), str(sample.encoding))
+            except Exception:
+                log.exception("subscriber callback on %s failed", key)
+
+        self._keep(self.session.declare_subscriber(
+            key, zenoh.handlers.Callback(on_sample, indirect=False)))
+
+    def queryable(self, key: str, callback: Callable[[Request], None]) -> None:
+        """Call ``callback(request)`` for every query intersecting ``key``."""
+
+        def on_query(query: Any) -> None:
+            # ``with query`` drops it at the end: the querier stops waiting once every
+            # matched queryable dropped its query (finalisers are not reliable).
+            with query:
+                try:
+                    callback(Request(query, key))
+                except Exception as exc:
+                    log.exception("queryable callback on %s failed", key)
+                    try:
+                        query.reply_err(f"internal error: {exc}".encode())
+                    except Exception:
+                        pass
+
+        self._keep(self.session.declare_queryable(
+            key, zenoh.handlers.Callback(on_query, indirect=False), complete=True))
+
+    def publisher(self, key: str, encoding: str, *, block: bool = False,
+                  express: bool = False) -> Publisher:
+        """Declare a publisher; ``block`` waits when the link is congested instead of dropping."""
+        cc = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
+        return Publisher(self._keep(self.session.declare_publisher(
+            key, encoding=zenoh.Encoding(encoding), congestion_control=cc, express=express)))
+
+    def put(self, key: str, payload: bytes, encoding: str, *, block: bool = False) -> None:
+        cc = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
+        self.session.put(key, payload, encoding=zenoh.Encoding(encoding), congestion_control=cc)
+
+    def get(self, selector: str, *, timeout_s: float = 5.0, all_replies: bool = True
+            ) -> list[Reply]:
+        """Query ``selector`` (``key?params``); every reply until all queryables finished.
+
+        ``all_replies`` turns zenoh's reply consolidation off, so several instances answering
+        on the same key are all seen.
+        """
+        kwargs: dict[str, Any] = {"timeout": float(timeout_s)}
+        if all_replies:
+            kwargs["consolidation"] = zenoh.ConsolidationMode.NONE
+        out = []
+        for r in self.session.get(selector, **kwargs):
+            if r.ok is not None:
+                s = r.ok
+                out.append(Reply(True, str(s.key_expr), s.payload.to_bytes(), str(s.encoding)))
+            else:
+                e = r.err
+                out.append(Reply(False, "", e.payload.to_bytes(), str(e.encoding)))
+        return out
+
+    def token(self, key: str) -> None:
+        """Declare a liveliness token (gone when the session closes or the process dies)."""
+        self._keep(self.session.liveliness().declare_token(key))
+
+    def alive(self, key: str, *, timeout_s: float = 2.0) -> list[str]:
+        """Keys of the liveliness tokens matching ``key``."""
+        return [str(r.ok.key_expr) for r in
+                self.session.liveliness().get(key, timeout=float(timeout_s)) if r.ok is not None]
+
+    def watch_alive(self, key: str, callback: Callable[[str, bool], None]) -> None:
+        """``callback(token_key, alive)`` when a matching token appears or disappears."""
+
+        def on_sample(sample: Any) -> None:
+            try:
+                callback(str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT)
+            except Exception:
+                log.exception("liveliness callback on %s failed", key)
+
+        self._keep(self.session.liveliness().declare_subscriber(
+            key, zenoh.handlers.Callback(on_sample, indirect=False), history=True))
+
+
+def router_session(listen: Iterable[str]) -> Transport:
+    """A Python session in router mode (tests of routed set-ups; no zenohd here)."""
+    return Transport(ZenohOptions(mode="router", listen=tuple(listen), multicast_scouting=False))

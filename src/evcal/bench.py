@@ -1,0 +1,146 @@
+"""``evcal bench``: speed and memory figures of the core (printed, never asserted).
+
+Synthetic data with realistic shapes: uniformly random events (a worst case for caches) and
+random 8-bit frames. Each figure is the best of a few repeats, wall clock, one thread.
+"""
+
+from __future__ import annotations
+
+import resource
+import sys
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from .accumulate import Accumulator
+from .events import EVENTS_DTYPE, SensorSize
+from .recording import Frames, Recording
+
+
+def _best(fn: Callable[[], Any], repeat: int = 3) -> float:
+    best = np.inf
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+    return float(best)
+
+
+def random_events(sensor: SensorSize, n: int, duration_us: int, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    ev = np.empty(n, EVENTS_DTYPE)
+    ev["t_us"] = np.sort(rng.integers(0, duration_us, n))
+    ev["x"] = rng.integers(0, sensor.width, n)
+    ev["y"] = rng.integers(0, sensor.height, n)
+    ev["p"] = rng.choice(np.array([-1, 1], np.int8), n)
+    return ev
+
+
+def random_recording(sensor: SensorSize, n_events: int, n_frames: int, frame_rate_hz: float = 25.0,
+                     seed: int = 0) -> Recording:
+    rng = np.random.default_rng(seed)
+    dur = int(n_frames / frame_rate_hz * 1e6)
+    t_f = np.rint(np.arange(n_frames) * 1e6 / frame_rate_hz).astype(np.int64)
+    base = rng.integers(20, 230, sensor.shape).astype(np.int16)
+    imgs = np.clip(base[None] + rng.integers(-15, 16, (n_frames, *sensor.shape)), 1, 254)
+    frames = Frames(t_f, imgs.astype(np.uint8), np.zeros(n_frames, np.int64))
+    return Recording(sensor, random_events(sensor, n_events, dur, seed), frames)
+
+
+def bench_accumulation(sensor: SensorSize, n: int) -> dict[str, float]:
+    ev = random_events(sensor, n, 10_000_000)
+    acc = Accumulator(sensor)
+    acc.add(ev[:1000])  # compile
+    t_acc = _best(lambda: acc.add(ev))
+    idx = ev["y"].astype(np.int64) * sensor.width + ev["x"]
+
+    def floor() -> None:
+        np.bincount(ev["y"].astype(np.int64) * sensor.width + ev["x"], minlength=sensor.n_pixels)
+
+    t_floor = _best(floor)
+    t_floor_idx = _best(lambda: np.bincount(idx, minlength=sensor.n_pixels))
+    return {
+        "accumulate_events_per_s": n / t_acc,
+        "bincount_floor_events_per_s": n / t_floor,
+        "bincount_precomputed_index_events_per_s": n / t_floor_idx,
+    }
+
+
+def bench_offei(sensor: SensorSize, n_frames: int, n_events: int) -> float:
+    from .lsq import OffEIConfig, offei  # noqa: PLC0415
+
+    rec = random_recording(sensor, n_events, n_frames)
+    return _best(lambda: offei(rec, OffEIConfig(log_offset=30.0)), repeat=1)
+
+
+def bench_onei(sensor: SensorSize, n_frames: int, events_per_frame: int) -> dict[str, float]:
+    from .online import OnEIConfig, OnlineCalibrator  # noqa: PLC0415
+
+    rec = random_recording(sensor, events_per_frame * n_frames, n_frames)
+    # one equation every frame: the worst case of the update cost
+    cal = OnlineCalibrator(sensor, OnEIConfig(n_small=events_per_frame // 2))
+    t_ev = rec.events["t_us"]
+    cuts = np.searchsorted(t_ev, rec.frames.t_us)  # type: ignore[union-attr]
+    times: list[float] = []
+    prev = 0
+    for k in range(n_frames):
+        cal.feed_events(rec.events[prev : cuts[k]])
+        prev = int(cuts[k])
+        t0 = time.perf_counter()
+        updated = cal.feed_frame(int(rec.frames.t_us[k]), rec.frames.images[k])  # type: ignore[union-attr]
+        if updated:
+            times.append(time.perf_counter() - t0)
+    t_feed = _best(lambda: OnlineCalibrator(sensor).feed_events(rec.events[: cuts[-1]]), 1)
+    return {"update_s_median": float(np.median(times)) if times else float("nan"),
+            "updates": len(times), "feed_events_per_s": float(cuts[-1] / t_feed)}
+
+
+def run_bench(*, quick: bool = False, progress: bool = True) -> dict[str, Any]:
+    """All figures; ``quick`` shrinks the sizes for smoke runs."""
+    out: dict[str, Any] = {}
+
+    def say(msg: str) -> None:
+        if progress:
+            print(f"... {msg}", file=sys.stderr, flush=True)
+
+    davis = SensorSize(260, 346)
+    hd = SensorSize(720, 1280)
+    n_acc = 2_000_000 if quick else 20_000_000
+    say(f"accumulation, {n_acc} events at {davis}")
+    acc = bench_accumulation(davis, n_acc)
+    out["accumulate_Mev_per_s (346x260)"] = round(acc["accumulate_events_per_s"] / 1e6, 1)
+    out["bincount_floor_Mev_per_s (346x260)"] = round(acc["bincount_floor_events_per_s"] / 1e6, 1)
+    out["bincount_precomputed_idx_Mev_per_s"] = round(
+        acc["bincount_precomputed_index_events_per_s"] / 1e6, 1)
+    out["accumulate_vs_floor"] = round(acc["accumulate_events_per_s"]
+                                       / acc["bincount_floor_events_per_s"], 2)
+    n_frames = 20 if quick else 200
+    say(f"OffEI solve at {hd}, {n_frames} frames")
+    n_ev = 1_000_000 if quick else 10_000_000
+    out[f"offei_solve_s (1280x720, {n_frames} frames, {n_ev // 1_000_000}M events)"] = round(
+        bench_offei(hd, n_frames, n_ev), 2)
+    for sensor in (davis, hd):
+        say(f"OnEI updates at {sensor}")
+        r = bench_onei(sensor, 10 if quick else 40, max(2000, sensor.n_pixels // 2))
+        out[f"onei_update_ms_per_frame ({sensor})"] = round(r["update_s_median"] * 1e3, 1)
+        out[f"onei_feed_Mev_per_s ({sensor})"] = round(r["feed_events_per_s"] / 1e6, 1)
+    try:
+        from .sim.bench import bench_simulator  # noqa: PLC0415
+
+        say("simulator at 346x260")
+        sim = bench_simulator(quick=quick)
+        for k, v in sim.items():
+            out[f"simulator_{k}"] = v
+    except ImportError:
+        from .sim.ideal import SimConfig, simulate_ideal  # noqa: PLC0415
+
+        say("ideal simulator at 346x260")
+        cfg = SimConfig(height=260, width=346, duration_s=1.0 if quick else 3.0)
+        t0 = time.perf_counter()
+        res = simulate_ideal(cfg)
+        out["ideal_simulator_Mev_per_s (346x260)"] = round(
+            res.recording.n_events / (time.perf_counter() - t0) / 1e6, 2)
+    out["peak_rss_MiB"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
+    return out

@@ -1,0 +1,358 @@
+"""The ``evcal`` command: ``main(argv) -> int`` with one function per subcommand.
+
+Subcommands: info, calibrate, evaluate, simulate, bench (core); gap (model-gap workflow);
+serve, replay, query, record, demo (service and clients, need the ``service`` extra).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .events import SensorSize
+
+METHODS = ("offei", "onei", "offe", "brandli", "di")
+
+
+class CliError(Exception):
+    """A user error: printed without a traceback, exit code 2."""
+
+
+def _progress(total: int | None, desc: str, quiet: bool):
+    from tqdm import tqdm  # noqa: PLC0415
+
+    return tqdm(total=total, desc=desc, disable=quiet or not sys.stderr.isatty(), file=sys.stderr,
+                unit="it", leave=False)
+
+
+def _sensor_arg(text: str | None) -> SensorSize | None:
+    if text is None:
+        return None
+    try:
+        return SensorSize.parse(text)
+    except ValueError as exc:
+        raise CliError(str(exc)) from None
+
+
+def _open(path: str, sensor: str | None = None):
+    from .io import open_recording  # noqa: PLC0415
+
+    return open_recording(path, sensor=_sensor_arg(sensor))
+
+
+def _offset_arg(text: str) -> float | str:
+    if text == "auto":
+        return "auto"
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--log-offset {text!r}: expected 'auto' or a number") from None
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"--log-offset {v} must be >= 0")
+    return v
+
+
+# -- info -------------------------------------------------------------------------------------
+
+
+def cmd_info(args: argparse.Namespace) -> int:
+    rec = _open(args.recording, args.sensor_size)
+    assert rec.frames is not None
+    n = rec.n_events
+    dur = rec.duration_s
+    info: dict[str, Any] = {
+        "path": str(args.recording),
+        "sensor": str(rec.sensor),
+        "duration_s": round(dur, 6),
+        "n_events": n,
+        "n_frames": len(rec.frames),
+        "event_rate_hz": round(n / dur, 1) if dur > 0 else 0.0,
+        "on_fraction": round(float((rec.events["p"] > 0).mean()), 4) if n else None,
+        "frame_rate_hz": round((len(rec.frames) - 1) / ((rec.frames.t_us[-1] - rec.frames.t_us[0]) * 1e-6), 3)
+        if len(rec.frames) > 1 else None,
+        "frame_dtype": str(rec.frames.images.dtype),
+    }
+    if n:
+        info["t_first_us"] = int(rec.events["t_us"][0])
+        info["t_last_us"] = int(rec.events["t_us"][-1])
+    if args.json:
+        print(json.dumps(info, indent=2))
+    else:
+        width = max(len(k) for k in info)
+        for k, v in info.items():
+            print(f"{k:<{width}}  {v}")
+    return 0
+
+
+# -- calibrate --------------------------------------------------------------------------------
+
+
+def run_calibration(rec, method: str, *, log_offset: float | str = "auto",
+                    window_frames: int | None = None, quiet: bool = True):
+    """The calibration ``method`` of ``rec`` (shared by the CLI, the demo and benchmarks)."""
+    from .calibration import Calibration  # noqa: PLC0415
+    from .lsq import OffEIConfig, estimate_log_offset, offei  # noqa: PLC0415
+
+    def resolved_offset(default: float = 30.0) -> tuple[float, dict]:
+        if log_offset != "auto":
+            return float(log_offset), {"method": "given"}
+        if rec.frames is None or len(rec.frames) < 3 or rec.n_events == 0:
+            return default, {"method": "default (no frames to estimate from)"}
+        wf = window_frames or OffEIConfig().window_frames
+        wf = min(wf, len(rec.frames) - 1)
+        return estimate_log_offset(rec, OffEIConfig(window_frames=wf))
+
+    if method == "offei":
+        kw = {} if window_frames is None else {"window_frames": window_frames}
+        return offei(rec, OffEIConfig(log_offset=log_offset, **kw))
+    if method == "onei":
+        from .online import OnEIConfig, onei  # noqa: PLC0415
+
+        off, info = resolved_offset()
+        cal = onei(rec, OnEIConfig(log_offset=off))
+        cal.params["log_offset_estimation"] = info
+        return cal
+    if method == "offe":
+        from .offe import offe  # noqa: PLC0415
+
+        return offe(rec)
+    if method == "brandli":
+        from .brandli import BrandliConfig, brandli  # noqa: PLC0415
+
+        off, info = resolved_offset()
+        cal = brandli(rec, BrandliConfig(log_offset=off))
+        cal.params["log_offset_estimation"] = info
+        return cal
+    if method == "di":
+        off, _ = resolved_offset()
+        return Calibration.uniform(rec.sensor.shape, 0.1, 0.0, method="di", log_offset=off)
+    raise CliError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
+
+
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    from .io import save_calibration, write_csv  # noqa: PLC0415
+
+    rec = _open(args.recording, args.sensor_size)
+    cal = run_calibration(rec, args.method, log_offset=args.log_offset,
+                          window_frames=args.window_frames, quiet=args.quiet)
+    save_calibration(cal, args.out)
+    if args.csv:
+        write_csv(cal, args.csv)
+    s = cal.summary()
+    print(f"method        {cal.method}")
+    print(f"sensor        {rec.sensor}")
+    print(f"log_offset    {cal.log_offset:.3f}"
+          + (" (estimated)" if args.log_offset == "auto" and args.method != "offe" else ""))
+    print(f"valid pixels  {s['valid_fraction'] * 100:.1f} %")
+    if "contrast_median" in s:
+        print(f"contrast      median {s['contrast_median']:.4f}  "
+              f"[p5 {s['contrast_p05']:.4f}, p95 {s['contrast_p95']:.4f}]")
+        print(f"bias          median {s['bias_median']:+.4f}  "
+              f"[p5 {s['bias_p05']:+.4f}, p95 {s['bias_p95']:+.4f}]")
+    print("special       " + ", ".join(f"{k} {v}" for k, v in s["special_counts"].items()))
+    print(f"wrote         {args.out}")
+    return 0
+
+
+# -- evaluate ---------------------------------------------------------------------------------
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    from .io import load_calibration  # noqa: PLC0415
+    from .reconstruct import evaluate  # noqa: PLC0415
+
+    rec = _open(args.recording, args.sensor_size)
+    cal = load_calibration(args.calibration)
+    if cal.shape != rec.sensor.shape:
+        raise CliError(f"calibration is {cal.shape[1]}x{cal.shape[0]}, the recording's sensor "
+                       f"is {rec.sensor}")
+    res = evaluate(rec, cal, events_per_image=args.events_per_image,
+                   frames_per_image=args.frames_per_image, skip_s=args.skip_s)
+    summary = res.summary()
+    keys = ("rmse", "psnr", "ssim", "psnr_paper", "ssim_paper")
+    print(f"images: {summary['n_images']}   (psnr, ssim: standard; *_paper: the reference "
+          f"code's 20·log10(255²/MSE) and single-window SSIM)")
+    print(f"{'':12}" + "".join(f"{k:>12}" for k in keys))
+    for name in ("calibrated", "di"):
+        print(f"{name:12}" + "".join(f"{summary[name][k]:>12.4f}" for k in keys))
+    if args.json:
+        Path(args.json).write_text(json.dumps(summary, indent=2))
+    return 0
+
+
+# -- simulate ---------------------------------------------------------------------------------
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    from .io import write_recording  # noqa: PLC0415
+    from .sim.ideal import SimConfig, simulate_ideal  # noqa: PLC0415
+    from .sim.scene import Trajectory  # noqa: PLC0415
+
+    sensor = _sensor_arg(args.sensor_size) or SensorSize(180, 240)
+    cfg = SimConfig(
+        height=sensor.height, width=sensor.width, duration_s=args.duration_s,
+        frame_rate_hz=args.frame_rate_hz, internal_rate_hz=args.internal_rate_hz,
+        contrast_mean=args.contrast_mean, contrast_std=args.contrast_std,
+        bias_mean=args.bias_mean, bias_std=args.bias_std, log_offset=args.log_offset,
+        scene=args.scene, trajectory=Trajectory(speed=args.speed, seed=args.seed),
+        seed=args.seed,
+    )
+    n_steps = int(cfg.duration_s * cfg.internal_rate_hz)
+    with _progress(n_steps, "simulate", args.quiet) as bar:
+        res = simulate_ideal(cfg, progress=lambda k: bar.update(1))
+    out = Path(args.out)
+    write_recording(res.recording, out)
+    truth_path = truth_path_for(out)
+    np.savez(truth_path, contrast=res.truth["contrast"], bias=res.truth["bias"],
+             log_offset=res.truth["log_offset"], seed=res.truth["seed"],
+             config_json=json.dumps(cfg.to_dict()))
+    rec = res.recording
+    print(f"simulated {rec.n_events} events and {len(rec.frames)} frames "  # type: ignore[arg-type]
+          f"({rec.sensor}, {cfg.duration_s} s) -> {out}; truth -> {truth_path}")
+    return 0
+
+
+def truth_path_for(out: Path) -> Path:
+    """Where ``evcal simulate`` writes the truth for a recording at ``out``."""
+    out = Path(out)
+    if out.suffix in (".mcap", ".npz", ".aedat4"):
+        return out.with_name(out.stem + ".truth.npz")
+    return out / "truth.npz"
+
+
+# -- bench ------------------------------------------------------------------------------------
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    from .bench import run_bench  # noqa: PLC0415
+
+    figures = run_bench(quick=args.quick, progress=not args.quiet)
+    for k, v in figures.items():
+        print(f"{k:<44} {v}")
+    if args.json:
+        Path(args.json).write_text(json.dumps(figures, indent=2))
+    return 0
+
+
+# -- delegated subcommands --------------------------------------------------------------------
+
+
+def _delegate(module: str, func: str = "main", extra: str = "service") -> Callable[[list[str]], int]:
+    def run(argv: list[str]) -> int:
+        import importlib  # noqa: PLC0415
+
+        try:
+            mod = importlib.import_module(module)
+        except ModuleNotFoundError as exc:
+            raise CliError(f"{module} needs the '{extra}' extra ({exc.name} is missing): "
+                           f"pip install 'evcal[{extra}]'") from None
+        return int(getattr(mod, func)(argv) or 0)
+
+    return run
+
+
+DELEGATED: dict[str, tuple[Callable[[list[str]], int], str]] = {
+    "gap": (_delegate("evcal.gap.cli", extra="service"),
+            "find and name the effects a recording shows that the model lacks"),
+    "serve": (_delegate("evcal.service.cli", "main_serve"), "run the live calibration service"),
+    "replay": (_delegate("evcal.clients.replay"), "publish a recording onto Zenoh"),
+    "query": (_delegate("evcal.clients.query"), "fetch a camera's current calibration"),
+    "record": (_delegate("evcal.clients.record"), "record Zenoh traffic to MCAP"),
+    "demo": (_delegate("evcal.clients.demo"), "end-to-end demo with an embedded Zenoh peer"),
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="evcal", description=__doc__.splitlines()[0])
+    p.add_argument("--version", action="version", version="evcal 0.1.0")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    def common(sp: argparse.ArgumentParser, recording: bool = True) -> None:
+        if recording:
+            sp.add_argument("recording", help="ECD folder, .aedat4, .mcap or .npz")
+            sp.add_argument("--sensor-size", metavar="WxH", help="sensor size, e.g. 240x180")
+        sp.add_argument("--quiet", action="store_true", help="no progress bar")
+
+    sp = sub.add_parser("info", help="sensor size, duration, counts and event rate")
+    common(sp)
+    sp.add_argument("--json", action="store_true", help="print JSON")
+    sp.set_defaults(func=cmd_info)
+
+    sp = sub.add_parser("calibrate", help="estimate per-pixel contrast and bias")
+    common(sp)
+    sp.add_argument("--method", choices=METHODS, default="offei")
+    sp.add_argument("--out", required=True, help="calibration .npz to write")
+    sp.add_argument("--log-offset", type=_offset_arg, default="auto",
+                    help="'auto' (estimated) or a number added to frames before the log")
+    sp.add_argument("--window-frames", type=int, default=None,
+                    help="OffEI window d in frame intervals (default 5)")
+    sp.add_argument("--csv", metavar="DIR", help="also write scale.csv and bias.csv")
+    sp.set_defaults(func=cmd_calibrate)
+
+    sp = sub.add_parser("evaluate", help="reconstruction quality against DI")
+    common(sp)
+    sp.add_argument("--calibration", required=True, help="calibration .npz")
+    sp.add_argument("--events-per-image", type=int, default=500_000)
+    sp.add_argument("--frames-per-image", type=int, default=None)
+    sp.add_argument("--skip-s", type=float, default=0.0)
+    sp.add_argument("--json", metavar="OUT.json")
+    sp.set_defaults(func=cmd_evaluate)
+
+    sp = sub.add_parser("simulate", help="ideal event camera simulation with known c, b")
+    common(sp, recording=False)
+    sp.add_argument("--out", required=True, help="recording to write (.mcap, .npz or folder)")
+    sp.add_argument("--sensor-size", metavar="WxH", default="240x180")
+    sp.add_argument("--duration-s", type=float, default=10.0)
+    sp.add_argument("--frame-rate-hz", type=float, default=25.0)
+    sp.add_argument("--internal-rate-hz", type=float, default=1000.0)
+    sp.add_argument("--contrast-mean", type=float, default=0.2)
+    sp.add_argument("--contrast-std", type=float, default=0.03)
+    sp.add_argument("--bias-mean", type=float, default=0.02)
+    sp.add_argument("--bias-std", type=float, default=0.01)
+    sp.add_argument("--log-offset", type=float, default=30.0)
+    sp.add_argument("--scene", default="astronaut", help="scikit-image photo name or image path")
+    sp.add_argument("--speed", type=float, default=1.0, help="camera motion speed factor")
+    sp.add_argument("--seed", type=int, default=0)
+    sp.set_defaults(func=cmd_simulate)
+
+    sp = sub.add_parser("bench", help="print speed and memory figures")
+    sp.add_argument("--json", metavar="OUT.json")
+    sp.add_argument("--quick", action="store_true", help="smaller sizes (for CI smoke runs)")
+    sp.add_argument("--quiet", action="store_true")
+    sp.set_defaults(func=cmd_bench)
+
+    for name, (_, helptext) in DELEGATED.items():
+        sub.add_parser(name, help=helptext, add_help=False)
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    try:
+        if argv and argv[0] in DELEGATED:
+            return DELEGATED[argv[0]][0](argv[1:])
+        args = build_parser().parse_args(argv)
+        return int(args.func(args))
+    except CliError as exc:
+        print(f"evcal: error: {exc}", file=sys.stderr)
+        return 2
+    except (ValueError, OSError) as exc:
+        # typed errors of the library (RecordingError, EventError, CalibrationError, ...)
+        print(f"evcal: error: {type(exc).__name__}: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        return 130
+
+
+def entry() -> None:
+    sys.exit(main())
+
+
+if __name__ == "__main__":
+    entry()

@@ -1,0 +1,148 @@
+"""Intensity sources for the simulator: callables ``t_s -> [H, W] float32`` intensity in DN.
+
+- :class:`MovingScene`: a photo (scikit-image's bundled ones, any image file, an array) moved
+  by a :class:`~evcal.sim.scene.Trajectory`, with a :class:`SpeedProfile` (still to fast) and
+  an :class:`Illumination` (gain ramp and flicker) on top;
+- :class:`FrameInterpolator`: a sequence of real frames (a recording's APS frames, or a folder
+  such as the Event Camera Dataset's ``images.txt`` + PNGs) interpolated linearly in time,
+  resized to the sensor. The gap workflow drives its simulations with the measured frames
+  through this class.
+
+Time ``t_s`` is seconds from the start of the simulation.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..recording import Frames
+from .scene import Renderer, Trajectory, load_scene
+
+
+@dataclass(frozen=True, kw_only=True)
+class SpeedProfile:
+    """Piecewise-constant motion speed: ``segments`` of ``(duration_s, speed)``.
+
+    The trajectory is evaluated at the warped time ``tau(t) = integral of speed``; speed 0 is a
+    still camera, 1 the trajectory's own speed. After the last segment the last speed holds.
+    """
+
+    segments: tuple[tuple[float, float], ...] = ((1.0, 0.0), (1.0, 1.0), (1.0, 3.0))
+
+    def __post_init__(self) -> None:
+        if not self.segments:
+            raise ValueError("speed profile needs at least one (duration_s, speed) segment")
+        for d, s in self.segments:
+            if not (d > 0 and s >= 0 and np.isfinite(d) and np.isfinite(s)):
+                raise ValueError(f"speed segment ({d}, {s}) needs duration > 0 and speed >= 0")
+
+    def warp(self, t_s: float) -> float:
+        tau, t0 = 0.0, 0.0
+        speed = 0.0
+        for d, speed in self.segments:
+            if t_s <= t0 + d:
+                return tau + (t_s - t0) * speed
+            tau += d * speed
+            t0 += d
+        return tau + (t_s - t0) * speed
+
+
+@dataclass(frozen=True, kw_only=True)
+class Illumination:
+    """Gain on the scene: linear ramp from ``gain_start`` to ``gain_end`` over ``ramp_s``, times
+    ``1 + flicker_depth * sin(2 pi flicker_hz t)``."""
+
+    gain_start: float = 1.0
+    gain_end: float = 1.0
+    ramp_s: float = 1.0
+    flicker_depth: float = 0.0
+    flicker_hz: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.gain_start <= 0 or self.gain_end <= 0 or self.ramp_s <= 0:
+            raise ValueError("illumination gains and ramp_s must be > 0")
+        if not 0 <= self.flicker_depth < 1:
+            raise ValueError(f"flicker_depth={self.flicker_depth} must be in [0, 1)")
+
+    def gain(self, t_s: float) -> float:
+        a = min(max(t_s / self.ramp_s, 0.0), 1.0)
+        g = self.gain_start + a * (self.gain_end - self.gain_start)
+        if self.flicker_depth and self.flicker_hz:
+            g *= 1.0 + self.flicker_depth * np.sin(2 * np.pi * self.flicker_hz * t_s)
+        return float(g)
+
+
+class MovingScene:
+    """A photo through a moving camera, with optional speed profile and illumination."""
+
+    def __init__(self, scene: str | np.ndarray, shape: tuple[int, int], trajectory: Trajectory,
+                 *, speed: SpeedProfile | None = None, illumination: Illumination | None = None,
+                 min_dn: float = 8.0, max_dn: float = 240.0):
+        self.renderer = Renderer(load_scene(scene, min_dn=min_dn, max_dn=max_dn), shape,
+                                 trajectory)
+        self.speed = speed
+        self.illumination = illumination
+
+    def __call__(self, t_s: float) -> np.ndarray:
+        tau = self.speed.warp(t_s) if self.speed is not None else t_s
+        img = self.renderer.render(tau)
+        if self.illumination is not None:
+            img = img * np.float32(self.illumination.gain(t_s))
+        return img
+
+
+def _resize(img: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    if img.shape == tuple(shape):
+        return img.astype(np.float32)
+    from skimage.transform import resize  # noqa: PLC0415 - only when sizes differ
+
+    return resize(img.astype(np.float32), shape, order=1, preserve_range=True,
+                  anti_aliasing=True).astype(np.float32)
+
+
+class FrameInterpolator:
+    """Frames ``images[k]`` at ``t_us[k]`` as a continuous source (linear in intensity).
+
+    ``t_s`` counts from ``t_origin_us`` (default: the first frame). Before the first and after
+    the last frame the end frames hold.
+    """
+
+    def __init__(self, frames: Frames, shape: tuple[int, int] | None = None, *,
+                 t_origin_us: int | None = None, gain: float = 1.0):
+        if len(frames) == 0:
+            raise ValueError("frame source needs at least one frame")
+        shape = tuple(shape) if shape is not None else frames.shape
+        self.images = np.stack([_resize(np.asarray(f, np.float32), shape) * np.float32(gain)
+                                for f in frames.images])
+        self.t_us = frames.t_us.astype(np.int64)
+        self.t_origin_us = int(self.t_us[0] if t_origin_us is None else t_origin_us)
+        self._t_rel_s = (self.t_us - self.t_origin_us) * 1e-6
+
+    @classmethod
+    def from_folder(cls, path: str | os.PathLike[str], shape: tuple[int, int], **kw
+                    ) -> FrameInterpolator:
+        """Frames of an Event Camera Dataset-style folder (``images.txt`` + images)."""
+        from ..io import read_ecd  # noqa: PLC0415
+
+        rec = read_ecd(Path(path))
+        assert rec.frames is not None
+        return cls(rec.frames, shape, **kw)
+
+    @property
+    def duration_s(self) -> float:
+        return float(self._t_rel_s[-1] - self._t_rel_s[0])
+
+    def __call__(self, t_s: float) -> np.ndarray:
+        tr = self._t_rel_s
+        if t_s <= tr[0]:
+            return self.images[0]
+        if t_s >= tr[-1]:
+            return self.images[-1]
+        k = int(np.searchsorted(tr, t_s, side="right")) - 1
+        w = float((t_s - tr[k]) / (tr[k + 1] - tr[k]))
+        a, b = self.images[k], self.images[k + 1]
+        return a + np.float32(w) * (b - a)

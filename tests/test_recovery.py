@@ -1,0 +1,140 @@
+"""Recovery of known per-pixel c, b from the ideal simulator (the core's acceptance figures).
+
+One 240x180, 10 s simulation with textured motion and 25 Hz frames, c ~ N(0.2, 0.03),
+b ~ N(0.02, 0.01), log offset 30, seed 7 (the estimators were tuned on seed 0).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from evcal.brandli import brandli
+from evcal.calibration import Calibration, Reason
+from evcal.lsq import OffEIConfig, estimate_log_offset, offei
+from evcal.offe import offe
+from evcal.online import OnEIConfig, OnlineCalibrator, onei
+from evcal.reconstruct import evaluate
+from evcal.sim.ideal import SimConfig, simulate_ideal
+
+
+@pytest.fixture(scope="module")
+def sim():
+    return simulate_ideal(SimConfig(height=180, width=240, duration_s=10.0, seed=7))
+
+
+def _errors(cal: Calibration, truth: dict) -> tuple[float, float]:
+    v = cal.valid
+    ec = cal.contrast[v] - truth["contrast"][v]
+    eb = cal.bias[v] - truth["bias"][v]
+    return float(np.sqrt(np.mean(ec**2))), float(np.sqrt(np.mean(eb**2)))
+
+
+@pytest.fixture(scope="module")
+def offei_cal(sim):
+    return offei(sim.recording, OffEIConfig(log_offset=30.0))
+
+
+def test_offei_recovers_c_and_b(sim, offei_cal):
+    rmse_c, rmse_b = _errors(offei_cal, sim.truth)
+    assert offei_cal.valid.mean() > 0.9
+    assert rmse_c <= 0.01, rmse_c
+    assert rmse_b <= 0.005, rmse_b
+
+
+def test_residual_correction_removes_the_contrast_bias(sim, offei_cal):
+    plain = offei(sim.recording, OffEIConfig(log_offset=30.0, residual_correction="off"))
+    v = plain.valid & offei_cal.valid
+    bias_plain = float(np.mean(plain.contrast[v] - sim.truth["contrast"][v]))
+    bias_corr = float(np.mean(offei_cal.contrast[v] - sim.truth["contrast"][v]))
+    # a plain least squares over-estimates c by a few percent; the correction removes most of it
+    assert bias_plain > 0.004
+    assert abs(bias_corr) < 0.4 * bias_plain
+    assert 0.03 < offei_cal.params["residual_lambda"] < 0.3
+
+
+def test_invalid_pixels_keep_defaults_and_say_why(offei_cal):
+    inv = ~offei_cal.valid
+    assert np.all(offei_cal.contrast[inv] == np.float32(0.1))
+    assert np.all(offei_cal.bias[inv] == 0)
+    assert np.all(offei_cal.reason[inv] != Reason.VALID)
+    assert np.all(np.isinf(offei_cal.stderr_contrast[inv]))
+    assert np.isfinite(offei_cal.stderr_contrast[offei_cal.valid]).all()
+
+
+def test_standard_errors_are_calibrated(sim, offei_cal):
+    v = offei_cal.valid
+    z = (offei_cal.contrast[v] - sim.truth["contrast"][v]) / offei_cal.stderr_contrast[v]
+    # overlapping windows make the errors correlated; the stated errors stay within 2x
+    assert 0.5 < float(np.std(z)) < 2.0
+
+
+def test_log_offset_auto_recovers_the_simulated_offset(sim):
+    off, info = estimate_log_offset(sim.recording, OffEIConfig())
+    assert abs(off - 30.0) <= 5.0, (off, info)
+    assert not info["at_grid_edge"]
+
+
+def test_reconstruction_offei_close_to_truth_and_above_di(sim, offei_cal):
+    truth = Calibration.uniform(sim.recording.sensor.shape, method="truth", log_offset=30.0)
+    truth = truth.replace(contrast=sim.truth["contrast"], bias=sim.truth["bias"])
+    kw = dict(events_per_image=500_000)
+    with_truth = evaluate(sim.recording, truth, **kw).summary()
+    with_offei = evaluate(sim.recording, offei_cal, **kw).summary()
+    assert with_offei["n_images"] >= 5
+    assert with_offei["calibrated"]["psnr"] >= with_truth["calibrated"]["psnr"] - 0.5
+    assert with_offei["calibrated"]["psnr"] >= with_offei["di"]["psnr"] + 3.0
+    assert with_offei["calibrated"]["psnr_paper"] == pytest.approx(
+        2 * with_offei["calibrated"]["psnr"], rel=1e-9)
+
+
+def test_onei_converges(sim, offei_cal):
+    cal = onei(sim.recording, OnEIConfig(log_offset=30.0), history_every=1)
+    rmse_c, rmse_b = _errors(cal, sim.truth)
+    off_c, off_b = _errors(offei_cal, sim.truth)
+    hist = cal.params["history"]
+    first = next(h for h in hist if h[3].mean() > 0.5)
+    e_first = float(np.sqrt(np.mean((first[1] - sim.truth["contrast"])[first[3]] ** 2)))
+    assert rmse_c < e_first  # it improves as data arrive
+    assert cal.valid.mean() > 0.9
+    # measured: OnEI c error ~2-3x OffEI's on this 10 s recording (see the issue notes)
+    assert rmse_c <= 4 * off_c, (rmse_c, off_c)
+    assert rmse_b <= 3 * off_b, (rmse_b, off_b)
+
+
+def test_onei_state_round_trip_resumes_identically(sim):
+    rec = sim.recording
+    half = len(rec.frames) // 2
+    cfg = OnEIConfig(log_offset=30.0)
+    a = OnlineCalibrator(rec.sensor, cfg)
+    t_ev = rec.events["t_us"]
+    cuts = np.searchsorted(t_ev, rec.frames.t_us)
+    prev = 0
+    for k in range(len(rec.frames)):
+        a.feed_events(rec.events[prev : cuts[k]])
+        prev = int(cuts[k])
+        a.feed_frame(int(rec.frames.t_us[k]), rec.frames.images[k])
+        if k == half:
+            b = OnlineCalibrator.from_state(a.state_dict())
+            resume_at = k
+    prev = int(cuts[resume_at])
+    for k in range(resume_at + 1, len(rec.frames)):
+        b.feed_events(rec.events[prev : cuts[k]])
+        prev = int(cuts[k])
+        b.feed_frame(int(rec.frames.t_us[k]), rec.frames.images[k])
+    ca, cb = a.calibration(), b.calibration()
+    np.testing.assert_array_equal(ca.contrast, cb.contrast)
+    np.testing.assert_array_equal(ca.valid, cb.valid)
+    assert a.n_updates == b.n_updates
+
+
+def test_offe_and_brandli_beat_di(sim, offei_cal):
+    kw = dict(events_per_image=500_000)
+    res = {}
+    for name, cal in (("offe", offe(sim.recording)), ("brandli", brandli(sim.recording))):
+        cal = cal.replace(log_offset=30.0)
+        res[name] = evaluate(sim.recording, cal, **kw).summary()
+    res["offei"] = evaluate(sim.recording, offei_cal, **kw).summary()
+    di = res["offei"]["di"]["psnr"]
+    assert res["offe"]["calibrated"]["psnr"] > di
+    assert di < res["brandli"]["calibrated"]["psnr"] < res["offei"]["calibrated"]["psnr"]
