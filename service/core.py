@@ -566,7 +566,7 @@ class Service:
                  store: StateStore | None = None, instance: str = ""):
         self.config = config
         self._publish = publish
-        self._match = match or (lambda expr, key: expr == key)
+        self._match = match or keys.matches
         self.observer = observer
         self.store = store
         self.instance = instance or config.instance or "evcal"
@@ -736,5 +736,3 @@ class Service:
         self.tick(force=True)
 
 
-def median_abs(a: np.ndarray) -> float:
-    return float(np.median(np.abs(a))) if a.size else math.nan

@@ -67,3 +67,25 @@ def check_camera_id(camera: str) -> str:
                          "chunks without '*', '$', '?', '#' or a leading '@', e.g. "
                          "'lab/rig1/cam0'")
     return camera
+
+
+def matches(expr: str, key: str) -> bool:
+    """Whether the concrete ``key`` is in the key expression ``expr`` (``*`` and ``**`` only).
+
+    A pure-Python stand-in for zenoh's matching (used without a session, e.g. in tests);
+    chunks starting with ``@`` are matched only literally, as zenoh does.
+    """
+    e, k = expr.strip("/").split("/"), key.strip("/").split("/")
+
+    def rec(i: int, j: int) -> bool:
+        if i == len(e):
+            return j == len(k)
+        if e[i] == "**":
+            return rec(i + 1, j) or (j < len(k) and not k[j].startswith("@") and rec(i, j + 1))
+        if j == len(k):
+            return False
+        if e[i] == "*":
+            return not k[j].startswith("@") and rec(i + 1, j + 1)
+        return e[i] == k[j] and rec(i + 1, j + 1)
+
+    return rec(0, 0)

@@ -285,12 +285,14 @@ class Transport:
             ) -> list[Reply]:
         """Query ``selector`` (``key?params``); every reply until all queryables finished.
 
-        ``all_replies`` turns zenoh's reply consolidation off, so several instances answering
-        on the same key are all seen.
+        ``all_replies`` sends the query to every matching queryable (not only the "best
+        matching" complete one a router would pick) and turns reply consolidation off, so
+        several instances answering on the same key are all seen.
         """
         kwargs: dict[str, Any] = {"timeout": float(timeout_s)}
         if all_replies:
             kwargs["consolidation"] = zenoh.ConsolidationMode.NONE
+            kwargs["target"] = zenoh.QueryTarget.ALL
         out = []
         for r in self.session.get(selector, **kwargs):
             if r.ok is not None:

@@ -1,0 +1,141 @@
+"""``evcal query``: fetch a camera's current calibration (or status, or the camera list).
+
+``--out CALIB.npz`` writes the same ``.npz`` layout as ``evcal calibrate`` (checked by
+:func:`evcal.io.load_calibration` before it replaces the file). When several service
+instances answer, the newest calibration (largest ``t_us``) wins.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from evcal.calibration import Calibration
+from evcal.io import load_calibration
+from evcal.io.calibfile import CalibrationFileError
+from evcal.service import keys
+from evcal.service.transport import Reply, Transport, TransportError, options_from_args
+
+from .common import base_parser, camera_arg, fail
+
+
+class QueryError(RuntimeError):
+    """No service answered, or it answered with an error."""
+
+
+def _errors(replies: list[Reply]) -> str:
+    msgs = []
+    for r in replies:
+        if not r.ok:
+            try:
+                msgs.append(json.loads(r.payload)["message"])
+            except (ValueError, KeyError, TypeError):
+                msgs.append(r.payload.decode(errors="replace"))
+    return "; ".join(msgs)
+
+
+def fetch_calibration_npz(t: Transport, camera: str, *, prefix: str = "evcal",
+                          timeout_s: float = 5.0) -> tuple[bytes, dict[str, Any]]:
+    """The newest ``.npz`` bytes of ``camera``'s calibration and its params."""
+    import io
+
+    import numpy as np
+
+    key = keys.camera_key(prefix, camera, "calibration")
+    replies = t.get(f"{key}?format=npz", timeout_s=timeout_s)
+    best: tuple[int, bytes, dict[str, Any]] | None = None
+    for r in replies:
+        if not r.ok:
+            continue
+        with np.load(io.BytesIO(r.payload), allow_pickle=False) as z:
+            params = json.loads(str(z["params_json"]))
+        t_us = int(params.get("t_us", -1))
+        if best is None or t_us > best[0]:
+            best = (t_us, r.payload, params)
+    if best is None:
+        why = _errors(replies) or (f"no service answered on {key} within {timeout_s:g} s "
+                                   "(is `evcal serve` running and reachable?)")
+        raise QueryError(why)
+    return best[1], best[2]
+
+
+def fetch_calibration(t: Transport, camera: str, *, prefix: str = "evcal",
+                      timeout_s: float = 5.0) -> Calibration:
+    payload, _ = fetch_calibration_npz(t, camera, prefix=prefix, timeout_s=timeout_s)
+    with tempfile.TemporaryDirectory() as d:
+        p = Path(d) / "calibration.npz"
+        p.write_bytes(payload)
+        return load_calibration(p)
+
+
+def fetch_json(t: Transport, selector: str, *, timeout_s: float = 5.0) -> list[dict[str, Any]]:
+    replies = t.get(selector, timeout_s=timeout_s)
+    return [json.loads(r.payload) for r in replies if r.ok]
+
+
+def save_npz_bytes(payload: bytes, out: Path) -> Calibration:
+    """Check ``payload`` loads as a calibration, then atomically put it at ``out``."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=out.name + ".", suffix=".tmp.npz", dir=out.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(payload)
+        cal = load_calibration(tmp)
+        os.replace(tmp, out)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return cal
+
+
+def build_parser():
+    p = base_parser("evcal query", "Fetch a camera's current calibration from the service.")
+    p.add_argument("--camera", type=camera_arg, help="camera id, e.g. lab/rig1/cam0")
+    p.add_argument("--out", metavar="CALIB.npz", help="write the calibration here")
+    p.add_argument("--status", action="store_true", help="print the camera's status (JSON)")
+    p.add_argument("--list", action="store_true", help="list the cameras of every instance")
+    p.add_argument("--timeout", type=float, default=5.0, metavar="S")
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    prog = "evcal query"
+    if not (args.list or (args.camera and (args.out or args.status))):
+        return fail(prog, "give --camera ID with --out CALIB.npz and/or --status, or --list", 2)
+    try:
+        zopts = options_from_args(args)
+    except ValueError as exc:
+        return fail(prog, str(exc), 2)
+    try:
+        with Transport(zopts) as t:
+            if args.list:
+                for info in fetch_json(t, keys.cameras_key(args.prefix), timeout_s=args.timeout):
+                    print(json.dumps(info, indent=2))
+            if args.camera and args.status:
+                key = keys.camera_key(args.prefix, args.camera, "status")
+                found = fetch_json(t, key, timeout_s=args.timeout)
+                if not found:
+                    return fail(prog, f"no status on {key} within {args.timeout:g} s")
+                for st in found:
+                    print(json.dumps(st, indent=2))
+            if args.camera and args.out:
+                payload, params = fetch_calibration_npz(t, args.camera, prefix=args.prefix,
+                                                        timeout_s=args.timeout)
+                cal = save_npz_bytes(payload, Path(args.out))
+                print(f"{prog}: {args.camera}: {cal.shape[1]}x{cal.shape[0]} {cal.method} "
+                      f"calibration at t_us={params.get('t_us')}, "
+                      f"{100 * cal.valid_fraction:.1f}% valid pixels -> {args.out}",
+                      file=sys.stderr)
+    except (QueryError, TransportError, CalibrationFileError) as exc:
+        return fail(prog, str(exc))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,126 @@
+"""``evcal serve``: argument parsing and signal handling around :func:`server.run`."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+import threading
+from collections.abc import Sequence
+
+from ..online import OnEIConfig
+from .core import ON_FULL, ServiceConfig
+from .transport import TransportError, add_zenoh_arguments, check_key, options_from_args
+
+
+def build_parser(prog: str = "evcal serve") -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog=prog,
+        description="Live per-pixel calibration service: subscribes to every camera's events "
+                    "and frames on <prefix>/<camera>/events|frames, keeps an online (OnEI) "
+                    "calibration per camera, publishes <prefix>/<camera>/calibration|status|"
+                    "errors and answers queries on them.",
+    )
+    add_zenoh_arguments(p)
+    p.add_argument("--prefix", default="evcal", help="key prefix (default: evcal)")
+    p.add_argument("--cameras", default="**", metavar="KEYEXPR",
+                   help="camera ids this instance claims, a key expression relative to the "
+                        "prefix, e.g. 'lab/rig1/**' (default: ** = all)")
+    p.add_argument("--instance", default="", help="instance name in the liveliness token "
+                                                  "(default: the zenoh session id)")
+    p.add_argument("--rrd", metavar="PATH", help="write a Rerun recording of the run")
+    p.add_argument("--rrd-map-period", type=float, default=2.0, metavar="S",
+                   help="log maps at most every S seconds of sensor time (default 2)")
+    p.add_argument("--rrd-recon-period", type=float, default=2.0, metavar="S",
+                   help="log a reconstruction at most every S seconds of sensor time")
+    p.add_argument("--rrd-max-mb", type=float, default=300.0,
+                   help="stop logging images after this many MiB of them (default 300)")
+    p.add_argument("--state-dir", metavar="DIR",
+                   help="snapshot each camera's state here (atomically) and restore at start")
+    p.add_argument("--snapshot-period", type=float, default=30.0, metavar="S",
+                   help="seconds between snapshots of changed cameras (default 30)")
+    p.add_argument("--status-period", type=float, default=1.0, metavar="S",
+                   help="seconds between status publications (default 1)")
+    p.add_argument("--on-full", choices=ON_FULL, default="drop",
+                   help="when a camera's input queue is full: drop the message and count it "
+                        "(default), or block the receive path (lossless with blocking "
+                        "publishers)")
+    p.add_argument("--queue-mb", type=float, default=64.0,
+                   help="input queue size per camera in MiB (default 64)")
+    p.add_argument("--max-cameras", type=int, default=64)
+    p.add_argument("--max-pixels", type=int, default=1280 * 1024,
+                   help="largest sensor accepted, in pixels (default 1280x1024)")
+    p.add_argument("--max-message-mb", type=float, default=32.0)
+    g = p.add_argument_group("OnEI estimator")
+    g.add_argument("--n-small", type=int, default=None,
+                   help="events per equation (default: scaled with the sensor)")
+    g.add_argument("--n-large", type=int, default=None,
+                   help="events in the sliding buffer (default: scaled with the sensor)")
+    g.add_argument("--smoothing", type=float, default=None)
+    g.add_argument("--log-offset", type=float, default=None,
+                   help="offset of log(I + offset) in frame units (DN)")
+    p.add_argument("-v", "--verbose", action="count", default=0)
+    return p
+
+
+def config_from_args(args: argparse.Namespace) -> ServiceConfig:
+    check_key(f"{args.prefix.strip('/')}/{args.cameras}", "--prefix/--cameras")
+    onei = {k: getattr(args, k) for k in ("n_small", "n_large", "smoothing", "log_offset")
+            if getattr(args, k) is not None}
+    return ServiceConfig(
+        prefix=args.prefix, cameras=args.cameras, instance=args.instance,
+        queue_bytes=int(args.queue_mb * (1 << 20)), on_full=args.on_full,
+        max_cameras=args.max_cameras, max_pixels=args.max_pixels,
+        max_message_bytes=int(args.max_message_mb * (1 << 20)),
+        status_period_s=args.status_period, snapshot_period_s=args.snapshot_period,
+        onei=OnEIConfig(**onei),
+    )
+
+
+def setup_logging(verbose: int) -> None:
+    level = logging.WARNING if verbose <= 0 else logging.INFO if verbose == 1 else logging.DEBUG
+    logging.basicConfig(level=level, stream=sys.stderr,
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    logging.getLogger("evcal").setLevel(min(level, logging.INFO))
+
+
+def main_serve(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    setup_logging(args.verbose)
+    try:
+        zopts = options_from_args(args)
+        config = config_from_args(args)
+    except ValueError as exc:
+        print(f"evcal serve: {exc}", file=sys.stderr)
+        return 2
+    from .server import run
+
+    stop = threading.Event()
+
+    def on_signal(signum: int, _frame: object) -> None:
+        logging.getLogger("evcal.service").info("signal %d: stopping", signum)
+        stop.set()
+
+    old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        service = run(zopts, config, stop=stop, state_dir=args.state_dir, rrd=args.rrd,
+                      rrd_options={"map_period_s": args.rrd_map_period,
+                                   "recon_period_s": args.rrd_recon_period,
+                                   "max_image_bytes": int(args.rrd_max_mb * (1 << 20))},
+                      ready=lambda s: print(f"evcal serve: ready ({s.instance})",
+                                            file=sys.stderr, flush=True))
+    except TransportError as exc:
+        print(f"evcal serve: {exc}", file=sys.stderr)
+        return 1
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+    n = len(service.cameras)
+    errors = sum(c.counters.errors_total for c in service.cameras.values())
+    print(f"evcal serve: stopped; {n} camera(s), {errors} rejected input(s)", file=sys.stderr)
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    return main_serve(argv)

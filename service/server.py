@@ -1,0 +1,96 @@
+"""The running service: :class:`~evcal.service.core.Service` wired to a zenoh session.
+
+:func:`run` opens the session, restores snapshots, declares the subscribers, queryables and
+the liveliness token, then ticks (status, snapshots) until ``stop`` is set; on the way out it
+drains the camera queues, publishes a last status, writes the snapshots and finishes the
+``.rrd``. Every resource is closed by a ``with`` block or ``finally``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+from collections.abc import Callable
+from pathlib import Path
+
+from . import keys
+from .core import Rejected, Service, ServiceConfig
+from .state import StateStore
+from .transport import Request, Transport, ZenohOptions, intersects
+
+log = logging.getLogger("evcal.service")
+
+
+def _reply_error(req: Request, exc: Rejected) -> None:
+    req.reply_err(json.dumps({"reason": exc.reason, "message": str(exc)}))
+
+
+def run(
+    zenoh: ZenohOptions,
+    config: ServiceConfig,
+    *,
+    stop: threading.Event,
+    state_dir: str | Path | None = None,
+    rrd: str | Path | None = None,
+    rrd_options: dict | None = None,
+    ready: Callable[[Service], None] | None = None,
+    tick_s: float = 0.1,
+) -> Service:
+    """Serve until ``stop`` is set; returns the (closed) service for its counters."""
+    store = StateStore(state_dir) if state_dir else None
+    observer = None
+    if rrd:
+        from .recording import RrdLogger  # rerun only when asked for
+
+        observer = RrdLogger(rrd, **(rrd_options or {}))
+    prefix = config.prefix.strip("/")
+    try:
+        with Transport(zenoh) as t:
+            instance = config.instance or t.zid
+            service = Service(config, t.put, match=intersects, observer=observer, store=store,
+                              instance=instance)
+            restored = service.restore()
+            if restored:
+                log.info("restored %d camera(s) from %s: %s", len(restored), state_dir,
+                         ", ".join(restored))
+            claim = f"{prefix}/{config.cameras}"
+
+            def on_calibration(req: Request) -> None:
+                try:
+                    replies = service.query_calibration(req.key, req.parameters)
+                except Rejected as exc:
+                    _reply_error(req, exc)
+                    return
+                for key, payload, enc in replies:
+                    req.reply(key, payload, enc)
+
+            def on_status(req: Request) -> None:
+                for key, payload, enc in service.query_status(req.key):
+                    req.reply(key, payload, enc)
+
+            def on_cameras(req: Request) -> None:
+                req.reply(keys.cameras_key(prefix), json.dumps(service.cameras_info()).encode(),
+                          keys.ENC_CAMERAS)
+
+            t.queryable(f"{claim}/calibration", on_calibration)
+            t.queryable(f"{claim}/status", on_status)
+            t.queryable(keys.cameras_key(prefix), on_cameras)
+            for kind in keys.INPUT_KINDS:
+                t.subscribe(f"{claim}/{kind}", service.on_sample)
+            t.token(keys.service_token_key(prefix, instance.replace("/", "_")))
+            log.info("evcal service %s up: prefix %s, cameras %s, on_full=%s", instance, prefix,
+                     config.cameras, config.on_full)
+            service.tick(force=True)
+            if ready is not None:
+                ready(service)
+            try:
+                while not stop.wait(tick_s):
+                    service.tick()
+            finally:
+                log.info("shutting down: draining queues, saving state")
+                service.close()
+    finally:
+        if observer is not None:
+            observer.close()
+    return service

@@ -1,0 +1,424 @@
+"""The model the gap workflow grows: per-pixel ``c``, ``b``, a log offset and named effects.
+
+- :func:`fit_base` fits ``c``, ``b`` with OffEI at a given log offset and shrinks each pixel
+  towards the population by its standard error (so estimation noise does not read as fixed
+  pattern in the simulation).
+- :func:`simulate_model` re-simulates a measured recording under a model, driven by its frames
+  (dithered by the frame noise the frames carry: quantisation and read noise, so the
+  simulated events disagree with the frames as much as real ones do).
+- :func:`anchor` rescales ``c`` and shifts ``b`` so that a simulation of the model, fitted the
+  same way as the measurement, gives the measured population values (effects such as leak or
+  refractory bias the fit; the anchor undoes that bias for the model as a whole).
+- :func:`fit_candidate` estimates one effect's parameters from the measured statistics and
+  those of the current model's simulations (moment estimators, described per effect).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from ..lsq import CalibrationError, OffEIConfig, estimate_log_offset, offei
+from ..recording import Frames, Recording
+from ..sim.effects import (
+    Bandwidth,
+    Effect,
+    HotPixels,
+    Leak,
+    LogOffset,
+    Refractory,
+    ShotNoise,
+    ThresholdNoise,
+    TimestampJitter,
+)
+from ..sim.ideal import SimConfig
+from ..sim.nonideal import simulate
+from ..sim.sources import FrameInterpolator
+from .stats import (
+    NOMINAL_LOG_OFFSET_DN,
+    Observation,
+    _fit,
+    _iei,
+    _static,
+    discrepancy,
+    observe,
+    stat_iei_distribution,
+    stat_iei_lower_edge,
+    stat_polarity_alternation,
+    stat_timestamp_quantum,
+)
+
+
+@dataclass(frozen=True)
+class Model:
+    contrast: np.ndarray
+    bias: np.ndarray
+    log_offset: float
+    effects: dict[str, Effect] = field(default_factory=dict)
+
+    def with_effect(self, effect: Effect) -> Model:
+        eff = dict(self.effects)
+        eff[effect.name] = effect
+        return replace(self, effects=eff)
+
+
+@dataclass(frozen=True, kw_only=True)
+class SimSettings:
+    internal_rate_hz: float = 1000.0
+    read_noise_dn: float = 0.0  # of the measured frames (estimated)
+    dither: bool = True
+
+
+def estimate_read_noise(frames: Frames) -> float:
+    """Temporal noise of the frames (DN): robust spread of frame differences where the scene
+    is still (|difference| < 8 DN), divided by sqrt(2)."""
+    im = frames.images.astype(np.float64)
+    d = np.diff(im, axis=0)
+    d = d[np.abs(d) < 8]
+    if d.size < 100:
+        return 0.0
+    return float(1.4826 * np.median(np.abs(d - np.median(d))) / np.sqrt(2))
+
+
+def _shrink(cal, offset: float) -> tuple[np.ndarray, np.ndarray]:
+    c = cal.contrast.astype(np.float64)
+    b = cal.bias.astype(np.float64)
+    v = cal.valid
+    if v.sum() < 10:
+        cm = float(np.median(c[v])) if v.any() else 0.15
+        bm = float(np.median(b[v])) if v.any() else 0.0
+        return np.full(c.shape, cm), np.full(b.shape, bm)
+    cm, bm = float(np.median(c[v])), float(np.median(b[v]))
+    cv = (1.4826 * np.median(np.abs(c[v] - cm))) ** 2
+    bv = (1.4826 * np.median(np.abs(b[v] - bm))) ** 2
+    se_c = np.where(np.isfinite(cal.stderr_contrast), cal.stderr_contrast, 1e9)
+    se_b = np.where(np.isfinite(cal.stderr_bias), cal.stderr_bias, 1e9)
+    kc = np.clip(1 - se_c**2 / max(cv, 1e-12), 0, 1)
+    kb = np.clip(1 - se_b**2 / max(bv, 1e-12), 0, 1)
+    c = np.where(v, cm + kc * (c - cm), cm)
+    b = np.where(v, bm + kb * (b - bm), bm)
+    c = np.maximum(c, 0.3 * cm)
+    b = np.clip(b, -0.8 * c, 0.8 * c)
+    return c, b
+
+
+def fit_base(rec: Recording, log_offset: float = NOMINAL_LOG_OFFSET_DN) -> Model:
+    """``c``, ``b`` by OffEI at ``log_offset`` (shrunk towards the population)."""
+    n_f = len(rec.frames) if rec.frames is not None else 0
+    cfg = OffEIConfig(window_frames=max(1, min(5, n_f // 4)), log_offset=float(log_offset))
+    try:
+        cal = offei(rec, cfg)
+        c, b = _shrink(cal, log_offset)
+    except CalibrationError:
+        c = np.full(rec.sensor.shape, 0.15)
+        b = np.zeros(rec.sensor.shape)
+    return Model(c, b, float(log_offset))
+
+
+def latent_frames(frames: Frames, read_noise_dn: float) -> np.ndarray:
+    """The frames as float32 latent intensity; with read noise, a pixel that stays within the
+    noise over three frames gets the mean of the three (the scene is still there, the noise is
+    not in the light the events see)."""
+    imgs = frames.images.astype(np.float32)
+    if read_noise_dn <= 0.5 or imgs.shape[0] < 3:
+        return imgs
+    tol = 3.0 * read_noise_dn + 1.0
+    mid = imgs[1:-1]
+    still = (np.abs(imgs[2:] - mid) < tol) & (np.abs(imgs[:-2] - mid) < tol)
+    out = imgs.copy()
+    out[1:-1] = np.where(still, (imgs[2:] + mid + imgs[:-2]) / 3.0, mid)
+    return out
+
+
+def _times(frames: Frames, internal_rate_hz: float) -> np.ndarray:
+    ft = frames.t_us - frames.t_us[0]
+    end = int(ft[-1])
+    grid = np.rint(np.arange(0, end * 1e-6 * internal_rate_hz + 1) * 1e6 / internal_rate_hz)
+    grid = grid[grid <= end].astype(np.int64)
+    return np.unique(np.concatenate([grid, ft]))
+
+
+def simulate_model(model: Model, rec: Recording, seed: int, settings: SimSettings) -> Recording:
+    """A re-simulation of ``rec`` (same frames, same time base) under ``model``."""
+    fr = rec.frames
+    assert fr is not None
+    rng = np.random.default_rng([seed, 7919])
+    imgs = latent_frames(fr, settings.read_noise_dn)
+    if settings.dither and fr.images.dtype == np.uint8:
+        # the quantisation error of a still pixel is the same in every frame: one offset per
+        # pixel, not per frame (per-frame dither would make still scenes fire)
+        imgs = imgs + rng.uniform(-0.5, 0.5, imgs.shape[1:]).astype(np.float32)[None]
+        imgs = np.maximum(imgs, 0.0)
+    src = FrameInterpolator(Frames(fr.t_us, imgs, fr.exposure_us), rec.sensor.shape)
+    times = _times(fr, settings.internal_rate_hz)
+    dur = max(times[-1] * 1e-6, 1e-3)
+    h, w = rec.sensor.shape
+    cfg = SimConfig(height=h, width=w, duration_s=dur, frame_rate_hz=1.0,
+                    internal_rate_hz=max(settings.internal_rate_hz, 1.0),
+                    log_offset=model.log_offset, seed=int(seed))
+    res = simulate(cfg, model.effects, source=src, maps=(model.contrast, model.bias),
+                   frames=fr, times_us=times, t_origin_us=int(fr.t_us[0]))
+    return res.recording
+
+
+def population(obs: Observation) -> tuple[float, float]:
+    f = _fit(obs)
+    ok = f["ok"]
+    if ok.sum() < 5:
+        return float("nan"), float("nan")
+    return float(np.median(f["c"][ok])), float(np.median(f["b"][ok]))
+
+
+def anchor(model: Model, rec: Recording, meas_pop: tuple[float, float], seed: int,
+           settings: SimSettings) -> Model:
+    """Rescale ``c`` and shift ``b`` so the simulated fit matches the measured population."""
+    cm, bm = meas_pop
+    if not np.isfinite(cm):
+        return model
+    obs = observe(simulate_model(model, rec, seed, settings))
+    cs, bs = population(obs)
+    if not np.isfinite(cs) or cs <= 0:
+        return model
+    k = float(np.clip(cm / cs, 0.5, 2.0))
+    c = model.contrast * k
+    b = model.bias * k + (bm - bs * k)
+    c = np.maximum(c, 1e-3)
+    b = np.clip(b, -0.8 * c, 0.8 * c)
+    return replace(model, contrast=c, bias=b)
+
+
+# ------------------------------------------------------------------------------ candidates
+
+
+def _hot_excess(meas: Observation, sims: list[Observation]):
+    n = meas.n_pixels
+    dur = (meas.frame_t_us[-1] - meas.frame_t_us[0]) * 1e-6
+    cm = np.bincount(meas.pix, minlength=n).astype(np.float64)
+    cs = np.mean([np.bincount(s.pix, minlength=n) for s in sims], axis=0)
+    ex = cm - cs
+    z = ex / np.sqrt(cs + 1.0 + (0.3 * cs) ** 2)
+    return cm, cs, ex, z, dur
+
+
+def _fit_refractory(meas, sims, model, rec):
+    cm, cs, ex, z, dur = _hot_excess(meas, sims)
+    keep = cm <= np.quantile(cm, 0.99)
+    iei_m, _ = _iei(meas)
+    order = np.argsort(meas.pix, kind="stable")
+    ps = meas.pix[order]
+    pix_pairs = ps[1:][ps[1:] == ps[:-1]]
+    iei_m = iei_m[keep[pix_pairs]]
+    iei_s = np.concatenate([_iei(s)[0] for s in sims])
+    if iei_m.size < 50 or iei_s.size < 50:
+        return None
+    k = max(5, int(1e-4 * iei_m.size))
+    p = float(np.partition(iei_m, k)[k])
+    if np.mean(iei_s < p) < 2e-3 or p < 2:
+        return None  # nothing is missing below p
+    pile_m = np.mean((iei_m >= p) & (iei_m < 1.05 * p + 2))
+    pile_s = np.mean((iei_s >= p) & (iei_s < 1.05 * p + 2))
+    mode = "delay" if pile_m > 3 * pile_s + 2e-3 else "drop"
+    return Refractory(period_us=round(p, 1), mode=mode)
+
+
+def _static_excess(meas, sims, pol):
+    st = _static(meas)
+    if st.sum() < 50:
+        return None
+    cnt_m = meas.on if pol > 0 else meas.off
+    cnt_s = np.mean([(s.on if pol > 0 else s.off) for s in sims], axis=0)
+    cm, cs, ex, z, dur = _hot_excess(meas, sims)
+    keep = (cm <= np.quantile(cm, 0.99))[None, :] & st
+    i_mid = 0.5 * (meas.intensity[1:] + meas.intensity[:-1])
+    ws = np.broadcast_to(meas.window_s[:, None], st.shape)
+    return (cnt_m - cnt_s)[keep], i_mid[keep], ws[keep]
+
+
+def _fit_leak(meas, sims, model, rec):
+    on = _static_excess(meas, sims, +1)
+    off = _static_excess(meas, sims, -1)
+    if on is None or off is None:
+        return None
+    rate = (on[0].sum() - off[0].sum()) / on[2].sum()
+    if rate <= 0:
+        return None
+    return Leak(rate_hz=round(float(rate), 4))
+
+
+def _fit_shot_noise(meas, sims, model, rec):
+    ref = ShotNoise().ref_dn
+    rates = []
+    for pol in (+1, -1):
+        r = _static_excess(meas, sims, pol)
+        if r is None:
+            return None
+        ex, i, ws = r
+        x = 0.5 * ref / np.maximum(i, 0.1 * ref) * ws  # half of the events are of each sign
+        rates.append(float((x * ex).sum() / max((x * x).sum(), 1e-12)))
+    rate = min(rates)
+    if rate <= 0:
+        return None
+    return ShotNoise(rate_hz=round(rate, 4))
+
+
+def _fit_hot_pixels(meas, sims, model, rec):
+    # hot pixels fire when the scene is still: compare per-pixel counts in still windows
+    st = _static(meas)
+    t_still = (st * meas.window_s[:, None]).sum(0)
+    if t_still.max() <= 0:
+        return None
+    em = ((meas.on + meas.off) * st).sum(0).astype(np.float64)
+    es = np.mean([((s.on + s.off) * st).sum(0) for s in sims], axis=0)
+    ex = em - es
+    z = ex / np.sqrt(es + 1.0 + (0.3 * es) ** 2)
+    hot = (z > 5) & (ex > 10.0 * t_still) & (t_still > 0.05 * t_still.max())
+    if not hot.any():
+        return None
+    rate = float(np.median(ex[hot] / t_still[hot]))
+    pm = ((meas.on - meas.off) * st).sum(0)[hot].sum()
+    ps = np.mean([((s.on - s.off) * st).sum(0)[hot].sum() for s in sims])
+    on_frac = float(np.clip(0.5 + 0.5 * (pm - ps) / max(ex[hot].sum(), 1), 0, 1))
+    # pixels never still cannot be tested: the fraction is that of the testable ones
+    frac = float(hot.sum() / max((t_still > 0.05 * t_still.max()).sum(), 1))
+    return HotPixels(fraction=round(frac, 6), rate_hz=round(rate, 3),
+                     on_fraction=round(on_frac, 3))
+
+
+def _threshold_slope(obs: Observation) -> float:
+    f = _fit(obs)
+    m = np.isfinite(f["res"]) & (f["E"] > 0)
+    c = np.where(f["ok"], f["c"], np.nan)
+    y = (f["res"] / c[None, :]) ** 2
+    y, x = y[m], f["E"][m]
+    good = np.isfinite(y)
+    y, x = y[good], x[good]
+    if x.size < 20:
+        return float("nan")
+    xm, ym = x.mean(), y.mean()
+    return float(((x - xm) * (y - ym)).sum() / max(((x - xm) ** 2).sum(), 1e-12))
+
+
+def _fit_threshold_noise(meas, sims, model, rec):
+    sm = _threshold_slope(meas)
+    ss = np.nanmean([_threshold_slope(s) for s in sims])
+    d = sm - ss
+    if not np.isfinite(d) or d <= 0:
+        return None
+    return ThresholdNoise(sigma=round(float(min(np.sqrt(d), 1.0)), 4))
+
+
+def _filter_fit_error(obs: Observation, cutoff_hz: float, offset: float) -> float:
+    """Unexplained fraction of ``dLf = c P + b E`` where ``Lf`` is the frames' log intensity
+    through the bandwidth low-pass with this cutoff (per pixel, at frame rate)."""
+    from .stats import fit_pixels  # noqa: PLC0415
+
+    f = _fit(obs)
+    ref = Bandwidth().ref_dn
+    L = np.log(obs.intensity.astype(np.float64) + offset)
+    lf = L[0].copy()
+    dlf = np.empty_like(f["dL"])
+    for k in range(1, L.shape[0]):
+        fc = np.maximum(0.5, cutoff_hz * (obs.intensity[k] + offset) / ref)
+        alpha = 1.0 - np.exp(-2 * np.pi * fc * obs.window_s[k - 1])
+        new = lf + alpha * (L[k] - lf)
+        dlf[k - 1] = new - lf
+        lf = new
+    wgt = obs.usable.astype(np.float64)
+    c, b, ok = fit_pixels(f["P"], f["E"], dlf, wgt)
+    res = dlf - np.nan_to_num(c) * f["P"] - np.nan_to_num(b) * f["E"]
+    m = ok[None, :] & obs.usable
+    tss = (dlf[m] ** 2).sum()
+    return float((res[m] ** 2).sum() / max(tss, 1e-12))
+
+
+def _fit_bandwidth(meas, sims, model, rec):
+    grid = np.geomspace(2.0, 2000.0, 19)
+    err = np.array([_filter_fit_error(meas, g, model.log_offset) for g in grid])
+    i = int(np.argmin(err))
+    if i == grid.size - 1:
+        return None  # the faster the better: no bandwidth limit visible
+    f = float(grid[i])
+    if 0 < i:
+        x = np.log(grid[i - 1 : i + 2])
+        y = err[i - 1 : i + 2]
+        den = y[0] - 2 * y[1] + y[2]
+        if den > 0:
+            f = float(np.exp(x[1] + 0.5 * (x[1] - x[0]) * (y[0] - y[2]) / den))
+    return Bandwidth(cutoff_hz=round(f, 3))
+
+
+def _fit_log_offset(meas, sims, model, rec):
+    cfg = OffEIConfig(window_frames=max(1, min(5, len(rec.frames) // 4)))
+    try:
+        o, _ = estimate_log_offset(rec, cfg)
+    except (CalibrationError, ValueError):
+        return None
+    if o < 2 * NOMINAL_LOG_OFFSET_DN:
+        return None
+    return LogOffset(dark_dn=round(float(o), 3))
+
+
+def jitter_events(obs: Observation, sigma_us: float, quantum_us: int, rng: np.random.Generator
+                  ) -> Observation:
+    """A copy of ``obs`` with its event times jittered and quantised (for the jitter fit)."""
+    t = obs.t_us + np.rint(rng.normal(0, sigma_us, obs.t_us.size)).astype(np.int64)
+    if quantum_us > 1:
+        t = (t // quantum_us) * quantum_us
+    order = np.argsort(t, kind="stable")
+    return Observation(obs.shape, obs.frame_t_us, obs.on, obs.off, obs.log_i, obs.intensity,
+                       obs.usable, t[order], obs.pix[order], obs.p[order])
+
+
+_JITTER_STATS = (stat_iei_distribution, stat_iei_lower_edge, stat_polarity_alternation,
+                 stat_timestamp_quantum)
+
+
+def _fit_timestamp_jitter(meas, sims, model, rec):
+    t = meas.t_us
+    q_hat = 1
+    for q in (2, 5, 10, 20, 50, 100, 200, 500, 1000):
+        res = t % q
+        share = np.bincount(res, minlength=q).max() / max(t.size, 1)
+        if share >= 0.99:
+            q_hat = q
+    m_stats = {s.name: s for s in (f(meas) for f in _JITTER_STATS)}
+    rng = np.random.default_rng(12345)
+    grid = np.concatenate([[0.0], np.geomspace(3, 3000, 16)])
+    gaps = []
+    for sg in grid:
+        jit = [jitter_events(s, sg, q_hat, rng) for s in sims]
+        s_stats = [{s.name: s for s in (f(o) for f in _JITTER_STATS)} for o in jit]
+        gaps.append(discrepancy(m_stats, s_stats).gap)
+    gaps = np.asarray(gaps)
+    i = int(np.argmin(gaps))
+    if i == 0 and q_hat == 1:
+        return None
+    sigma = float(grid[i])
+    if 1 <= i < grid.size - 1 and i > 1:
+        x = np.log(grid[i - 1 : i + 2])
+        y = gaps[i - 1 : i + 2]
+        den = (y[0] - 2 * y[1] + y[2])
+        if den > 0:
+            sigma = float(np.exp(x[1] + 0.5 * (x[1] - x[0]) * (y[0] - y[2]) / den))
+    return TimestampJitter(sigma_us=round(sigma, 2), quantum_us=int(q_hat))
+
+
+FITTERS = {
+    "refractory": _fit_refractory,
+    "leak": _fit_leak,
+    "shot_noise": _fit_shot_noise,
+    "bandwidth": _fit_bandwidth,
+    "threshold_noise": _fit_threshold_noise,
+    "hot_pixels": _fit_hot_pixels,
+    "log_offset": _fit_log_offset,
+    "timestamp_jitter": _fit_timestamp_jitter,
+}
+
+
+def fit_candidate(name: str, meas: Observation, sims: list[Observation], model: Model,
+                  rec: Recording) -> Effect | None:
+    """Moment estimate of effect ``name`` from measured and simulated observations; ``None``
+    when the data show none of it (e.g. no excess of events where the effect would add them).
+    """
+    return FITTERS[name](meas, sims, model, rec)

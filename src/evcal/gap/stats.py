@@ -1,0 +1,517 @@
+"""Summary statistics that the sensor effects move, computed the same way on any recording.
+
+Every statistic is a function of a recording and its frames only (never of a model), so a
+measured recording and its simulations are summarised identically. The frames are shared:
+simulations in the gap workflow are driven by the measured frames, so bins defined on frames
+(intensity, |dL|, static windows) are the same for both.
+
+A window is the interval between two consecutive frames. Per pixel and window: ON and OFF
+counts, ``P = ON - OFF``, ``E = ON + OFF`` and ``dL = L_k - L_j`` with ``L = log(I + o)``
+at the nominal offset ``o`` (1 DN). The per-pixel fit ``dL = c P + b E`` (OffEI without
+overlap) gives residuals ``res``.
+
+=============================  ======================================================  ======
+statistic                      value(s)                                                moved by
+=============================  ======================================================  ======
+iei_distribution               fraction of same-pixel inter-event intervals per        refr.,
+                               log10(us) bin                                           jitter
+iei_lower_edge                 log10 of the 0.1, 1, 5 % IEI quantiles (us)             refr.
+static_rate_vs_intensity       events / pixel / s in static windows, per intensity     shot, hot
+static_balance_vs_intensity    (ON - OFF) / pixel / s in static windows, per           leak
+                               intensity bin
+on_fraction_over_time          ON / (ON + OFF) in time bins                            leak
+offei_residual_vs_dl           RMS residual per |dL| bin                               th.noise
+offei_residual_vs_intensity    mean res * sign(dL) per bin of intensity relative to    offset
+                               the pixel's median (windows with |dL| > 0.1)
+offei_residual_vs_time         RMS residual per time bin                               th.noise
+fit_population                 median c, median b, IQR of c of the per-pixel fit       (all)
+estimate_stability             median |c1 - c2|, |b1 - b2| between the halves          th.noise
+polarity_alternation           opposite-polarity fraction of consecutive same-pixel    shot
+                               pairs: all, and IEI < 2 ms
+rate_tail                      log10 of per-pixel count quantiles 50..99.9 % and max   hot
+                               over the mean
+speed_response                 events per unit |dL| in (dark, bright) x (slow, fast)   bandw.
+lag_vs_intensity               weight of dL of the previous window in P, per           bandw.
+                               intensity bin
+timestamp_quantum              fraction of timestamps divisible by 10, 100, 1000 us    jitter
+=============================  ======================================================  ======
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..recording import Recording
+
+NOMINAL_LOG_OFFSET_DN = 1.0
+STATIC_DL = 0.05  # |dL| below this in a window and its neighbours: static
+STATIC_HALF_WIDTH = 3
+MIN_FIT_EVENTS = 10
+IEI_EDGES_LOG10 = np.array([0.0, 1.0, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0, 4.5, 5.0, 5.5, 7.0])
+
+
+class GapError(ValueError):
+    """A recording the gap workflow cannot use (no frames, no events, too short)."""
+
+
+@dataclass(frozen=True)
+class StatValue:
+    """One statistic: a vector of values with a label per component.
+
+    ``floor`` is the smallest spread its components are standardised with (the size of a
+    difference too small to mean anything, in the statistic's units).
+    """
+
+    name: str
+    values: np.ndarray
+    labels: list[str]
+    floor: float
+
+
+@dataclass
+class Observation:
+    """Per-window arrays of one recording (see the module docstring)."""
+
+    shape: tuple[int, int]
+    frame_t_us: np.ndarray
+    on: np.ndarray  # [n_w, N] int32
+    off: np.ndarray
+    log_i: np.ndarray  # [n_f, N] float64 at the nominal offset
+    intensity: np.ndarray  # [n_f, N] float32 DN
+    usable: np.ndarray  # [n_w, N] bool
+    t_us: np.ndarray  # event times in range
+    pix: np.ndarray  # event pixels in range
+    p: np.ndarray
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def n_windows(self) -> int:
+        return int(self.on.shape[0])
+
+    @property
+    def n_pixels(self) -> int:
+        return int(self.on.shape[1])
+
+    @property
+    def window_s(self) -> np.ndarray:
+        return np.diff(self.frame_t_us) * 1e-6
+
+
+def observe(rec: Recording, *, saturation_dn: tuple[float, float] = (0.0, 255.0)) -> Observation:
+    """Window arrays of ``rec`` between its first and last frame.
+
+    Raises
+    ------
+    GapError
+        With fewer than 4 frames or no events between them.
+    """
+    fr = rec.frames
+    if fr is None or len(fr) < 4:
+        raise GapError(f"the recording has {0 if fr is None else len(fr)} frames; the gap "
+                       "workflow needs at least 4 (it compares events with frame changes)")
+    h, w = rec.sensor.shape
+    npix = h * w
+    ft = fr.t_us
+    ev = rec.events_between(int(ft[0]), int(ft[-1]))
+    if ev.size == 0:
+        raise GapError("no events between the first and the last frame")
+    n_w = len(fr) - 1
+    pix = ev["y"].astype(np.int64) * w + ev["x"]
+    win = np.clip(np.searchsorted(ft, ev["t_us"], side="right") - 1, 0, n_w - 1)
+    key = win * npix + pix
+    on_m = ev["p"] > 0
+    on = np.bincount(key[on_m], minlength=n_w * npix).reshape(n_w, npix).astype(np.int32)
+    off = np.bincount(key[~on_m], minlength=n_w * npix).reshape(n_w, npix).astype(np.int32)
+    inten = fr.images.reshape(len(fr), npix).astype(np.float32)
+    log_i = np.log(np.maximum(inten.astype(np.float64), 0.0) + NOMINAL_LOG_OFFSET_DN)
+    lo, hi = saturation_dn
+    ok = (inten > lo) & (inten < hi)
+    usable = ok[1:] & ok[:-1]
+    return Observation((h, w), ft.copy(), on, off, log_i, inten, usable, ev["t_us"].copy(),
+                       pix, ev["p"].copy())
+
+
+# ------------------------------------------------------------------------------ per-pixel fit
+
+
+def fit_pixels(P: np.ndarray, E: np.ndarray, dL: np.ndarray, wgt: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Closed-form per-pixel least squares of ``dL = c P + b E``; returns ``c, b, ok``."""
+    spp = (wgt * P * P).sum(0)
+    spe = (wgt * P * E).sum(0)
+    see = (wgt * E * E).sum(0)
+    spy = (wgt * P * dL).sum(0)
+    sey = (wgt * E * dL).sum(0)
+    n_ev = (wgt * E).sum(0)
+    det = spp * see - spe * spe
+    scale = spp * see
+    ok = (scale > 0) & (det > 1e-3 * np.maximum(scale, 1e-30)) & (n_ev >= MIN_FIT_EVENTS)
+    safe = np.where(ok, det, 1.0)
+    c = np.where(ok, (see * spy - spe * sey) / safe, np.nan)
+    b = np.where(ok, (spp * sey - spe * spy) / safe, np.nan)
+    with np.errstate(invalid="ignore"):
+        ok &= (c > 0.01) & (c < 2.0) & (np.abs(b) < 0.95 * c)
+    return c, b, ok
+
+
+def _fit(obs: Observation) -> dict:
+    if "fit" in obs.extra:
+        return obs.extra["fit"]
+    P = (obs.on - obs.off).astype(np.float64)
+    E = (obs.on + obs.off).astype(np.float64)
+    dL = obs.log_i[1:] - obs.log_i[:-1]
+    wgt = obs.usable.astype(np.float64)
+    c, b, ok = fit_pixels(P, E, dL, wgt)
+    half = obs.n_windows // 2
+    w1 = wgt.copy()
+    w1[half:] = 0
+    w2 = wgt.copy()
+    w2[:half] = 0
+    c1, b1, ok1 = fit_pixels(P, E, dL, w1)
+    c2, b2, ok2 = fit_pixels(P, E, dL, w2)
+    res = np.where(ok[None, :] & obs.usable, dL - np.nan_to_num(c) * P - np.nan_to_num(b) * E,
+                   np.nan)
+    out = {"P": P, "E": E, "dL": dL, "c": c, "b": b, "ok": ok, "res": res,
+           "c1": c1, "c2": c2, "b1": b1, "b2": b2, "ok12": ok1 & ok2}
+    obs.extra["fit"] = out
+    return out
+
+
+def _quantile_edges(v: np.ndarray, n: int) -> np.ndarray:
+    v = v[np.isfinite(v)]
+    if v.size == 0:
+        return np.linspace(0, 1, n + 1)
+    e = np.unique(np.quantile(v, np.linspace(0, 1, n + 1)))
+    if e.size < 2:
+        e = np.array([e[0] - 1, e[0] + 1])
+    e[0], e[-1] = -np.inf, np.inf
+    return e
+
+
+def _binned(values: np.ndarray, key: np.ndarray, edges: np.ndarray, *, how: str,
+            weights: np.ndarray | None = None) -> np.ndarray:
+    idx = np.clip(np.searchsorted(edges, key, side="right") - 1, 0, edges.size - 2)
+    nb = edges.size - 1
+    wts = np.ones_like(values) if weights is None else weights
+    sw = np.bincount(idx, weights=wts, minlength=nb)
+    if how == "mean":
+        s = np.bincount(idx, weights=wts * values, minlength=nb)
+        return np.where(sw > 0, s / np.maximum(sw, 1e-30), 0.0)
+    if how == "rms":
+        s = np.bincount(idx, weights=wts * values * values, minlength=nb)
+        return np.sqrt(np.where(sw > 0, s / np.maximum(sw, 1e-30), 0.0))
+    raise ValueError(how)
+
+
+def _edge_labels(edges: np.ndarray, unit: str, fmt: str = "{:.3g}") -> list[str]:
+    out = []
+    for a, b in zip(edges[:-1], edges[1:], strict=True):
+        sa = "-inf" if not np.isfinite(a) else fmt.format(a)
+        sb = "inf" if not np.isfinite(b) else fmt.format(b)
+        out.append(f"{unit} {sa}..{sb}")
+    return out
+
+
+# ------------------------------------------------------------------------------ statistics
+
+
+def _iei(obs: Observation) -> tuple[np.ndarray, np.ndarray]:
+    if "iei" in obs.extra:
+        return obs.extra["iei"]
+    order = np.argsort(obs.pix, kind="stable")
+    ps, ts, pp = obs.pix[order], obs.t_us[order], obs.p[order]
+    same = ps[1:] == ps[:-1]
+    iei = (ts[1:] - ts[:-1])[same].astype(np.float64)
+    opp = (pp[1:] != pp[:-1])[same]
+    obs.extra["iei"] = (iei, opp)
+    return iei, opp
+
+
+def stat_iei_distribution(obs: Observation) -> StatValue:
+    iei, _ = _iei(obs)
+    lg = np.log10(np.maximum(iei, 1.0))
+    h = np.histogram(lg, IEI_EDGES_LOG10)[0].astype(np.float64)
+    frac = h / max(h.sum(), 1.0)
+    labels = [f"IEI 10^{a:g}..10^{b:g} us" for a, b in zip(IEI_EDGES_LOG10[:-1],
+                                                           IEI_EDGES_LOG10[1:], strict=True)]
+    return StatValue("iei_distribution", frac, labels, 0.004)
+
+
+def stat_iei_lower_edge(obs: Observation) -> StatValue:
+    iei, _ = _iei(obs)
+    q = np.array([0.001, 0.01, 0.05])
+    v = np.log10(np.maximum(np.quantile(iei, q), 1.0)) if iei.size else np.zeros(3)
+    return StatValue("iei_lower_edge", v, [f"IEI quantile {x:g} (log10 us)" for x in q], 0.05)
+
+
+def _static(obs: Observation) -> np.ndarray:
+    """Windows of a still pixel: |dL| < STATIC_DL in the window and STATIC_HALF_WIDTH windows
+    either side (a short pause of a moving texture is not still: sub-quantum changes there
+    still make events that frames cannot show)."""
+    if "static" in obs.extra:
+        return obs.extra["static"]
+    dl = np.abs(obs.log_i[1:] - obs.log_i[:-1]) < STATIC_DL
+    st = dl.copy()
+    for k in range(1, STATIC_HALF_WIDTH + 1):
+        st[k:] &= dl[:-k]
+        st[:-k] &= dl[k:]
+        st[:k] = False
+        st[-k:] = False
+    st &= obs.usable
+    obs.extra["static"] = st
+    return st
+
+
+def _static_bins(obs: Observation, n_bins: int = 4):
+    st = _static(obs)
+    i_mid = 0.5 * (obs.intensity[1:] + obs.intensity[:-1])
+    ws = np.broadcast_to(obs.window_s[:, None], st.shape)
+    key = i_mid[st]
+    edges = _quantile_edges(key, n_bins)
+    return st, key, edges, ws[st]
+
+
+def stat_static_rate(obs: Observation) -> StatValue:
+    st, key, edges, ws = _static_bins(obs)
+    e = (obs.on + obs.off)[st].astype(np.float64)
+    # events per pixel-second: sum(E) / sum(window seconds) per bin
+    idx = np.clip(np.searchsorted(edges, key, side="right") - 1, 0, edges.size - 2)
+    num = np.bincount(idx, weights=e, minlength=edges.size - 1)
+    den = np.bincount(idx, weights=ws, minlength=edges.size - 1)
+    v = np.where(den > 0, num / np.maximum(den, 1e-12), 0.0)
+    return StatValue("static_rate_vs_intensity", v, _edge_labels(edges, "static, I (DN)"), 0.05)
+
+
+def stat_static_balance(obs: Observation) -> StatValue:
+    st, key, edges, ws = _static_bins(obs)
+    pnet = (obs.on - obs.off)[st].astype(np.float64)
+    idx = np.clip(np.searchsorted(edges, key, side="right") - 1, 0, edges.size - 2)
+    num = np.bincount(idx, weights=pnet, minlength=edges.size - 1)
+    den = np.bincount(idx, weights=ws, minlength=edges.size - 1)
+    v = np.where(den > 0, num / np.maximum(den, 1e-12), 0.0)
+    return StatValue("static_balance_vs_intensity", v, _edge_labels(edges, "static, I (DN)"),
+                     0.05)
+
+
+def stat_on_fraction_over_time(obs: Observation, n_bins: int = 6) -> StatValue:
+    edges = np.linspace(obs.frame_t_us[0], obs.frame_t_us[-1], n_bins + 1)
+    idx = np.clip(np.searchsorted(edges, obs.t_us, side="right") - 1, 0, n_bins - 1)
+    n = np.bincount(idx, minlength=n_bins).astype(np.float64)
+    non = np.bincount(idx, weights=(obs.p > 0).astype(np.float64), minlength=n_bins)
+    v = np.where(n > 0, non / np.maximum(n, 1), 0.5)
+    t0 = obs.frame_t_us[0]
+    labels = [f"t {(a - t0) * 1e-6:.2f}..{(b - t0) * 1e-6:.2f} s"
+              for a, b in zip(edges[:-1], edges[1:], strict=True)]
+    return StatValue("on_fraction_over_time", v, labels, 0.005)
+
+
+def stat_residual_vs_dl(obs: Observation) -> StatValue:
+    f = _fit(obs)
+    m = np.isfinite(f["res"])
+    adl = np.abs(f["dL"])[m]
+    edges = np.array([-np.inf, 0.05, 0.15, 0.3, 0.6, np.inf])
+    v = _binned(f["res"][m], adl, edges, how="rms")
+    return StatValue("offei_residual_vs_dl", v, _edge_labels(edges, "|dL|"), 0.003)
+
+
+def stat_residual_vs_intensity(obs: Observation) -> StatValue:
+    f = _fit(obs)
+    dl = f["dL"]
+    m = np.isfinite(f["res"]) & (np.abs(dl) > 0.1)
+    lmid = 0.5 * (obs.log_i[1:] + obs.log_i[:-1])
+    lmed = np.median(obs.log_i, axis=0)
+    rel = (lmid - lmed[None, :])[m]
+    edges = np.array([-np.inf, -0.4, -0.15, 0.0, 0.15, 0.4, np.inf])
+    v = _binned(f["res"][m] * np.sign(dl[m]), rel, edges, how="mean")
+    return StatValue("offei_residual_vs_intensity", v,
+                     _edge_labels(edges, "log I - pixel median"), 0.003)
+
+
+def stat_residual_vs_time(obs: Observation, n_bins: int = 5) -> StatValue:
+    f = _fit(obs)
+    m = np.isfinite(f["res"])
+    wi = np.broadcast_to(np.arange(obs.n_windows)[:, None], m.shape)[m].astype(np.float64)
+    edges = np.linspace(0, obs.n_windows, n_bins + 1)
+    edges[0], edges[-1] = -np.inf, np.inf
+    v = _binned(f["res"][m], wi, edges, how="rms")
+    dur = (obs.frame_t_us[-1] - obs.frame_t_us[0]) * 1e-6
+    labels = [f"t {dur * k / n_bins:.2f}..{dur * (k + 1) / n_bins:.2f} s" for k in range(n_bins)]
+    return StatValue("offei_residual_vs_time", v, labels, 0.003)
+
+
+def stat_fit_population(obs: Observation) -> StatValue:
+    f = _fit(obs)
+    ok = f["ok"]
+    if ok.sum() < 5:
+        v = np.zeros(3)
+    else:
+        c, b = f["c"][ok], f["b"][ok]
+        q1, q3 = np.percentile(c, [25, 75])
+        v = np.array([np.median(c), np.median(b), q3 - q1])
+    return StatValue("fit_population", v, ["median c", "median b", "IQR c"], 0.003)
+
+
+def stat_stability(obs: Observation) -> StatValue:
+    f = _fit(obs)
+    m = f["ok12"]
+    if m.sum() < 5:
+        v = np.zeros(2)
+    else:
+        v = np.array([np.median(np.abs(f["c1"] - f["c2"])[m]),
+                      np.median(np.abs(f["b1"] - f["b2"])[m])])
+    return StatValue("estimate_stability", v, ["median |c1 - c2|", "median |b1 - b2|"], 0.003)
+
+
+def stat_polarity_alternation(obs: Observation) -> StatValue:
+    iei, opp = _iei(obs)
+    short = iei < 2000
+    v = np.array([opp.mean() if opp.size else 0.0,
+                  opp[short].mean() if short.any() else 0.0])
+    return StatValue("polarity_alternation", v, ["all pairs", "pairs with IEI < 2 ms"], 0.004)
+
+
+def stat_rate_tail(obs: Observation) -> StatValue:
+    """Per-pixel event rate in still windows (pixels still for at least 5 % of the longest
+    still time): quantiles and max, log10 of (rate + 1 Hz)."""
+    st = _static(obs)
+    t_still = (st * obs.window_s[:, None]).sum(0)
+    q = [0.5, 0.9, 0.99, 0.999]
+    labels = [f"still-pixel rate quantile {x:g}" for x in q] + ["still-pixel rate max"]
+    ok = t_still > 0.05 * max(t_still.max(), 1e-9)
+    if ok.sum() < 10:
+        return StatValue("rate_tail", np.zeros(5), labels, 0.05)
+    rate = ((obs.on + obs.off) * st).sum(0)[ok] / t_still[ok]
+    v = np.log10(np.append(np.quantile(rate, q), rate.max()) + 1.0)
+    return StatValue("rate_tail", v, labels, 0.05)
+
+
+def stat_speed_response(obs: Observation) -> StatValue:
+    f = _fit(obs)
+    adl = np.abs(f["dL"])
+    m = obs.usable & (adl > 0.1)
+    i_mid = 0.5 * (obs.intensity[1:] + obs.intensity[:-1])
+    ie = _quantile_edges(i_mid[m], 2)
+    se = _quantile_edges(adl[m] / obs.window_s[:, None].repeat(adl.shape[1], 1)[m], 2)
+    speed = adl / obs.window_s[:, None]
+    vals, labels = [], []
+    for a in range(ie.size - 1):
+        for s in range(se.size - 1):
+            mm = m & (i_mid >= ie[a]) & (i_mid < ie[a + 1]) & (speed >= se[s]) & (
+                speed < se[s + 1])
+            den = adl[mm].sum()
+            vals.append(f["E"][mm].sum() / den if den > 0 else 0.0)
+            labels.append(f"{'dark' if a == 0 else 'bright'} (I split {ie[1]:.3g} DN), "
+                          f"{'slow' if s == 0 else 'fast'} (|dL|/s split {se[1]:.3g})")
+    return StatValue("speed_response", np.asarray(vals), labels, 0.1)
+
+
+def stat_lag(obs: Observation) -> StatValue:
+    f = _fit(obs)
+    P, dL = f["P"], f["dL"]
+    m = obs.usable[1:] & obs.usable[:-1] & (np.abs(dL[1:]) + np.abs(dL[:-1]) > 0.05)
+    imean = obs.intensity.mean(0)
+    edges = _quantile_edges(imean, 3)
+    pb = np.clip(np.searchsorted(edges, imean, side="right") - 1, 0, edges.size - 2)
+    vals = []
+    for j in range(edges.size - 1):
+        mm = m & (pb[None, :] == j)
+        y = P[1:][mm]
+        x1 = dL[1:][mm]
+        x2 = dL[:-1][mm]
+        a = np.array([[x1 @ x1, x1 @ x2], [x1 @ x2, x2 @ x2]])
+        r = np.array([x1 @ y, x2 @ y])
+        if y.size < 10 or np.linalg.det(a) <= 1e-12 * max(a[0, 0] * a[1, 1], 1e-30):
+            vals.append(0.0)
+            continue
+        b1, b2 = np.linalg.solve(a, r)
+        vals.append(float(b2 / (b1 + b2)) if abs(b1 + b2) > 1e-9 else 0.0)
+    return StatValue("lag_vs_intensity", np.asarray(vals),
+                     _edge_labels(edges, "pixel mean I (DN)"), 0.01)
+
+
+def stat_timestamp_quantum(obs: Observation) -> StatValue:
+    t = obs.t_us
+    v = np.array([np.mean(t % q == 0) if t.size else 0.0 for q in (10, 100, 1000)])
+    return StatValue("timestamp_quantum", v, ["t % 10 us == 0", "t % 100 us == 0",
+                                              "t % 1000 us == 0"], 0.01)
+
+
+STATISTICS = (
+    stat_iei_distribution,
+    stat_iei_lower_edge,
+    stat_static_rate,
+    stat_static_balance,
+    stat_on_fraction_over_time,
+    stat_residual_vs_dl,
+    stat_residual_vs_intensity,
+    stat_residual_vs_time,
+    stat_fit_population,
+    stat_stability,
+    stat_polarity_alternation,
+    stat_rate_tail,
+    stat_speed_response,
+    stat_lag,
+    stat_timestamp_quantum,
+)
+
+
+def summarise(obs: Observation) -> dict[str, StatValue]:
+    """Every statistic of :data:`STATISTICS` for one observation, by name."""
+    out = {}
+    for fn in STATISTICS:
+        s = fn(obs)
+        out[s.name] = StatValue(s.name, np.nan_to_num(np.asarray(s.values, np.float64)),
+                                s.labels, s.floor)
+    return out
+
+
+# ------------------------------------------------------------------------------ discrepancy
+
+REL_FLOOR = 0.03  # a relative difference below this is never significant
+
+
+@dataclass
+class Discrepancy:
+    """Standardised discrepancy of measured statistics against simulated ones.
+
+    Per component ``z = (m - mean_sim) / s`` with
+    ``s^2 = var_sim (1 + 1/n) + (REL_FLOOR * |mean_sim|)^2 + floor^2``: the spread over the
+    simulation seeds (the measured value is one more draw), plus floors that keep a handful of
+    seeds from declaring tiny differences significant. A statistic's discrepancy is ``mean z^2``
+    over its components (about 1 when the model explains the data); the gap is the mean of
+    those over statistics.
+    """
+
+    measured: dict[str, np.ndarray]
+    sim_mean: dict[str, np.ndarray]
+    sim_std: dict[str, np.ndarray]
+    z: dict[str, np.ndarray]
+    per_stat: dict[str, float]
+    labels: dict[str, list[str]]
+
+    @property
+    def gap(self) -> float:
+        return float(np.mean(list(self.per_stat.values())))
+
+    def where(self, name: str) -> str:
+        z = self.z[name]
+        k = int(np.argmax(np.abs(z)))
+        return f"{self.labels[name][k]} (z = {z[k]:+.1f})"
+
+
+def discrepancy(measured: dict[str, StatValue], sims: list[dict[str, StatValue]]
+                ) -> Discrepancy:
+    n = len(sims)
+    meas, mean, std, z, per, labels = {}, {}, {}, {}, {}, {}
+    for name, mv in measured.items():
+        arr = np.stack([s[name].values for s in sims])
+        mu = arr.mean(0)
+        var = arr.var(0, ddof=1) if n > 1 else np.zeros_like(mu)
+        sd = np.sqrt(var * (1 + 1 / n) + (REL_FLOOR * np.abs(mu)) ** 2 + mv.floor ** 2)
+        zz = (mv.values - mu) / sd
+        meas[name], mean[name], std[name], z[name] = mv.values, mu, np.sqrt(var), zz
+        per[name] = float(np.mean(zz * zz))
+        labels[name] = mv.labels
+    return Discrepancy(meas, mean, std, z, per, labels)

@@ -1,0 +1,270 @@
+"""The model-gap loop: fit, simulate, compare, name the missing effect, repeat.
+
+1. Fit the base model (``c``, ``b`` by OffEI at the nominal log offset) and anchor it.
+2. Simulate the measured recording under the model with ``n_seeds`` seeds (driven by its
+   frames) and compute the standardised discrepancy of every statistic (:mod:`.stats`); the
+   gap is their mean (about 1 when the model explains the data).
+3. For each effect not in the model yet: estimate its parameters (:func:`.model.fit_candidate`),
+   anchor, simulate with the same seeds, and compute the gap. The score is the gap plus
+   ``penalty_per_parameter`` per fitted parameter.
+4. The best candidate is named if it lowers the gap by more than its penalty plus
+   ``min_improvement`` and by at least ``min_relative_improvement`` of the part of the gap
+   above 1 (what a perfect model would leave). Its main parameter is then refined by a
+   three-point search. Repeat from 3 until nothing is named or ``max_effects`` are.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from ..recording import Recording
+from ..sim.effects import EFFECT_NAMES, Effect
+from .model import (
+    Model,
+    SimSettings,
+    anchor,
+    estimate_read_noise,
+    fit_base,
+    fit_candidate,
+    population,
+    simulate_model,
+)
+from .stats import Discrepancy, GapError, Observation, discrepancy, observe, summarise
+
+
+@dataclass(frozen=True, kw_only=True)
+class GapConfig:
+    max_effects: int = 3
+    seed: int = 0
+    n_seeds: int = 3
+    internal_rate_hz: float = 1000.0
+    penalty_per_parameter: float = 0.1
+    min_improvement: float = 0.3
+    min_relative_improvement: float = 0.25
+    refine: bool = True
+    candidates: tuple[str, ...] = EFFECT_NAMES
+
+    def __post_init__(self) -> None:
+        if self.max_effects < 0:
+            raise ValueError(f"max_effects={self.max_effects} must be >= 0")
+        if self.n_seeds < 2:
+            raise ValueError(f"n_seeds={self.n_seeds} must be >= 2 (the spread needs two)")
+        unknown = set(self.candidates) - set(EFFECT_NAMES)
+        if unknown:
+            raise ValueError(f"unknown candidate effect(s) {sorted(unknown)}")
+
+
+@dataclass
+class Evaluation:
+    model: Model
+    sims: list[Observation]
+    disc: Discrepancy
+
+    @property
+    def gap(self) -> float:
+        return self.disc.gap
+
+
+@dataclass
+class Step:
+    effect: Effect
+    before: Evaluation
+    after: Evaluation
+    candidates: dict[str, dict[str, Any]]
+
+    def moved_statistics(self, top: int = 4) -> list[str]:
+        drops = {k: self.before.disc.per_stat[k] - self.after.disc.per_stat[k]
+                 for k in self.before.disc.per_stat}
+        ranked = sorted(drops, key=lambda k: -drops[k])
+        return [k for k in ranked[:top] if drops[k] > 0.5]
+
+
+@dataclass
+class GapResult:
+    recording_info: dict[str, Any]
+    measured: dict
+    initial: Evaluation
+    final: Evaluation
+    steps: list[Step] = field(default_factory=list)
+    settings: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def named_effects(self) -> list[str]:
+        return [s.effect.name for s in self.steps]
+
+    def to_json(self) -> dict[str, Any]:
+        """The stable ``report.json`` schema."""
+        d0, d1 = self.initial.disc, self.final.disc
+        stats = []
+        for name in d0.per_stat:
+            stats.append({
+                "name": name,
+                "measured": _list(d0.measured[name]),
+                "simulated_initial": _list(d0.sim_mean[name]),
+                "simulated_final": _list(d1.sim_mean[name]),
+                "z_initial": float(np.sqrt(d0.per_stat[name])),
+                "z_final": float(np.sqrt(d1.per_stat[name])),
+            })
+        return {
+            "named_effects": self.named_effects,
+            "gap_initial": float(self.initial.gap),
+            "gap_final": float(self.final.gap),
+            "steps": [{
+                "effect": s.effect.name,
+                "parameters": _jsonable(s.effect.parameters()),
+                "gap_before": float(s.before.gap),
+                "gap_after": float(s.after.gap),
+                "moved_statistics": s.moved_statistics(),
+            } for s in self.steps],
+            "statistics": stats,
+        }
+
+
+def _list(a: np.ndarray) -> list[float]:
+    return [float(x) for x in np.asarray(a, np.float64).ravel()]
+
+
+def _jsonable(d: dict[str, Any]) -> dict[str, Any]:
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, (np.floating, np.integer)):
+            v = v.item()
+        out[k] = v
+    return out
+
+
+class _Runner:
+    def __init__(self, rec: Recording, cfg: GapConfig, tick: Callable[[str], None]):
+        self.rec = rec
+        self.cfg = cfg
+        self.tick = tick
+        self.meas = observe(rec)
+        self.meas_stats = summarise(self.meas)
+        self.meas_pop = population(self.meas)
+        self.settings = SimSettings(internal_rate_hz=cfg.internal_rate_hz,
+                                    read_noise_dn=estimate_read_noise(rec.frames))
+        self.seeds = [cfg.seed * 1000 + k for k in range(cfg.n_seeds)]
+        self.anchor_seed = cfg.seed * 1000 + 999
+
+    def evaluate(self, model: Model, what: str) -> Evaluation:
+        model = anchor(model, self.rec, self.meas_pop, self.anchor_seed, self.settings)
+        self.tick(f"{what}: anchor")
+        sims = []
+        for s in self.seeds:
+            sims.append(observe(simulate_model(model, self.rec, s, self.settings)))
+            self.tick(f"{what}: seed {s}")
+        disc = discrepancy(self.meas_stats, [summarise(o) for o in sims])
+        return Evaluation(model, sims, disc)
+
+    def candidate_model(self, current: Model, eff: Effect) -> Model:
+        if eff.name == "log_offset":
+            base = fit_base(self.rec, log_offset=float(eff.parameters()["dark_dn"]))
+            m = Model(base.contrast, base.bias, base.log_offset, dict(current.effects))
+            return m.with_effect(eff)
+        return current.with_effect(eff)
+
+    def refine(self, current: Model, best: Evaluation, eff: Effect) -> tuple[Effect, Evaluation]:
+        key = eff.primary
+        v0 = float(eff.parameters()[key])
+        if v0 <= 0:
+            return eff, best
+        factors = (0.7, 1.0, 1 / 0.7)
+        gaps = []
+        evals = []
+        for f in factors:
+            if f == 1.0:
+                gaps.append(best.gap)
+                evals.append((eff, best))
+                continue
+            e = eff.with_params(**{key: _cast(eff, key, v0 * f)})
+            ev = self.evaluate(self.candidate_model(current, e), f"refine {eff.name}")
+            gaps.append(ev.gap)
+            evals.append((e, ev))
+        y = np.asarray(gaps)
+        x = np.log(np.asarray(factors))
+        den = y[0] - 2 * y[1] + y[2]
+        if den > 0:
+            xv = float(np.clip(x[1] + 0.5 * (x[1] - x[0]) * (y[0] - y[2]) / den, x[0], x[2]))
+            if abs(xv) > 0.05 and int(np.argmin(y)) != 0 and int(np.argmin(y)) != 2:
+                e = eff.with_params(**{key: _cast(eff, key, v0 * np.exp(xv))})
+                ev = self.evaluate(self.candidate_model(current, e), f"refine {eff.name}")
+                gaps.append(ev.gap)
+                evals.append((e, ev))
+        i = int(np.argmin(gaps))
+        # keep the moment estimate unless the search clearly beats it (the gap is noisy)
+        if gaps[i] < best.gap - max(0.3, 0.1 * best.gap):
+            return evals[i]
+        return eff, best
+
+
+def _cast(eff: Effect, key: str, value: float) -> Any:
+    old = eff.parameters()[key]
+    if isinstance(old, int) and not isinstance(old, bool):
+        return max(1, int(round(value)))
+    return round(float(value), 6)
+
+
+def n_simulations(cfg: GapConfig) -> int:
+    """Upper-bound estimate of simulations (for a progress bar)."""
+    per = cfg.n_seeds + 1
+    k = len(cfg.candidates)
+    return per * (1 + sum(k - i for i in range(cfg.max_effects + 1)) + 4 * cfg.max_effects)
+
+
+def run_gap(rec: Recording, config: GapConfig | None = None, *,
+            progress: Callable[[str], None] | None = None) -> GapResult:
+    """Run the gap workflow on ``rec`` (measured or simulated; it needs frames).
+
+    Raises
+    ------
+    GapError
+        When the recording lacks frames or events between them.
+    """
+    cfg = config or GapConfig()
+    if rec.frames is None or len(rec.frames) < 4:
+        raise GapError("the gap workflow needs a recording with at least 4 frames (APS or "
+                       "images.txt): simulations are driven by the measured frames")
+    tick = progress or (lambda _msg: None)
+    run = _Runner(rec, cfg, tick)
+    base = fit_base(rec)
+    current = run.evaluate(base, "base model")
+    initial = current
+    steps: list[Step] = []
+    while len(steps) < cfg.max_effects:
+        tried: dict[str, dict[str, Any]] = {}
+        best: tuple[float, Effect, Evaluation] | None = None
+        for name in cfg.candidates:
+            if name in current.model.effects:
+                continue
+            eff = fit_candidate(name, run.meas, current.sims, current.model, rec)
+            if eff is None:
+                tried[name] = {"parameters": None, "gap": None}
+                continue
+            ev = run.evaluate(run.candidate_model(current.model, eff), f"candidate {name}")
+            score = ev.gap + cfg.penalty_per_parameter * eff.n_fitted
+            tried[name] = {"parameters": eff.parameters(), "gap": ev.gap, "score": score}
+            if best is None or score < best[0]:
+                best = (score, eff, ev)
+        if best is None:
+            break
+        score, eff, ev = best
+        gain = current.gap - score
+        need = max(cfg.min_improvement, cfg.min_relative_improvement * (current.gap - 1.0))
+        if gain <= need:
+            break
+        if cfg.refine:
+            eff, ev = run.refine(current.model, ev, eff)
+        steps.append(Step(eff, current, ev, tried))
+        current = ev
+    info = {"sensor": str(rec.sensor), "n_events": rec.n_events,
+            "n_frames": len(rec.frames), "duration_s": rec.duration_s}
+    settings = {"seed": cfg.seed, "n_seeds": cfg.n_seeds, "internal_rate_hz": cfg.internal_rate_hz,
+                "read_noise_dn": run.settings.read_noise_dn,
+                "penalty_per_parameter": cfg.penalty_per_parameter,
+                "min_improvement": cfg.min_improvement,
+                "min_relative_improvement": cfg.min_relative_improvement}
+    return GapResult(info, run.meas_stats, initial, current, steps, settings)

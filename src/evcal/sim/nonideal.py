@@ -1,0 +1,283 @@
+"""The non-ideal simulator: the ideal one (same config, maps, scenes, crossings) plus effects.
+
+:func:`simulate` draws the per-pixel ``c``, ``b`` maps exactly as
+:func:`~evcal.sim.ideal.simulate_ideal` does (:func:`~evcal.sim.ideal.draw_maps`, same seed,
+same reference initialisation), renders the intensity at the internal rate
+(:func:`~evcal.sim.ideal.internal_times_us`), and runs the numba kernel of
+:mod:`evcal.sim.kernel` over chunks of steps, vectorised over pixels. Effects that need no
+per-pixel sequence (hot pixels, timestamp jitter) are applied to the event arrays afterwards.
+With no effect it reproduces the ideal simulator's events.
+
+Truth (``SimResult.truth``): ``contrast``, ``bias`` maps, the effective ``log_offset``, the
+``seed``, ``effects`` (``{name: parameters}``), ``labels`` (uint8 per event, see
+:data:`~evcal.sim.effects.LABEL_LEGEND`), ``leak_rate_hz`` map and ``hot_pixels`` mask.
+Deterministic for a seed: every random draw comes from ``np.random.default_rng(cfg.seed)``
+and generators spawned from it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable, Mapping
+from typing import Any
+
+import numpy as np
+
+from ..events import EVENTS_DTYPE
+from ..recording import Frames, Recording
+from .effects import (
+    LABEL_HOT_PIXEL,
+    LABEL_LEGEND,
+    ApsConfig,
+    Bandwidth,
+    Effect,
+    HotPixels,
+    Leak,
+    LogOffset,
+    Refractory,
+    ShotNoise,
+    ThresholdNoise,
+    TimestampJitter,
+    describe,
+    effect_set,
+)
+from .ideal import SimConfig, SimResult, draw_maps, frame_times_us, internal_times_us
+from .kernel import run_steps
+from .sources import MovingScene
+
+Source = Callable[[float], np.ndarray]
+
+
+def effective_log_offset(cfg: SimConfig, effects: Mapping[str, Effect]) -> float:
+    """``dark_dn`` of a :class:`LogOffset` effect, else the config's nominal offset."""
+    lo = effects.get(LogOffset.name)
+    return float(lo.dark_dn) if isinstance(lo, LogOffset) else float(cfg.log_offset)
+
+
+def _aps_frame(source: Source, t_us: int, aps: ApsConfig, rng: np.random.Generator,
+               first: np.ndarray | None = None) -> np.ndarray:
+    if aps.exposure_us > 0:
+        offs = (np.arange(aps.blur_samples) + 0.5) / aps.blur_samples - 0.5
+        img = np.mean([source(max(0.0, (t_us + o * aps.exposure_us) * 1e-6)) for o in offs],
+                      axis=0)
+    else:
+        img = source(t_us * 1e-6) if first is None else first
+    img = np.asarray(img, np.float64)
+    if aps.read_noise_dn > 0:
+        img = img + rng.normal(0.0, aps.read_noise_dn, img.shape)
+    if aps.quantise:
+        return np.clip(np.rint(img), 0, 255).astype(np.uint8)
+    return np.maximum(img, 0.0).astype(np.float32)
+
+
+def simulate(
+    cfg: SimConfig,
+    effects: Iterable[Effect] | Mapping[str, Effect] | None = (),
+    *,
+    aps: ApsConfig | None = None,
+    source: Source | None = None,
+    maps: tuple[np.ndarray, np.ndarray] | None = None,
+    frames: Frames | None = None,
+    times_us: np.ndarray | None = None,
+    t_origin_us: int = 0,
+    chunk_steps: int = 16,
+    progress: Callable[[int], None] | None = None,
+) -> SimResult:
+    """Simulate a recording with the given effects.
+
+    Parameters
+    ----------
+    cfg
+        Sensor size, duration, rates, map statistics, scene, trajectory and seed.
+    effects
+        Any of :data:`~evcal.sim.effects.EFFECTS`, at most one of each.
+    aps
+        Frame model (default: instantaneous frames, quantised when ``cfg.quantise_frames``).
+    source
+        Intensity ``t_s -> [H, W]`` in DN; default the moving photo of ``cfg``.
+    maps
+        ``(contrast, bias)`` to use instead of drawing them from ``cfg`` (the draw is skipped,
+        the rest of the random stream is unchanged in kind).
+    frames
+        Frames to attach to the recording instead of rendering APS frames (e.g. the measured
+        frames that drive a re-simulation).
+    times_us
+        Internal sample times (relative, from 0); default :func:`internal_times_us` of ``cfg``.
+    t_origin_us
+        Added to every timestamp of the output (not to ``frames``, which are kept as given).
+
+    Examples
+    --------
+    >>> from evcal.sim.ideal import SimConfig
+    >>> from evcal.sim.effects import Refractory
+    >>> res = simulate(SimConfig(height=16, width=20, duration_s=0.2, seed=1),
+    ...                [Refractory(period_us=500.0)])
+    >>> res.recording.n_events == res.truth["labels"].size
+    True
+    """
+    eff = effect_set(effects)
+    aps = aps if aps is not None else ApsConfig(quantise=cfg.quantise_frames)
+    rng = np.random.default_rng(cfg.seed)
+    if maps is None:
+        c, b = draw_maps(cfg, rng)
+    else:
+        c, b = (np.asarray(m, np.float64) for m in maps)
+        if c.shape != (cfg.height, cfg.width) or b.shape != c.shape:
+            raise ValueError(f"maps have shapes {c.shape}, {b.shape}; the sensor is "
+                             f"{cfg.width}x{cfg.height}")
+    th_on_nom = (c + b).ravel().copy()
+    th_off_nom = (c - b).ravel().copy()
+    if (th_on_nom <= 0).any() or (th_off_nom <= 0).any():
+        raise ValueError("every pixel needs c + b > 0 and c - b > 0 (|b| < c)")
+    if source is None:
+        source = MovingScene(cfg.scene, (cfg.height, cfg.width), cfg.trajectory,
+                             min_dn=cfg.min_dn, max_dn=cfg.max_dn)
+    times = internal_times_us(cfg) if times_us is None else np.asarray(times_us, np.int64)
+    if times.size < 2 or (np.diff(times) <= 0).any():
+        raise ValueError("internal sample times must be at least two, increasing")
+    offset = effective_log_offset(cfg, eff)
+    npix = cfg.height * cfg.width
+
+    i0 = np.asarray(source(times[0] * 1e-6), np.float32)
+    l0 = np.log(i0.astype(np.float64) + offset).ravel()
+    # as IdealDvs.reset: residual L - ref uniform in (-th_off, th_on)
+    u = rng.uniform(0.0, 1.0, npix)
+    ref = l0 - (u * (th_on_nom + th_off_nom) - th_off_nom)
+    r_kernel, r_hot, r_jit, r_aps, r_leak = rng.spawn(5)
+
+    th_sigma = 0.0
+    th_on, th_off = th_on_nom.copy(), th_off_nom.copy()
+    tn = eff.get(ThresholdNoise.name)
+    rng_state = r_kernel.integers(1, 2**63 - 1, npix, dtype=np.uint64)
+    if isinstance(tn, ThresholdNoise) and tn.sigma > 0:
+        th_sigma = float(tn.sigma)
+        th_on = th_on_nom * np.maximum(0.2, 1 + th_sigma * r_kernel.standard_normal(npix))
+        th_off = th_off_nom * np.maximum(0.2, 1 + th_sigma * r_kernel.standard_normal(npix))
+    refr = eff.get(Refractory.name)
+    refr_us = float(refr.period_us) if isinstance(refr, Refractory) else 0.0
+    refr_delay = bool(isinstance(refr, Refractory) and refr.mode == "delay")
+    leak = eff.get(Leak.name)
+    leak_rate = np.zeros(npix)
+    leak_exp, leak_ref = 0.0, 128.0
+    if isinstance(leak, Leak) and leak.rate_hz > 0:
+        leak_rate = leak.pixel_rates_hz(npix, r_leak)
+        leak_exp, leak_ref = float(leak.light_exponent), float(leak.ref_dn)
+    shot = eff.get(ShotNoise.name)
+    shot_rate, shot_ref = (float(shot.rate_hz), float(shot.ref_dn)) if isinstance(
+        shot, ShotNoise) else (0.0, 16.0)
+    bw = eff.get(Bandwidth.name)
+    bw_cut, bw_ref, bw_min = (float(bw.cutoff_hz), float(bw.ref_dn), float(bw.min_cutoff_hz)
+                              ) if isinstance(bw, Bandwidth) else (0.0, 128.0, 0.5)
+
+    lf = l0.copy()
+    dead = np.full(npix, -np.inf)
+    last_fire = np.full(npix, -np.inf)
+    debt = np.zeros(npix)
+
+    frame_t = frame_times_us(cfg) if frames is None else np.zeros(0, np.int64)
+    frame_t = frame_t[np.isin(frame_t, times)]
+    frame_pos = 0
+    f_t: list[int] = []
+    f_img: list[np.ndarray] = []
+    if frame_t.size and frame_t[0] == times[0]:
+        f_t.append(int(times[0]))
+        f_img.append(_aps_frame(source, int(times[0]), aps, r_aps, i0))
+        frame_pos = 1
+
+    out_tf, out_ti, out_pix, out_p, out_lab = [], [], [], [], []
+    n_steps = times.size - 1
+    k = 0
+    while k < n_steps:
+        kk = min(chunk_steps, n_steps - k)
+        block = np.empty((kk, npix), np.float64)
+        for j in range(kk):
+            t = int(times[k + 1 + j])
+            img = np.asarray(source(t * 1e-6), np.float32)
+            block[j] = img.ravel()
+            if frame_pos < frame_t.size and frame_t[frame_pos] == t:
+                f_t.append(t)
+                f_img.append(_aps_frame(source, t, aps, r_aps, img))
+                frame_pos += 1
+        cap = max(1024, int(npix * kk * 0.05))
+        tf, ti, pix, pol, lab = run_steps(
+            block, times[k : k + kk + 1], offset, lf, ref, th_on_nom, th_off_nom, th_on, th_off,
+            dead, last_fire, leak_rate, debt, rng_state, th_sigma, refr_us, refr_delay,
+            leak_exp, leak_ref, shot_rate, shot_ref, bw_cut, bw_ref, bw_min, cap)
+        if tf.size:
+            out_tf.append(tf)
+            out_ti.append(ti)
+            out_pix.append(pix)
+            out_p.append(pol)
+            out_lab.append(lab)
+        k += kk
+        if progress is not None:
+            progress(k)
+
+    def cat(parts: list[np.ndarray], dtype: Any) -> np.ndarray:
+        return np.concatenate(parts) if parts else np.zeros(0, dtype)
+
+    t_float = cat(out_tf, np.float64)
+    t_int = cat(out_ti, np.int64)
+    pix = cat(out_pix, np.int32)
+    pol = cat(out_p, np.int8)
+    lab = cat(out_lab, np.uint8)
+    order = np.argsort(t_float, kind="stable")
+    t_int, pix, pol, lab = t_int[order], pix[order], pol[order], lab[order]
+
+    hot_mask = np.zeros(npix, bool)
+    hot = eff.get(HotPixels.name)
+    if isinstance(hot, HotPixels) and hot.fraction > 0 and hot.rate_hz > 0:
+        n_hot = int(round(hot.fraction * npix))
+        hp = np.sort(r_hot.choice(npix, size=n_hot, replace=False)) if n_hot else np.zeros(0, int)
+        hot_mask[hp] = True
+        t_lo, t_hi = int(times[0]), int(times[-1])
+        counts = r_hot.poisson(hot.rate_hz * (t_hi - t_lo) * 1e-6, hp.size)
+        h_pix = np.repeat(hp, counts).astype(np.int32)
+        h_t = r_hot.integers(t_lo, t_hi + 1, h_pix.size)
+        h_p = np.where(r_hot.random(h_pix.size) < hot.on_fraction, 1, -1).astype(np.int8)
+        t_int = np.concatenate([t_int, h_t])
+        pix = np.concatenate([pix, h_pix])
+        pol = np.concatenate([pol, h_p])
+        lab = np.concatenate([lab, np.full(h_pix.size, LABEL_HOT_PIXEL, np.uint8)])
+        order = np.argsort(t_int, kind="stable")
+        t_int, pix, pol, lab = t_int[order], pix[order], pol[order], lab[order]
+
+    t_int = t_int + int(t_origin_us)
+    jit = eff.get(TimestampJitter.name)
+    if isinstance(jit, TimestampJitter) and (jit.sigma_us > 0 or jit.quantum_us > 1):
+        if jit.sigma_us > 0:
+            t_int = t_int + np.rint(r_jit.normal(0.0, jit.sigma_us, t_int.size)).astype(np.int64)
+        t_int = np.maximum(t_int, int(times[0]) + int(t_origin_us))
+        q = int(jit.quantum_us)
+        if q > 1:
+            t_int = (t_int // q) * q
+        order = np.argsort(t_int, kind="stable")
+        t_int, pix, pol, lab = t_int[order], pix[order], pol[order], lab[order]
+
+    ev = np.empty(t_int.size, EVENTS_DTYPE)
+    ev["t_us"] = t_int
+    ev["x"] = pix % cfg.width
+    ev["y"] = pix // cfg.width
+    ev["p"] = pol
+    if frames is None:
+        if f_img:
+            frames = Frames(t_us=np.asarray(f_t, np.int64) + int(t_origin_us),
+                            images=np.stack(f_img),
+                            exposure_us=np.full(len(f_t), int(aps.exposure_us), np.int64))
+        else:
+            frames = Frames.empty(cfg.height, cfg.width)
+    rec = Recording(cfg.sensor, ev, frames, {
+        "source": "evcal.sim.nonideal", "sim_config": cfg.to_dict(),
+        "effects": describe(eff), "aps": vars(aps).copy() if hasattr(aps, "__dict__") else {},
+    })
+    truth: dict[str, Any] = {
+        "contrast": c.astype(np.float32),
+        "bias": b.astype(np.float32),
+        "log_offset": offset,
+        "seed": int(cfg.seed),
+        "effects": describe(eff),
+        "labels": lab,
+        "label_legend": dict(LABEL_LEGEND),
+        "leak_rate_hz": leak_rate.reshape(cfg.height, cfg.width).astype(np.float32),
+        "hot_pixels": hot_mask.reshape(cfg.height, cfg.width),
+    }
+    return SimResult(rec, truth)

@@ -1,0 +1,39 @@
+"""``evcal demo`` runs end to end (small size here) and prints its table; ``evcal query``
+fails clearly when no service answers."""
+
+from __future__ import annotations
+
+import pytest
+
+pytest.importorskip("zenoh")
+pytest.importorskip("rerun")
+
+from evcal.service.recording import read_entities  # noqa: E402
+from evcal.service.testing import endpoint, free_port, run_client  # noqa: E402
+
+pytestmark = pytest.mark.timeout(180)
+
+
+def test_demo_prints_table_and_writes_rrd(tmp_path):
+    out = tmp_path / "demo.rrd"
+    res = run_client("demo", ["--out", str(out), "--size", "64x48", "--duration", "3",
+                              "--n-small", "5000"])
+    assert res.returncode == 0, res.stderr
+    lines = res.stdout.splitlines()
+    assert any(line.startswith("calibration") and "PSNR dB" in line for line in lines)
+    rows = {line.split("  ")[0]: line for line in lines}
+    assert "DI (c=0.1, b=0)" in rows and "live OnEI (service)" in rows
+    live = rows["live OnEI (service)"].split()
+    gain_db = float(live[-1])
+    assert gain_db > 1.0, res.stdout  # the live calibration beats DI
+    ents = read_entities(out)
+    assert ents.get("/cameras/demo/cam0/maps/contrast", 0) >= 3
+
+
+def test_query_without_a_service_fails_clearly(tmp_path):
+    res = run_client("query", ["--camera", "nobody", "--out", str(tmp_path / "c.npz"),
+                               "--connect", endpoint(free_port()), "--no-multicast-scouting",
+                               "--timeout", "1"])
+    assert res.returncode == 1
+    assert "no service answered" in res.stderr
+    assert not (tmp_path / "c.npz").exists()

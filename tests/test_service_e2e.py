@@ -1,0 +1,201 @@
+"""End to end on loopback, in separate processes: replay -> service -> query, and the .rrd.
+
+One service process serves every test of this module (module fixture); each camera id is
+unique to its test. Simulations are small (64x48 and 48x36, a few seconds).
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("zenoh")
+pytest.importorskip("rerun")
+
+from evcal.io import load_calibration, open_recording, write_recording  # noqa: E402
+from evcal.lsq import OffEIConfig, offei  # noqa: E402
+from evcal.online import OnEIConfig, onei  # noqa: E402
+from evcal.service.recording import read_entities  # noqa: E402
+from evcal.service.testing import (  # noqa: E402
+    ServiceProcess,
+    endpoint,
+    free_port,
+    run_client,
+    wait_for,
+)
+from evcal.service.transport import Transport, ZenohOptions  # noqa: E402
+from evcal.sim.ideal import SimConfig, simulate_ideal  # noqa: E402
+
+pytestmark = pytest.mark.timeout(240)
+
+N_SMALL, N_LARGE = 5000, 10_000_000
+ONEI = OnEIConfig(n_small=N_SMALL, n_large=N_LARGE)
+ZARGS = ["--no-multicast-scouting"]
+
+
+@pytest.fixture(scope="module")
+def sims(tmp_path_factory):
+    d = tmp_path_factory.mktemp("sims")
+    out = {}
+    for name, (h, w, dur, seed) in {"a": (48, 64, 4.0, 1), "b": (36, 48, 3.0, 2)}.items():
+        sim = simulate_ideal(SimConfig(height=h, width=w, duration_s=dur, seed=seed))
+        path = write_recording(sim.recording, d / f"{name}.npz")
+        out[name] = (sim, path)
+    return out
+
+
+@pytest.fixture(scope="module")
+def service(tmp_path_factory):
+    d = tmp_path_factory.mktemp("service")
+    ep = endpoint(free_port())
+    args = ["--listen", ep, *ZARGS, "--on-full", "block", "--rrd", str(d / "run.rrd"),
+            "--rrd-map-period", "0.2", "--rrd-recon-period", "0.2", "--state-dir",
+            str(d / "state"), "--n-small", str(N_SMALL), "--n-large", str(N_LARGE),
+            "--status-period", "0.2", "-v"]
+    with ServiceProcess(args, log_path=d / "service.log") as sp:
+        with Transport(ZenohOptions.loopback(connect=[ep])) as t:
+            wait_for(lambda: t.alive("evcal/@service/*", timeout_s=1.0), timeout_s=60,
+                     what="the service's liveliness token")
+            yield {"ep": ep, "dir": d, "proc": sp, "t": t}
+        if sp.alive():
+            assert sp.stop() == 0, sp.log_text()
+
+
+def status_of(t: Transport, camera: str) -> dict:
+    replies = t.get(f"evcal/{camera}/status", timeout_s=2.0)
+    return json.loads(replies[0].payload) if replies and replies[0].ok else {}
+
+
+def replay_and_wait(service, path: Path, camera: str, n_frames: int, *extra: str) -> dict:
+    res = run_client("replay", [str(path), "--camera", camera, "--connect", service["ep"],
+                                *ZARGS, "--max-rate", *extra])
+    assert res.returncode == 0, res.stderr
+    return wait_for(lambda: (s := status_of(service["t"], camera)).get("frames", 0) >= n_frames
+                    and s, timeout_s=60, what=f"{camera} processing {n_frames} frames")
+
+
+def query(service, camera: str, out: Path):
+    res = run_client("query", ["--camera", camera, "--connect", service["ep"], *ZARGS,
+                               "--out", str(out), "--timeout", "5"])
+    assert res.returncode == 0, res.stderr
+    return load_calibration(out)
+
+
+def errors(cal, truth):
+    v = cal.valid
+    return (float(np.median(np.abs(cal.contrast[v] - truth["contrast"][v]))),
+            float(np.median(np.abs(cal.bias[v] - truth["bias"][v]))))
+
+
+@pytest.fixture(scope="module")
+def two_cameras(service, sims, tmp_path_factory):
+    """Two cameras of different sensor sizes streamed at once, then queried."""
+    d = tmp_path_factory.mktemp("q")
+    procs = []
+    for name, cam in (("a", "lab/rig1/cam0"), ("b", "lab/rig2/cam1")):
+        sim, path = sims[name]
+        procs.append(subprocess.Popen(
+            [sys.executable, "-m", "evcal.clients.replay", str(path), "--camera", cam, "--connect",
+             service["ep"], *ZARGS, "--max-rate"], stderr=subprocess.PIPE, text=True))
+    for p in procs:
+        _, err = p.communicate(timeout=120)
+        assert p.returncode == 0, err
+    out = {}
+    for name, cam in (("a", "lab/rig1/cam0"), ("b", "lab/rig2/cam1")):
+        sim, _ = sims[name]
+        wait_for(lambda: status_of(service["t"], cam).get("frames", 0)  # noqa: B023
+                 >= len(sim.recording.frames), timeout_s=60, what=cam)
+        out[name] = query(service, cam, d / f"{name}.npz")
+    return out
+
+
+def test_service_matches_offline_onei_exactly(two_cameras, sims):
+    # the transport is lossless with --on-full block: the live state is the offline one
+    for name in ("a", "b"):
+        sim, _ = sims[name]
+        live = two_cameras[name]
+        ref = onei(sim.recording, ONEI)
+        assert live.shape == sim.recording.sensor.shape
+        np.testing.assert_array_equal(live.valid, ref.valid)
+        np.testing.assert_allclose(live.contrast, ref.contrast, rtol=0, atol=1e-6)
+        np.testing.assert_allclose(live.bias, ref.bias, rtol=0, atol=1e-6)
+        assert live.method == "onei"
+
+
+def test_two_cameras_keep_separate_states(two_cameras, sims, service):
+    a, b = two_cameras["a"], two_cameras["b"]
+    assert a.shape == (48, 64) and b.shape == (36, 48)
+    for name in ("a", "b"):
+        c_err, b_err = errors(two_cameras[name], sims[name][0].truth)
+        assert c_err < 0.03 and b_err < 0.015, (name, c_err, b_err)
+    cams = json.loads(service["t"].get("evcal/cameras")[0].payload)["cameras"]
+    ids = {c["id"]: c for c in cams}
+    assert ids["lab/rig1/cam0"]["sensor"] == "64x48"
+    assert ids["lab/rig2/cam1"]["sensor"] == "48x36"
+
+
+@pytest.mark.xfail(reason="OnEI (src/evcal/online.py) is 1.5-3x worse than OffEI on bias at "
+                          "these sizes; the service reproduces onei() exactly (test above)",
+                   strict=False)
+def test_errors_within_1p5x_of_offline_offei(two_cameras, sims):
+    sim, _ = sims["a"]
+    off = offei(sim.recording, OffEIConfig())
+    live_c, live_b = errors(two_cameras["a"], sim.truth)
+    off_c, off_b = errors(off, sim.truth)
+    assert live_c <= 1.5 * off_c and live_b <= 1.5 * off_b, (live_c, off_c, live_b, off_b)
+
+
+def test_query_selector_fields_and_errors(two_cameras, service):
+    from evcal.io.wire import decode_calibration_maps
+
+    t = service["t"]
+    r = t.get("evcal/lab/rig1/cam0/calibration?fields=contrast,valid", timeout_s=3)
+    maps, header = decode_calibration_maps(r[0].payload)
+    assert sorted(maps) == ["contrast", "valid"] and header["height"] == 48
+    # a glob query answers for every matching camera
+    keys = sorted(x.key for x in t.get("evcal/lab/**/calibration?fields=bias", timeout_s=3))
+    assert keys == ["evcal/lab/rig1/cam0/calibration", "evcal/lab/rig2/cam1/calibration"]
+    bad = t.get("evcal/lab/rig1/cam0/calibration?fields=nope", timeout_s=3)
+    assert not bad[0].ok and json.loads(bad[0].payload)["reason"] == "bad_query"
+
+
+def test_road_aedat4_through_replay_service_query(service, shared_data, tmp_path):
+    path = shared_data / "davis346_road" / "road.aedat4"
+    if not path.exists():
+        pytest.skip(f"{path} not found")
+    rec = open_recording(path)
+    st = replay_and_wait(service, path, "road/davis346", len(rec.frames))
+    assert st["events"] == rec.n_events and st["errors_total"] == 0
+    assert st["sensor"] == "346x260" and st["updates"] >= 1
+    cal = query(service, "road/davis346", tmp_path / "road.npz")
+    assert cal.shape == (260, 346)
+    assert cal.valid.any() and np.isfinite(cal.contrast).all()
+
+
+def test_rrd_read_back_and_verified(two_cameras, service):
+    sp = service["proc"]
+    assert sp.stop() == 0, sp.log_text()  # SIGTERM: clean shutdown, complete .rrd
+    rrd = service["dir"] / "run.rrd"
+    ents = read_entities(rrd)
+    for cam in ("lab/rig1/cam0", "lab/rig2/cam1"):
+        base = f"/cameras/{cam}"
+        for sub in ("maps/contrast", "maps/bias", "maps/special", "hist/contrast",
+                    "hist/bias", "series/latency_ms", "series/event_rate_hz"):
+            assert ents.get(f"{base}/{sub}", 0) >= 3, (sub, sorted(ents))
+        for sub in ("recon/calibrated", "recon/di", "recon/frame", "series/psnr_gain_db"):
+            assert ents.get(f"{base}/{sub}", 0) >= 1, (sub, sorted(ents))
+    rerun = shutil.which("rerun")
+    if rerun is None:
+        pytest.skip("the rerun command line is not installed")
+    res = subprocess.run([rerun, "rrd", "verify", str(rrd)], capture_output=True, text=True,
+                         timeout=120)
+    assert res.returncode == 0, res.stdout + res.stderr
+    # the shutdown also wrote a snapshot per camera
+    names = sorted(p.name for p in (service["dir"] / "state").iterdir())
+    assert "lab%2Frig1%2Fcam0.npz" in names and "lab%2Frig2%2Fcam1.npz" in names

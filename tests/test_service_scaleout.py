@@ -1,0 +1,77 @@
+"""Scale-out: two service instances behind a router, each claiming cameras by key expression;
+an instance goes away and a replacement takes over from the shared snapshots."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+pytest.importorskip("zenoh")
+
+from evcal.io import write_recording  # noqa: E402
+from evcal.service.testing import (  # noqa: E402
+    ServiceProcess,
+    endpoint,
+    free_port,
+    run_client,
+    wait_for,
+)
+from evcal.service.transport import Transport, ZenohOptions, router_session  # noqa: E402
+from evcal.sim.ideal import SimConfig, simulate_ideal  # noqa: E402
+
+pytestmark = pytest.mark.timeout(240)
+
+
+def test_two_instances_behind_a_router_and_takeover(tmp_path):
+    sim = simulate_ideal(SimConfig(height=36, width=48, duration_s=2.0, seed=6))
+    path = write_recording(sim.recording, tmp_path / "sim.npz")
+    n_frames = len(sim.recording.frames)
+    router_ep = endpoint(free_port())
+    state = tmp_path / "state"  # shared by every instance (a volume in docker)
+    client = ["--mode", "client", "--connect", router_ep, "--no-multicast-scouting"]
+    common = [*client, "--state-dir", str(state), "--snapshot-period", "0.5", "--n-small",
+              "3000", "--n-large", "1000000", "--on-full", "block"]
+
+    def cameras_of(t):
+        return {info["instance"]: sorted(c["id"] for c in info["cameras"])
+                for info in (json.loads(r.payload) for r in t.get("evcal/cameras",
+                                                                   timeout_s=2.0) if r.ok)}
+
+    def frames_of(t, cam):
+        r = t.get(f"evcal/{cam}/status", timeout_s=2.0)
+        return json.loads(r[0].payload)["frames"] if r and r[0].ok else 0
+
+    with router_session([router_ep]) as _router, \
+            Transport(ZenohOptions(mode="client", connect=(router_ep,),
+                                   multicast_scouting=False)) as t, \
+            ServiceProcess([*common, "--cameras", "lab/rig1/**", "--instance", "one"],
+                           log_path=tmp_path / "one.log") as one, \
+            ServiceProcess([*common, "--cameras", "lab/rig2/**", "--instance", "two"],
+                           log_path=tmp_path / "two.log") as two:
+        wait_for(lambda: len(t.alive("evcal/@service/*", timeout_s=1.0)) == 2, timeout_s=60,
+                 what="two instances")
+        for cam in ("lab/rig1/cam0", "lab/rig2/cam0"):
+            res = run_client("replay", [str(path), "--camera", cam, *client, "--max-rate"])
+            assert res.returncode == 0, res.stderr
+        for cam in ("lab/rig1/cam0", "lab/rig2/cam0"):
+            wait_for(lambda: frames_of(t, cam) >= n_frames, timeout_s=60,  # noqa: B023
+                     what=cam)
+        assert cameras_of(t) == {"one": ["lab/rig1/cam0"], "two": ["lab/rig2/cam0"]}
+        before = t.get("evcal/lab/rig1/cam0/calibration", timeout_s=3.0)
+        assert len(before) == 1 and before[0].ok
+
+        # instance one goes away (SIGTERM: it writes its last snapshot); rig1 is unanswered
+        assert one.stop() == 0, one.log_text()
+        wait_for(lambda: len(t.alive("evcal/@service/*", timeout_s=1.0)) == 1, timeout_s=30,
+                 what="instance one's token gone")
+        assert t.get("evcal/lab/rig1/cam0/calibration", timeout_s=1.0) == []
+        # a replacement claiming the same cameras restores them from the shared snapshots
+        with ServiceProcess([*common, "--cameras", "lab/rig1/**", "--instance", "three"],
+                            log_path=tmp_path / "three.log") as three:
+            wait_for(lambda: "three" in cameras_of(t), timeout_s=60, what="instance three")
+            assert cameras_of(t) == {"two": ["lab/rig2/cam0"], "three": ["lab/rig1/cam0"]}
+            after = t.get("evcal/lab/rig1/cam0/calibration", timeout_s=3.0)
+            assert len(after) == 1 and after[0].payload == before[0].payload
+            assert three.stop() == 0
+        assert two.stop() == 0
