@@ -58,8 +58,8 @@ def format_table(rows: list[dict[str, Any]]) -> str:
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="evcal demo", description=__doc__.split("\n")[0])
     p.add_argument("--out", default="demo.rrd", help="Rerun recording to write (demo.rrd)")
-    p.add_argument("--size", default="120x90", help="simulated sensor WxH (default 120x90)")
-    p.add_argument("--duration", type=float, default=5.0, help="seconds of simulated data")
+    p.add_argument("--size", default="240x180", help="simulated sensor WxH (default 240x180)")
+    p.add_argument("--duration", type=float, default=6.0, help="seconds of simulated data")
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--camera", default="demo/cam0")
     p.add_argument("--n-small", type=int, default=20_000,

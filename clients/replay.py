@@ -123,6 +123,8 @@ def replay(t: Transport, rec: Recording, camera: str, *, prefix: str = "evcal",
         loop_i += 1
         if not loop or (max_loops is not None and loop_i >= max_loops):
             break
+    # confirm delivery through the service's status queryable before the session closes
+    t.flush(keys.camera_key(prefix, camera, "status"))
     stats.seconds = time.monotonic() - wall0
     return stats
 

@@ -9,8 +9,11 @@ The service runs as its own process (``python -m evcal.service``) on ``tcp/127.0
 ``--on-full block``; this process publishes like ``evcal replay --max-rate`` does (encoding
 included) and reads the service's status and calibration outputs.
 
-throughput  events/s from publishing to the service's accumulators (the service's event
-            counter), events only and with 25 Hz frames (OnEI updates included).
+throughput  events/s from publishing to the service's event counter at 20 M events/s of
+            sensor time: "events" (no frames: decode, validate, OnEI's pending buffer),
+            "frames" (25 Hz frames fold the events into the accumulators, no re-solve),
+            "updates" (OnEI's default sizes: a re-solve and a published calibration at
+            every frame).
 latency     wall time from a frame's put to the calibration it triggered arriving back, and
             the service's own figure (frame arrival to publication), at 346x260.
 memory      the service's RSS every 10 s while a 346x260 camera streams in real time.
@@ -58,7 +61,15 @@ def start_service(extra: list[str]) -> tuple[ServiceProcess, str]:
     return sp, ep
 
 
-def throughput(sensor: SensorSize, n_events: int, *, frames: bool, chunk: int = 100_000
+THROUGHPUT_MODES = {
+    # name: (frames at 25 Hz of sensor time, service arguments)
+    "events": (False, ["--n-small", "2000000000", "--n-large", "2000000000"]),
+    "frames": (True, ["--n-small", "2000000000", "--n-large", "2000000000"]),
+    "updates": (True, []),  # OnEI's default sizes: at 20 M ev/s an update at every frame
+}
+
+
+def throughput(sensor: SensorSize, n_events: int, *, mode: str, chunk: int = 100_000
                ) -> dict:
     rng = np.random.default_rng(0)
     rate_hz = 20e6  # sensor-time event rate of the synthetic stream
@@ -66,7 +77,8 @@ def throughput(sensor: SensorSize, n_events: int, *, frames: bool, chunk: int = 
     # a few distinct chunks, re-stamped in time (keeps this process's CPU for publishing)
     base = [synthetic_chunk(rng, sensor, chunk, 0, span) for _ in range(4)]
     img = rng.integers(0, 255, sensor.shape).astype(np.uint8)
-    sp, ep = start_service(["--n-small", "2000000", "--n-large", "20000000"])
+    frames, extra = THROUGHPUT_MODES[mode]
+    sp, ep = start_service(extra)
     cam = f"bench/{sensor}"
     try:
         with Transport(ZenohOptions.loopback(connect=[ep])) as t:
@@ -98,7 +110,7 @@ def throughput(sensor: SensorSize, n_events: int, *, frames: bool, chunk: int = 
         rss = psutil.Process(sp.pid).memory_info().rss
     finally:
         sp.stop()
-    return {"sensor": str(sensor), "frames": frames, "events": total,
+    return {"sensor": str(sensor), "mode": mode, "events": total,
             "publish_s": t_pub, "total_s": t_all, "events_per_s": total / t_all,
             "updates": st.get("updates"), "errors": st.get("errors_total"),
             "service_rss_mb": rss / 2**20}
@@ -221,9 +233,9 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if args.what in ("throughput", "all"):
         for size in args.sizes.split(","):
-            for frames in (False, True):
-                r = throughput(SensorSize.parse(size), int(args.events), frames=frames)
-                print(f"throughput {r['sensor']:>9} frames={'25Hz' if frames else 'none':<4} "
+            for mode in THROUGHPUT_MODES:
+                r = throughput(SensorSize.parse(size), int(args.events), mode=mode)
+                print(f"throughput {r['sensor']:>9} {mode:<8} "
                       f"{r['events_per_s'] / 1e6:6.1f} M events/s end to end "
                       f"({r['events'] / 1e6:.0f} M events in {r['total_s']:.2f} s; published "
                       f"in {r['publish_s']:.2f} s; {r['updates']} updates; service RSS "

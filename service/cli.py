@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import faulthandler
 import logging
 import signal
 import sys
@@ -96,6 +97,8 @@ def main_serve(argv: Sequence[str] | None = None) -> int:
         return 2
     from .server import run
 
+    # `kill -USR1 <pid>` dumps every thread's stack to stderr (diagnosing a stuck service)
+    faulthandler.register(signal.SIGUSR1, all_threads=True)
     stop = threading.Event()
 
     def on_signal(signum: int, _frame: object) -> None:

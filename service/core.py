@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import threading
 import time
 from collections import deque
@@ -357,8 +356,8 @@ class Camera:
         c.bytes_in += len(payload)
         self.rate.add(time.monotonic(), int(ev.size))
         self.dirty = True
-        if self.service.observer is not None and ev.size:
-            self.service.observer.events(self.id, ev)
+        if ev.size:
+            self.service.observe("events", self.id, ev)
 
     def _on_frame(self, payload: bytes, t_recv: float) -> None:
         try:
@@ -380,8 +379,7 @@ class Camera:
         self.counters.frames += 1
         self.counters.bytes_in += len(payload)
         self.dirty = True
-        if self.service.observer is not None:
-            self.service.observer.frame(self.id, t_us, image)
+        self.service.observe("frame", self.id, t_us, image)
         if updated:
             self._publish_calibration(t_us, t_recv)
 
@@ -398,7 +396,7 @@ class Camera:
         self.last_update_wall = time.time()
         self.counters.updates += 1
         if self.service.observer is not None:
-            self.service.observer.updated(self.id, cal, t_us, self.status())
+            self.service.observe("updated", self.id, cal, t_us, self.status())
 
     # -- errors ----------------------------------------------------------------------------
 
@@ -574,6 +572,7 @@ class Service:
         self._lock = threading.Lock()
         self.rejected_cameras = 0
         self.publish_errors = 0
+        self.observer_errors = 0
         self._closed = False
         self._last_status = 0.0
         self._last_snapshot = time.monotonic()
@@ -587,6 +586,17 @@ class Service:
         except Exception as exc:  # a closed session at shutdown, a transport hiccup
             self.publish_errors += 1
             log.warning("cannot publish on %s: %s", key, exc)
+
+    def observe(self, method: str, *args: Any) -> None:
+        """Tell the recorder; its failures are logged and counted, never an input's fault."""
+        if self.observer is None:
+            return
+        try:
+            getattr(self.observer, method)(*args)
+        except Exception:
+            self.observer_errors += 1
+            if self.observer_errors <= 3:
+                log.exception("the recorder failed in %s (logged 3 times at most)", method)
 
     def claims(self, camera: str) -> bool:
         return self._match(self.claim, f"{self.config.prefix.strip('/')}/{camera}")
@@ -665,6 +675,8 @@ class Service:
             "prefix": self.config.prefix,
             "claims": self.config.cameras,
             "rejected_cameras": self.rejected_cameras,
+            "publish_errors": self.publish_errors,
+            "recorder_errors": self.observer_errors,
             "cameras": [{"id": c.id, "sensor": str(c.sensor) if c.sensor else None,
                          "updates": c.counters.updates, "events": c.counters.events,
                          "last_update_t_us": c.calibration_t_us}

@@ -21,6 +21,7 @@ import argparse
 import json
 import logging
 import threading
+import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any
@@ -302,6 +303,20 @@ class Transport:
                 e = r.err
                 out.append(Reply(False, "", e.payload.to_bytes(), str(e.encoding)))
         return out
+
+    def flush(self, via_key: str | None = None, *, timeout_s: float = 5.0,
+              linger_s: float = 0.5) -> bool:
+        """Wait until what was put so far has left this session; call before closing it.
+
+        Closing a session drops messages still queued for sending (seen: the last ~5 % of a
+        burst of puts). A query travels behind the data on the same link, so a reply from the
+        receiver's queryable on ``via_key`` means the data arrived; without one, wait
+        ``linger_s``. Returns True when a reply confirmed it.
+        """
+        if via_key is not None and any(r.ok for r in self.get(via_key, timeout_s=timeout_s)):
+            return True
+        time.sleep(linger_s)
+        return False
 
     def token(self, key: str) -> None:
         """Declare a liveliness token (gone when the session closes or the process dies)."""

@@ -140,15 +140,21 @@ def test_two_cameras_keep_separate_states(two_cameras, sims, service):
     assert ids["lab/rig2/cam1"]["sensor"] == "48x36"
 
 
-@pytest.mark.xfail(reason="OnEI (src/evcal/online.py) is 1.5-3x worse than OffEI on bias at "
-                          "these sizes; the service reproduces onei() exactly (test above)",
-                   strict=False)
-def test_errors_within_1p5x_of_offline_offei(two_cameras, sims):
+def test_contrast_error_within_1p5x_of_offline_offei(two_cameras, sims):
     sim, _ = sims["a"]
-    off = offei(sim.recording, OffEIConfig())
-    live_c, live_b = errors(two_cameras["a"], sim.truth)
-    off_c, off_b = errors(off, sim.truth)
-    assert live_c <= 1.5 * off_c and live_b <= 1.5 * off_b, (live_c, off_c, live_b, off_b)
+    live_c, _ = errors(two_cameras["a"], sim.truth)
+    off_c, _ = errors(offei(sim.recording, OffEIConfig()), sim.truth)
+    assert live_c <= 1.5 * off_c, (live_c, off_c)  # measured: 0.0071 vs 0.0084
+
+
+@pytest.mark.xfail(reason="OnEI's bias error is about 2x OffEI's here (0.0037 vs 0.0018 at "
+                          "64x48, 4 s); an estimator matter (src/evcal/online.py): the service "
+                          "reproduces onei() exactly", strict=False)
+def test_bias_error_within_1p5x_of_offline_offei(two_cameras, sims):
+    sim, _ = sims["a"]
+    _, live_b = errors(two_cameras["a"], sim.truth)
+    _, off_b = errors(offei(sim.recording, OffEIConfig()), sim.truth)
+    assert live_b <= 1.5 * off_b, (live_b, off_b)
 
 
 def test_query_selector_fields_and_errors(two_cameras, service):

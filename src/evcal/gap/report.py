@@ -35,6 +35,7 @@ def write_details(result: GapResult, out_dir: Path) -> Path:
         "final": where(result.final),
         "steps": [{"effect": s.effect.name, "candidates": _clean(s.candidates),
                    "after": where(s.after)} for s in result.steps],
+        "rejected_candidates": _clean(result.rejected),
     }
     path = out_dir / "details.json"
     path.write_text(json.dumps(d, indent=2, default=_default) + "\n", encoding="utf-8")
@@ -109,6 +110,14 @@ def write_markdown(result: GapResult, out_dir: Path, *, plots: bool = True) -> P
                 lines.append(f"- {name}: " + ("—" if g is None else
                                                f"gap {g:.2f}, parameters {c['parameters']}"))
             lines.append("")
+    if result.rejected:
+        lines += ["Candidates of the last round, none of which lowered the gap enough to be "
+                  "named (gap with the candidate; — : the data show none of it):", ""]
+        for name, c in result.rejected.items():
+            g = c.get("gap")
+            lines.append(f"- {name}: " + ("—" if g is None else
+                                           f"gap {g:.2f}, parameters {c['parameters']}"))
+        lines.append("")
     lines += ["## Statistics", "", "| statistic | D initial | D final | largest at (initial) |",
               "|---|---|---|---|"]
     for k in result.initial.disc.per_stat:

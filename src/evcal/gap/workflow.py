@@ -91,6 +91,8 @@ class GapResult:
     final: Evaluation
     steps: list[Step] = field(default_factory=list)
     settings: dict[str, Any] = field(default_factory=dict)
+    # candidates of the round that named nothing (why the loop stopped)
+    rejected: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     @property
     def named_effects(self) -> list[str]:
@@ -151,7 +153,7 @@ class _Runner:
         self.anchor_seed = cfg.seed * 1000 + 999
 
     def evaluate(self, model: Model, what: str) -> Evaluation:
-        model = anchor(model, self.rec, self.meas_pop, self.anchor_seed, self.settings)
+        model = anchor(model, self.rec, self.meas, self.anchor_seed, self.settings)
         self.tick(f"{what}: anchor")
         sims = []
         for s in self.seeds:
@@ -234,6 +236,7 @@ def run_gap(rec: Recording, config: GapConfig | None = None, *,
     current = run.evaluate(base, "base model")
     initial = current
     steps: list[Step] = []
+    rejected: dict[str, dict[str, Any]] = {}
     while len(steps) < cfg.max_effects:
         tried: dict[str, dict[str, Any]] = {}
         best: tuple[float, Effect, Evaluation] | None = None
@@ -250,11 +253,13 @@ def run_gap(rec: Recording, config: GapConfig | None = None, *,
             if best is None or score < best[0]:
                 best = (score, eff, ev)
         if best is None:
+            rejected = tried
             break
         score, eff, ev = best
         gain = current.gap - score
         need = max(cfg.min_improvement, cfg.min_relative_improvement * (current.gap - 1.0))
         if gain <= need:
+            rejected = tried
             break
         if cfg.refine:
             eff, ev = run.refine(current.model, ev, eff)
@@ -267,4 +272,4 @@ def run_gap(rec: Recording, config: GapConfig | None = None, *,
                 "penalty_per_parameter": cfg.penalty_per_parameter,
                 "min_improvement": cfg.min_improvement,
                 "min_relative_improvement": cfg.min_relative_improvement}
-    return GapResult(info, run.meas_stats, initial, current, steps, settings)
+    return GapResult(info, run.meas_stats, initial, current, steps, settings, rejected)

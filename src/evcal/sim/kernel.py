@@ -8,7 +8,8 @@ Between two internal samples the (optionally low-passed) log intensity of a pixe
 - thresholds re-drawn after every event (threshold noise);
 - a dead time after every event, in which crossings are lost (``drop``: the reference follows
   the log intensity until the dead time ends) or delayed (``delay``: fire at its end);
-- a reference that drifts down (leak), the drift being booked so that leak events get a label;
+- a reference that drifts down (leak), the drift being booked so that leak events get a label
+  (an ON event is labelled leak when at least half a threshold of drift is unpaid);
 - at most one shot-noise event per pixel and step (Poisson rate x step << 1), which resets the
   reference to the present log intensity.
 
@@ -150,7 +151,7 @@ def _step(
                     ti = np.int64(np.rint(tf))
                 last_fire[i] = tf
                 label = LABEL_SIGNAL
-                if p > 0 and leak_debt[i] >= th_on_nom[i]:
+                if p > 0 and leak_debt[i] >= 0.5 * th_on_nom[i]:
                     label = LABEL_LEAK
                     leak_debt[i] -= th_on_nom[i]
                 t_f[n] = tf

@@ -1,0 +1,159 @@
+"""The model-gap workflow on recordings in which an effect is hidden.
+
+Each case simulates a small recording with effects the workflow is not told about, runs it,
+and checks that it names the hidden effect first, that the gap shrinks by at least half and
+that the fitted main parameter is within 30 % of the truth. Parameters and seeds here differ
+from those the workflow was tuned on (seed 11; refractory 1500 us, leak 1 Hz, shot noise 1 Hz,
+bandwidth 40 Hz, threshold noise 0.15, hot pixels 0.5 % at 40 Hz, dark level 30 DN, jitter
+300 us); ``scripts/gap_bench.py`` runs the larger version.
+"""
+
+from __future__ import annotations
+
+import json
+from functools import lru_cache
+
+import numpy as np
+import pytest
+
+from evcal.gap.cli import main as gap_main
+from evcal.gap.report import write_reports
+from evcal.gap.stats import GapError
+from evcal.gap.workflow import GapConfig, GapResult, run_gap
+from evcal.io import write_recording
+from evcal.recording import Frames, Recording
+from evcal.sim.effects import (
+    EFFECT_NAMES,
+    Bandwidth,
+    Effect,
+    HotPixels,
+    Leak,
+    LogOffset,
+    Refractory,
+    ShotNoise,
+    ThresholdNoise,
+    TimestampJitter,
+)
+from evcal.sim.ideal import SimConfig
+from evcal.sim.nonideal import simulate
+from evcal.sim.scene import Trajectory
+from evcal.sim.sources import MovingScene, SpeedProfile
+
+H, W = 48, 64
+TOLERANCE = 0.30
+
+
+def hidden_recording(effects: list[Effect], seed: int) -> Recording:
+    """48x64, 2 s: still for 0.5 s, then a pan at speed 1 and 2.5; 200 Hz frames."""
+    traj = Trajectory(pan_px=30.0, seed=seed)
+    cfg = SimConfig(height=H, width=W, duration_s=2.0, frame_rate_hz=200.0,
+                    internal_rate_hz=1000.0, log_offset=1.0, seed=seed, trajectory=traj)
+    src = MovingScene(cfg.scene, (H, W), traj,
+                      speed=SpeedProfile(segments=((0.5, 0.0), (0.75, 1.0), (0.75, 2.5))))
+    return simulate(cfg, effects, source=src).recording
+
+
+@lru_cache(maxsize=None)
+def _run(key: str, seed: int, max_effects: int) -> GapResult:
+    rec = hidden_recording(list(CASES.get(key, TWO_EFFECTS if key == "two" else [])), seed)
+    return run_gap(rec, GapConfig(max_effects=max_effects, n_seeds=3, seed=1))
+
+
+CASES: dict[str, list[Effect]] = {
+    "refractory": [Refractory(period_us=1100.0)],
+    "leak": [Leak(rate_hz=0.7)],
+    "shot_noise": [ShotNoise(rate_hz=1.6)],
+    "bandwidth": [Bandwidth(cutoff_hz=60.0)],
+    "threshold_noise": [ThresholdNoise(sigma=0.25)],
+    "hot_pixels": [HotPixels(fraction=0.004, rate_hz=120.0)],
+    "log_offset": [LogOffset(dark_dn=45.0)],
+    "timestamp_jitter": [TimestampJitter(sigma_us=500.0)],
+}
+SEEDS = {"refractory": 23, "leak": 29, "shot_noise": 31, "bandwidth": 37,
+         "threshold_noise": 41, "hot_pixels": 43, "log_offset": 47, "timestamp_jitter": 53}
+TWO_EFFECTS: list[Effect] = [ShotNoise(rate_hz=1.2), LogOffset(dark_dn=35.0)]
+
+
+def test_every_effect_has_a_hidden_case() -> None:
+    assert set(CASES) == set(EFFECT_NAMES)
+
+
+JITTER_BIAS = (
+    "timestamp_jitter is named and the gap shrinks, but sigma comes out about 1.4x the truth: "
+    "the simulations are driven by 200 Hz frames interpolated linearly, whose events are spaced "
+    "more evenly within a frame interval than the real ones; with the true scene as the "
+    "baseline the same estimator is unbiased (301 us for 300 us). Needs a motion-compensated "
+    "frame interpolation (issue 3, what remains)."
+)
+
+
+@pytest.mark.parametrize("name", [
+    pytest.param(n, marks=pytest.mark.xfail(reason=JITTER_BIAS, strict=True))
+    if n == "timestamp_jitter" else n for n in CASES])
+def test_hidden_effect_is_named_first_and_fitted(name: str) -> None:
+    truth = CASES[name][0]
+    res = _run(name, SEEDS[name], 1)
+    assert res.named_effects[:1] == [name], (
+        f"named {res.named_effects}; candidates: {res.steps[0].candidates if res.steps else {}}")
+    assert res.final.gap <= 0.5 * res.initial.gap
+    fitted = res.steps[0].effect.parameters()[truth.primary]
+    true = truth.parameters()[truth.primary]
+    assert fitted == pytest.approx(true, rel=TOLERANCE)
+
+
+def test_nothing_hidden_names_nothing() -> None:
+    res = _run("none", 59, 2)
+    assert res.named_effects == []
+    assert res.initial.gap < 3.0
+
+
+def test_two_hidden_effects_are_both_named() -> None:
+    res = _run("two", 61, 2)
+    assert sorted(res.named_effects) == sorted(e.name for e in TWO_EFFECTS)
+    assert res.final.gap <= 0.5 * res.initial.gap
+    for e in TWO_EFFECTS:
+        step = next(s for s in res.steps if s.effect.name == e.name)
+        fitted = step.effect.parameters()[e.primary]
+        assert fitted == pytest.approx(e.parameters()[e.primary], rel=TOLERANCE)
+
+
+def test_reports_follow_the_schema(tmp_path) -> None:
+    res = _run("log_offset", SEEDS["log_offset"], 1)
+    paths = write_reports(res, tmp_path)
+    doc = json.loads(paths["json"].read_text())
+    assert set(doc) == {"named_effects", "gap_initial", "gap_final", "steps", "statistics"}
+    assert doc["named_effects"] == ["log_offset"]
+    step = doc["steps"][0]
+    assert set(step) == {"effect", "parameters", "gap_before", "gap_after", "moved_statistics"}
+    assert step["effect"] in EFFECT_NAMES and "dark_dn" in step["parameters"]
+    assert len(doc["statistics"]) >= 8
+    for s in doc["statistics"]:
+        assert set(s) == {"name", "measured", "simulated_initial", "simulated_final",
+                          "z_initial", "z_final"}
+        assert np.isfinite(s["z_initial"]) and np.isfinite(s["z_final"])
+    md = paths["markdown"].read_text()
+    assert "log_offset" in md and "stats_step1_log_offset.png" in md
+    assert (tmp_path / "stats_initial.png").stat().st_size > 1000
+    assert (tmp_path / "stats_step1_log_offset.png").stat().st_size > 1000
+    from rerun.chunk import RrdReader
+
+    entities = {c.entity_path for c in RrdReader(str(paths["rrd"])).stream().collect().stream()}
+    assert any(str(e).endswith("gap") for e in entities)
+    assert any("stats/" in str(e) for e in entities)
+
+
+def test_cli_runs_on_a_file_and_rejects_bad_input(tmp_path, capsys) -> None:
+    rec = hidden_recording([], 67)
+    path = write_recording(rec, tmp_path / "rec.npz")
+    out = tmp_path / "out"
+    assert gap_main([str(path), "--out", str(out), "--max-effects", "0", "--n-seeds", "2",
+                     "--no-plots", "--no-rrd", "--quiet"]) == 0
+    doc = json.loads((out / "report.json").read_text())
+    assert doc["named_effects"] == [] and doc["steps"] == []
+    assert "named effects: none" in capsys.readouterr().out
+    assert gap_main([str(tmp_path / "missing.npz"), "--out", str(out), "--quiet"]) == 1
+    assert "no such file" in capsys.readouterr().err
+    no_frames = Recording(rec.sensor, rec.events, Frames.empty(H, W))
+    with pytest.raises(GapError, match="frames"):
+        run_gap(no_frames)
+    assert gap_main([str(path), "--out", str(out), "--candidates", "flicker", "--quiet"]) == 2

@@ -1,0 +1,177 @@
+"""The non-ideal simulator: it extends the ideal one, each effect does what it says, and
+everything is deterministic for a seed."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from evcal.recording import Recording
+from evcal.sim import bench_simulator
+from evcal.sim.effects import (
+    EFFECT_NAMES,
+    LABEL_HOT_PIXEL,
+    LABEL_LEAK,
+    LABEL_SHOT_NOISE,
+    ApsConfig,
+    Bandwidth,
+    EffectError,
+    HotPixels,
+    Leak,
+    LogOffset,
+    Refractory,
+    ShotNoise,
+    ThresholdNoise,
+    TimestampJitter,
+    make_effect,
+)
+from evcal.sim.ideal import SimConfig, simulate_ideal
+from evcal.sim.nonideal import simulate
+from evcal.sim.scene import Trajectory
+from evcal.sim.sources import FrameInterpolator, Illumination, MovingScene, SpeedProfile
+
+CFG = SimConfig(height=24, width=32, duration_s=0.6, frame_rate_hz=50.0, internal_rate_hz=1000.0,
+                log_offset=1.0, seed=5, trajectory=Trajectory(pan_px=30.0, seed=5))
+
+
+def _same_pixel_iei(ev: np.ndarray, width: int) -> np.ndarray:
+    pix = ev["y"].astype(np.int64) * width + ev["x"]
+    order = np.argsort(pix, kind="stable")
+    ps, ts = pix[order], ev["t_us"][order]
+    same = ps[1:] == ps[:-1]
+    return (ts[1:] - ts[:-1])[same]
+
+
+def test_no_effect_reproduces_the_ideal_simulator() -> None:
+    a = simulate_ideal(CFG).recording
+    b = simulate(CFG).recording
+    assert a.n_events > 1000
+    np.testing.assert_array_equal(a.events, b.events)
+    np.testing.assert_array_equal(a.frames.images, b.frames.images)
+    np.testing.assert_array_equal(a.frames.t_us, b.frames.t_us)
+
+
+@pytest.mark.parametrize("name", EFFECT_NAMES)
+def test_deterministic_for_a_seed(name: str) -> None:
+    eff = make_effect(name)
+    r1 = simulate(CFG, [eff])
+    r2 = simulate(CFG, [eff])
+    np.testing.assert_array_equal(r1.recording.events, r2.recording.events)
+    np.testing.assert_array_equal(r1.truth["labels"], r2.truth["labels"])
+    assert r1.truth["labels"].shape == (r1.recording.n_events,)
+    assert r1.truth["effects"] == {name: eff.parameters()}
+    r3 = simulate(SimConfig(**{**CFG.to_dict(), "seed": 6, "trajectory": CFG.trajectory}), [eff])
+    assert r3.recording.n_events != r1.recording.n_events or not np.array_equal(
+        r3.recording.events, r1.recording.events)
+
+
+def test_refractory_drop_removes_short_intervals_and_delay_keeps_the_count() -> None:
+    ideal = simulate(CFG).recording
+    drop = simulate(CFG, [Refractory(period_us=2000.0, mode="drop")]).recording
+    delay = simulate(CFG, [Refractory(period_us=2000.0, mode="delay")]).recording
+    assert (_same_pixel_iei(ideal.events, CFG.width) < 1999).any()
+    # rounding of event times to integer us allows one microsecond
+    assert _same_pixel_iei(drop.events, CFG.width).min() >= 1999
+    assert _same_pixel_iei(delay.events, CFG.width).min() >= 1999
+    assert drop.n_events < 0.95 * ideal.n_events
+    assert delay.n_events == ideal.n_events  # delayed, not lost
+
+
+def test_leak_adds_on_events_at_the_rate_in_a_still_scene() -> None:
+    still = SimConfig(**{**CFG.to_dict(), "duration_s": 2.0,
+                         "trajectory": Trajectory(pan_px=0, rotation_rad=0, zoom=0, seed=1)})
+    res = simulate(still, [Leak(rate_hz=2.0, spread_log=0.3)])
+    ev = res.recording.events
+    assert (ev["p"] > 0).all()
+    rate = ev.size / (still.height * still.width * still.duration_s)
+    # the reference starts half a cell (on average) below the ON level: half an event less
+    assert rate == pytest.approx(2.0 - 0.5 / still.duration_s, rel=0.1)
+    assert (res.truth["labels"] == LABEL_LEAK).mean() > 0.9
+
+
+def test_shot_noise_rate_rises_in_the_dark_and_is_labelled() -> None:
+    still = SimConfig(**{**CFG.to_dict(), "duration_s": 2.0,
+                         "trajectory": Trajectory(pan_px=0, rotation_rad=0, zoom=0, seed=1)})
+    res = simulate(still, [ShotNoise(rate_hz=5.0, ref_dn=16.0)])
+    ev = res.recording.events
+    assert (res.truth["labels"] == LABEL_SHOT_NOISE).all()
+    assert 0.4 < (ev["p"] > 0).mean() < 0.6
+    img = res.recording.frames.images[0].astype(float)
+    n = np.bincount(ev["y"].astype(int) * still.width + ev["x"],
+                    minlength=img.size).reshape(img.shape)
+    dark, bright = img < np.percentile(img, 25), img > np.percentile(img, 75)
+    assert n[dark].mean() > 2 * n[bright].mean()
+    expected = ShotNoise(rate_hz=5.0).rate_at(img).sum() * still.duration_s
+    assert ev.size == pytest.approx(expected, rel=0.1)
+
+
+def test_bandwidth_loses_events_mostly_in_the_dark() -> None:
+    fast = SimConfig(**{**CFG.to_dict(), "trajectory": Trajectory(pan_px=30, speed=3, seed=5)})
+    ideal = simulate(fast).recording
+    slow = simulate(fast, [Bandwidth(cutoff_hz=20.0)]).recording
+    assert slow.n_events < 0.9 * ideal.n_events
+
+
+def test_threshold_noise_keeps_the_mean_count_and_hot_pixels_fire() -> None:
+    ideal = simulate(CFG).recording
+    noisy = simulate(CFG, [ThresholdNoise(sigma=0.2)]).recording
+    assert noisy.n_events == pytest.approx(ideal.n_events, rel=0.1)
+    assert not np.array_equal(noisy.events, ideal.events)
+    hot = simulate(CFG, [HotPixels(fraction=0.01, rate_hz=200.0)])
+    mask = hot.truth["hot_pixels"]
+    assert mask.sum() == round(0.01 * CFG.height * CFG.width)
+    labels = hot.truth["labels"]
+    ev = hot.recording.events
+    assert (mask[ev["y"][labels == LABEL_HOT_PIXEL], ev["x"][labels == LABEL_HOT_PIXEL]]).all()
+    assert (labels == LABEL_HOT_PIXEL).sum() == pytest.approx(
+        mask.sum() * 200.0 * CFG.duration_s, rel=0.25)
+
+
+def test_log_offset_and_jitter() -> None:
+    ideal = simulate(CFG)
+    dark = simulate(CFG, [LogOffset(dark_dn=60.0)])
+    assert dark.truth["log_offset"] == 60.0
+    assert dark.recording.n_events < 0.8 * ideal.recording.n_events
+    jit = simulate(CFG, [TimestampJitter(sigma_us=200.0, quantum_us=50)]).recording
+    assert (jit.events["t_us"] % 50 == 0).all()
+    assert np.all(np.diff(jit.events["t_us"]) >= 0)
+    d = np.sort(jit.events["t_us"]) - np.sort(ideal.recording.events["t_us"])
+    assert 100 < np.std(d) < 400 or jit.n_events == ideal.recording.n_events
+
+
+def test_aps_frames_blur_noise_and_sources(tmp_path) -> None:
+    res = simulate(CFG, aps=ApsConfig(exposure_us=8000, read_noise_dn=2.0))
+    fr = res.recording.frames
+    assert fr.images.dtype == np.uint8
+    assert (fr.exposure_us == 8000).all()
+    sharp = simulate(CFG).recording.frames
+    # blur and noise change the frames but not the events (the DVS sees the scene)
+    assert not np.array_equal(sharp.images, fr.images)
+    np.testing.assert_array_equal(res.recording.events, simulate(CFG).recording.events)
+    # a frame sequence drives the simulator like a scene
+    src = FrameInterpolator(sharp, (CFG.height, CFG.width))
+    again = simulate(CFG, source=src, frames=sharp)
+    assert isinstance(again.recording, Recording) and again.recording.n_events > 0
+    # speed profile (still, then moving) and illumination ramp
+    scene = MovingScene(CFG.scene, (CFG.height, CFG.width), CFG.trajectory,
+                        speed=SpeedProfile(segments=((0.3, 0.0), (0.3, 2.0))),
+                        illumination=Illumination(gain_start=1.0, gain_end=0.5, ramp_s=0.6))
+    r = simulate(CFG, source=scene).recording
+    t = r.events["t_us"]
+    assert (t < 250_000).sum() < 0.05 * (t >= 300_000).sum()
+
+
+def test_effect_validation() -> None:
+    with pytest.raises(EffectError, match="mode"):
+        Refractory(mode="skip")
+    with pytest.raises(EffectError, match="unknown effect"):
+        make_effect("flicker")
+    with pytest.raises(EffectError, match="unknown parameter"):
+        make_effect("leak", rate=1.0)
+    with pytest.raises(EffectError, match="twice"):
+        simulate(CFG, [Leak(), Leak()])
+
+
+def test_bench_simulator_reports_events_per_second() -> None:
+    out = bench_simulator(height=26, width=34, duration_s=0.1)
+    assert out["events_per_s"] > 0 and out["n_events"] > 0 and out["sensor"] == "34x26"
