@@ -330,6 +330,10 @@ class Camera:
                 self.counters.lost[kind] += seq - expected
             else:
                 self.counters.seq_restarts[kind] += 1
+            if kind == "events" and self.calibrator is not None:
+                # events went missing (or the publisher restarted): no OnEI equation may
+                # span this interval, its counts are incomplete
+                self.calibrator.mark_gap()
         self.next_seq[kind] = seq + 1
 
     def _on_events(self, payload: bytes, t_recv: float) -> None:
@@ -376,12 +380,13 @@ class Camera:
             updated = self.calibrator.feed_frame(t_us, image, exposure_us)
         except ValueError as exc:
             raise Rejected("rejected", f"{what}: {exc}") from None
+        if updated:
+            self._publish_calibration(t_us, t_recv)
+        # counted once its outputs are out: a status showing n frames implies their updates
         self.counters.frames += 1
         self.counters.bytes_in += len(payload)
         self.dirty = True
         self.service.observe("frame", self.id, t_us, image)
-        if updated:
-            self._publish_calibration(t_us, t_recv)
 
     def _publish_calibration(self, t_us: int, t_recv: float) -> None:
         assert self.calibrator is not None

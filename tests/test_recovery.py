@@ -6,6 +6,8 @@ b ~ N(0.02, 0.01), log offset 30, seed 7 (the estimators were tuned on seed 0).
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -15,6 +17,7 @@ from evcal.lsq import OffEIConfig, estimate_log_offset, offei
 from evcal.offe import offe
 from evcal.online import OnEIConfig, OnlineCalibrator, onei
 from evcal.reconstruct import evaluate
+from evcal.recording import Frames, Recording
 from evcal.sim.ideal import SimConfig, simulate_ideal
 
 
@@ -88,7 +91,7 @@ def test_reconstruction_offei_close_to_truth_and_above_di(sim, offei_cal):
         2 * with_offei["calibrated"]["psnr"], rel=1e-9)
 
 
-def test_onei_converges(sim, offei_cal):
+def test_onei_converges_within_1p5x_of_offei(sim, offei_cal):
     cal = onei(sim.recording, OnEIConfig(log_offset=30.0), history_every=1)
     rmse_c, rmse_b = _errors(cal, sim.truth)
     off_c, off_b = _errors(offei_cal, sim.truth)
@@ -97,9 +100,97 @@ def test_onei_converges(sim, offei_cal):
     e_first = float(np.sqrt(np.mean((first[1] - sim.truth["contrast"])[first[3]] ** 2)))
     assert rmse_c < e_first  # it improves as data arrive
     assert cal.valid.mean() > 0.9
-    # measured: OnEI c error ~2-3x OffEI's on this 10 s recording (see the issue notes)
-    assert rmse_c <= 4 * off_c, (rmse_c, off_c)
-    assert rmse_b <= 3 * off_b, (rmse_b, off_b)
+    # the paper's buffer sizes see ~1.7 M of the 6.3 M events at a time; measured on seed 7:
+    # c 0.0119 vs 0.0093, b 0.0038 vs 0.0031 (seed 0: 0.0120 vs 0.0094, 0.0038 vs 0.0031)
+    assert rmse_c <= 1.5 * off_c, (rmse_c, off_c)
+    assert rmse_b <= 1.5 * off_b, (rmse_b, off_b)
+    # the large buffer holds at most n_large events
+    assert cal.params["buffer_events"] <= cal.params["n_large"]
+    assert cal.params["buffer_equations"] > cal.params["n_large"] / cal.params["n_small"]
+
+
+def test_onei_sliding_equations_equal_a_rebuild(sim):
+    """Subtracting a dropped small buffer is exact: rebuilding after every drop changes nothing
+    beyond rounding."""
+    rec = sim.recording
+    short = Recording(rec.sensor, rec.events[rec.events["t_us"] < 4_000_000],
+                      rec.frames.select(rec.frames.t_us < 4_000_000))
+    cfg = OnEIConfig(log_offset=30.0, n_small=50_000, n_large=300_000)
+    a = onei(short, cfg)
+    b = onei(short, replace(cfg, rebuild_every=1))
+    assert a.params["n_updates"] == b.params["n_updates"] > 10
+    np.testing.assert_allclose(a.contrast, b.contrast, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(a.bias, b.bias, rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(a.valid, b.valid)
+
+
+def _feed(cal: OnlineCalibrator, rec: Recording, *, lose=None, gap_frames=()) -> None:
+    t_ev = rec.events["t_us"]
+    cuts = np.searchsorted(t_ev, rec.frames.t_us)
+    prev = 0
+    for k in range(len(rec.frames)):
+        ev = rec.events[prev : cuts[k]]
+        prev = int(cuts[k])
+        if lose is not None and k in lose:
+            ev = ev[: ev.size // 4]  # three quarters of this interval's events never arrive
+            cal.mark_gap()
+        if k in gap_frames:
+            cal.mark_gap()
+        cal.feed_events(ev)
+        cal.feed_frame(int(rec.frames.t_us[k]), rec.frames.images[k])
+
+
+@pytest.fixture(scope="module")
+def small_sims():
+    base = SimConfig(height=72, width=96, duration_s=5.0)
+    return (simulate_ideal(replace(base, seed=11)),
+            simulate_ideal(replace(base, seed=12, duration_s=8.0, contrast_mean=0.27,
+                                   bias_mean=-0.01)))
+
+
+def test_onei_mark_gap_keeps_lost_events_out(small_sims):
+    sim = small_sims[0]
+    rec = sim.recording
+    cfg = OnEIConfig(log_offset=30.0)
+    lose = set(range(10, len(rec.frames), 20))  # every 20th interval loses events
+    errs = {}
+    for name, kw in (("complete", {}), ("marked", {"lose": lose}), ("unmarked", {"lose": lose})):
+        cal = OnlineCalibrator(rec.sensor, cfg)
+        if name == "unmarked":
+            cal.mark_gap = lambda: None  # a caller that does not report the loss
+        _feed(cal, rec, **kw)
+        errs[name] = _errors(cal.calibration(), sim.truth)
+    # measured (c, b): complete (0.0105, 0.0033), marked (0.0122, 0.0053): fewer equations;
+    # unmarked (0.0158, 0.0078): equations with missing events
+    assert errs["marked"][0] < 1.3 * errs["complete"][0], errs
+    assert errs["unmarked"][0] > 1.15 * errs["marked"][0], errs
+    assert errs["unmarked"][1] > 1.3 * errs["marked"][1], errs
+
+
+def test_onei_tracks_a_change_of_thresholds(small_sims):
+    """Two recordings back to back, the second with other c, b maps (a marked gap between):
+    the online estimate follows the second; OffEI on everything would average them."""
+    one, two = small_sims
+    r1, r2 = one.recording, two.recording
+    shift = int(r1.frames.t_us[-1]) + 40_000 - int(r2.frames.t_us[0])
+    ev2 = r2.events.copy()
+    ev2["t_us"] += shift
+    cal = OnlineCalibrator(r1.sensor, OnEIConfig(log_offset=30.0))
+    _feed(cal, r1)
+    after_first = _errors(cal.calibration(), one.truth)[0]
+    r2s = Recording(r2.sensor, ev2, Frames(r2.frames.t_us + shift, r2.frames.images,
+                                           r2.frames.exposure_us))
+    _feed(cal, r2s, gap_frames={0})
+    c_to_2, b_to_2 = _errors(cal.calibration(), two.truth)
+    c_to_1, _ = _errors(cal.calibration(), one.truth)
+    c_est = cal.calibration()
+    moved = float(np.mean(c_est.contrast[c_est.valid]))
+    # measured: 0.0105 after the first; then 0.0156 (c) and 0.0058 (b) against the second
+    # truth, 0.073 against the first; mean c 0.263 for a true mean near 0.27
+    assert after_first < 0.02
+    assert c_to_2 < 0.02 and b_to_2 < 0.01, (c_to_2, b_to_2)
+    assert c_to_1 > 3 * c_to_2
+    assert abs(moved - float(np.mean(two.truth["contrast"][c_est.valid]))) < 0.015
 
 
 def test_onei_state_round_trip_resumes_identically(sim):

@@ -170,7 +170,11 @@ def test_fuzz_one_camera_while_another_streams(live):
     wait_for(lambda: svc.cameras["fuzz/good"].counters.frames >= len(sim.recording.frames),
              timeout_s=60, what="the good camera's frames")
     good_cam = svc.cameras["fuzz/good"]
-    assert good_cam.counters.errors_total == 0
+    gc = good_cam.counters
+    assert gc.errors_total == 0
+    assert gc.lost == {"events": 0, "frames": 0}, gc.lost
+    assert gc.events == sim.recording.n_events, gc.events
+    assert good_cam.calibrator.status()["late_events"] == 0, good_cam.calibrator.status()
     live_cal, _ = decode_calibration(good_cam.calibration_msg)
     ref = onei(sim.recording, ONEI)
     np.testing.assert_allclose(live_cal.contrast, ref.contrast, atol=1e-6)

@@ -31,6 +31,7 @@ from __future__ import annotations
 from collections import deque
 from dataclasses import dataclass, field
 
+import numba
 import numpy as np
 
 from .accumulate import Snapshot, frame_snapshots
@@ -84,12 +85,22 @@ class NormalEquations:
     n_pixels: int
 
     def __post_init__(self) -> None:
-        for name in _TERMS:
-            setattr(self, name, np.zeros(self.n_pixels, np.float64))
+        # one (16, n) block: a row per cross product, each row a flat map
+        self.m = np.zeros((len(_TERMS), self.n_pixels), np.float64)
+        for i, name in enumerate(_TERMS):
+            setattr(self, name, self.m[i])
 
     def add(self, p: np.ndarray, e: np.ndarray, q: np.ndarray, a: np.ndarray, dl: np.ndarray,
             w: np.ndarray | float = 1.0, idx: np.ndarray | slice = slice(None),
             sign: float = 1.0) -> None:
+        if not isinstance(idx, slice):
+            # sparse: one compiled pass over the pixels (a numpy scatter per term is ~10x slower)
+            n = len(idx)
+            w_arr = np.broadcast_to(np.asarray(w, np.float64), (n,))
+            _add_sparse(self.m, np.asarray(idx, np.int64), *(
+                np.ascontiguousarray(np.broadcast_to(np.asarray(v, np.float64), (n,)))
+                for v in (p, e, q, a, dl)), np.ascontiguousarray(w_arr), float(sign))
+            return
         ws = sign * w
         wp, we, wq, wa = ws * p, ws * e, ws * q, ws * a
         self.pp[idx] += wp * p
@@ -140,6 +151,33 @@ class NormalEquations:
         for k in _TERMS:
             getattr(ne, k)[:] = arrays[k]
         return ne
+
+
+@numba.njit(cache=True, nogil=True)
+def _add_sparse(m, idx, p, e, q, a, dl, w, sign):  # pragma: no cover - compiled
+    for i in range(idx.size):
+        k = idx[i]
+        ws = sign * w[i]
+        wp = ws * p[i]
+        we = ws * e[i]
+        wq = ws * q[i]
+        wa = ws * a[i]
+        m[0, k] += wp * p[i]
+        m[1, k] += wp * e[i]
+        m[2, k] += wp * q[i]
+        m[3, k] += wp * a[i]
+        m[4, k] += we * e[i]
+        m[5, k] += we * q[i]
+        m[6, k] += we * a[i]
+        m[7, k] += wq * q[i]
+        m[8, k] += wq * a[i]
+        m[9, k] += wa * a[i]
+        m[10, k] += wp * dl[i]
+        m[11, k] += we * dl[i]
+        m[12, k] += wq * dl[i]
+        m[13, k] += wa * dl[i]
+        m[14, k] += ws * dl[i] * dl[i]
+        m[15, k] += ws
 
 
 def _solve2(a11, a12, a22, r1, r2, min_decorrelation):
