@@ -105,6 +105,14 @@ def test_real_davis346_end_to_end(shared_data, tmp_path, capsys):
     for method in ("offei", "onei", "offe", "brandli", "di"):
         out = tmp_path / f"{method}.npz"
         assert main(["calibrate", str(road), "--method", method, "--out", str(out)]) == 0
+    # 79 k events: the paper's OnEI buffers (416 k at 346x260) never fill, and it says so
+    assert "OnEI made no update" in capsys.readouterr().err
+    assert not load_calibration(tmp_path / "onei.npz").valid.any()
+    assert main(["calibrate", str(road), "--method", "onei", "--n-small", "8000",
+                 "--n-large", "60000", "--out", str(tmp_path / "onei_small.npz")]) == 0
+    assert "no update" not in capsys.readouterr().err
+    onei_small = load_calibration(tmp_path / "onei_small.npz")
+    assert onei_small.valid.sum() > 500
     js = tmp_path / "e.json"
     assert main(["evaluate", str(road), "--calibration", str(tmp_path / "offei.npz"),
                  "--frames-per-image", "5", "--json", str(js)]) == 0

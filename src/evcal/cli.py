@@ -58,6 +58,16 @@ def _offset_arg(text: str) -> float | str:
     return v
 
 
+def _positive_int(text: str) -> int:
+    try:
+        v = int(float(text)) if "e" in text.lower() else int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected a whole number") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"{v} must be >= 1")
+    return v
+
+
 # -- info -------------------------------------------------------------------------------------
 
 
@@ -94,7 +104,9 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 
 def run_calibration(rec, method: str, *, log_offset: float | str = "auto",
-                    window_frames: int | None = None, quiet: bool = True):
+                    window_frames: int | None = None, quiet: bool = True,
+                    n_small: int | None = None, n_large: int | None = None,
+                    smoothing: float | None = None):
     """The calibration ``method`` of ``rec`` (shared by the CLI, the demo and benchmarks)."""
     from .calibration import Calibration  # noqa: PLC0415
     from .lsq import OffEIConfig, estimate_log_offset, offei  # noqa: PLC0415
@@ -115,8 +127,16 @@ def run_calibration(rec, method: str, *, log_offset: float | str = "auto",
         from .online import OnEIConfig, onei  # noqa: PLC0415
 
         off, info = resolved_offset()
-        cal = onei(rec, OnEIConfig(log_offset=off))
+        kw = {k: v for k, v in (("n_small", n_small), ("n_large", n_large),
+                                ("smoothing", smoothing)) if v is not None}
+        cal = onei(rec, OnEIConfig(log_offset=off, **kw))
         cal.params["log_offset_estimation"] = info
+        if cal.params["n_updates"] == 0:
+            cal.params.setdefault("warnings", []).append(
+                f"OnEI made no update: the recording has {rec.n_events} events between its "
+                f"frames, fewer than one small buffer of {cal.params['n_small']} events (the "
+                "default scales the paper's 200 k at 240x180 with the sensor); pass a smaller "
+                "--n-small (and --n-large) or use --method offei")
         return cal
     if method == "offe":
         from .offe import offe  # noqa: PLC0415
@@ -140,7 +160,10 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
     rec = _open(args.recording, args.sensor_size)
     cal = run_calibration(rec, args.method, log_offset=args.log_offset,
-                          window_frames=args.window_frames, quiet=args.quiet)
+                          window_frames=args.window_frames, quiet=args.quiet,
+                          n_small=args.n_small, n_large=args.n_large, smoothing=args.smoothing)
+    for warning in cal.params.get("warnings", []):
+        print(f"evcal calibrate: warning: {warning}", file=sys.stderr)
     save_calibration(cal, args.out)
     if args.csv:
         write_csv(cal, args.csv)
@@ -292,6 +315,13 @@ def build_parser() -> argparse.ArgumentParser:
                     help="'auto' (estimated) or a number added to frames before the log")
     sp.add_argument("--window-frames", type=int, default=None,
                     help="OffEI window d in frame intervals (default 5)")
+    sp.add_argument("--n-small", type=_positive_int, default=None,
+                    help="OnEI events per small buffer (default: 200 k scaled from 240x180 "
+                         "to the sensor)")
+    sp.add_argument("--n-large", type=_positive_int, default=None,
+                    help="OnEI events in the large buffer (default: 1.7 M, scaled likewise)")
+    sp.add_argument("--smoothing", type=float, default=None,
+                    help="OnEI low-pass factor in (0, 1] (default 0.1)")
     sp.add_argument("--csv", metavar="DIR", help="also write scale.csv and bias.csv")
     sp.set_defaults(func=cmd_calibrate)
 
