@@ -339,7 +339,8 @@ class OnlineCalibrator:
 
     def _drop_overflow(self) -> None:
         cap = self._frame_cap or 2
-        while len(self._frames) > 1:
+        # the newest interval always stays, even when it alone holds more than n_large events
+        while len(self._frames) > 2:
             first, second = self._frames[0], self._frames[1]
             in_buffer = self._frames[-1].cum_events - first.cum_events
             if in_buffer <= self.n_large and len(self._frames) <= cap:

@@ -1,0 +1,116 @@
+"""OnEI's streaming contract: bounded buffers, the drop rule, bad input, state round trips.
+
+Synthetic random streams (no simulator): these tests are about bookkeeping, not accuracy
+(accuracy is tests/test_recovery.py's).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from evcal.bench import random_recording
+from evcal.events import EventError, SensorSize, make_events
+from evcal.online import OnEIConfig, OnlineCalibrator, onei
+
+SENSOR = SensorSize(20, 30)
+
+
+def feed(cal: OnlineCalibrator, rec, frames=None) -> list[dict]:
+    t_ev = rec.events["t_us"]
+    cuts = np.searchsorted(t_ev, rec.frames.t_us)
+    prev = 0
+    out = []
+    for k in range(len(rec.frames)) if frames is None else frames:
+        cal.feed_events(rec.events[prev : cuts[k]])
+        prev = int(cuts[k])
+        cal.feed_frame(int(rec.frames.t_us[k]), rec.frames.images[k])
+        out.append(cal.status())
+    return out
+
+
+def test_large_buffer_holds_at_most_n_large_events_and_drops_oldest_first():
+    rec = random_recording(SENSOR, 60 * 3000, 60)  # ~3000 events per frame interval
+    cal = OnlineCalibrator(SENSOR, OnEIConfig(n_small=5000, n_large=20_000))
+    statuses = feed(cal, rec)
+    assert max(s["buffer_events"] for s in statuses) <= 20_000
+    last = statuses[-1]
+    assert 5 <= last["buffer_frames"] <= 8  # 20 k / 3 k intervals
+    # a small buffer opens at every frame whose window has closed: about frames - 2 of them
+    assert last["buffer_equations"] >= last["buffer_frames"] - 3
+    assert last["n_updates"] >= 60 * 3000 // 5000 - 8
+    # the per-pixel counts are those of the buffered intervals
+    t0 = int(rec.frames.t_us[-last["buffer_frames"]])
+    ev = rec.events[(rec.events["t_us"] >= t0) & (rec.events["t_us"] < rec.frames.t_us[-1])]
+    counts = np.bincount(ev["y"].astype(int) * SENSOR.width + ev["x"], minlength=SENSOR.n_pixels)
+    np.testing.assert_array_equal(cal.calibration().n_events.ravel(), counts)
+
+
+def test_frame_cap_bounds_a_static_scene():
+    rec = random_recording(SENSOR, 200, 100)  # almost no events: the count never overflows
+    cal = OnlineCalibrator(SENSOR, OnEIConfig(n_small=5000, n_large=20_000,
+                                              max_buffer_frames=12))
+    statuses = feed(cal, rec)
+    assert max(s["buffer_frames"] for s in statuses) == 12
+    assert statuses[-1]["n_updates"] == 0
+    assert cal.buffer_bytes <= 12 * SENSOR.n_pixels * 2 + 200 * 12
+
+
+def test_an_interval_larger_than_the_buffer_is_kept_alone():
+    rec = random_recording(SENSOR, 10 * 30_000, 10)
+    cal = OnlineCalibrator(SENSOR, OnEIConfig(n_small=2000, n_large=10_000))
+    statuses = feed(cal, rec)
+    assert all(s["buffer_frames"] <= 2 for s in statuses)
+    assert statuses[-1]["buffer_equations"] == 1 and statuses[-1]["n_updates"] >= 8
+
+
+def test_bad_input_is_refused_with_the_reason():
+    cal = OnlineCalibrator(SENSOR, OnEIConfig(n_small=100, n_large=1000))
+    img = np.full(SENSOR.shape, 100, np.uint8)
+    cal.feed_frame(1000, img)
+    with pytest.raises(ValueError, match="shape"):
+        cal.feed_frame(2000, np.zeros((3, 4), np.uint8))
+    with pytest.raises(ValueError, match="NaN"):
+        cal.feed_frame(2000, np.full(SENSOR.shape, np.nan, np.float32))
+    with pytest.raises(ValueError, match="backwards"):
+        cal.feed_frame(1000, img)
+    with pytest.raises(EventError, match="outside"):
+        cal.feed_events(make_events([1500], [30], [0], [1]))
+    cal.feed_events(make_events([1500, 1600], [1, 2], [1, 2], [1, 0]))
+    with pytest.raises(EventError, match="sorted|before"):
+        cal.feed_events(make_events([1550], [1], [1], [1]))
+    # events before the latest frame arrive late: counted, never silently mixed in
+    cal.feed_frame(3000, img)
+    cal.feed_events(make_events([2500, 3100], [1, 1], [1, 1], [1, 1]))
+    assert cal.status()["late_events"] == 1
+
+
+def test_state_round_trip_mid_stream_and_bad_states():
+    rec = random_recording(SENSOR, 40 * 3000, 40)
+    cfg = OnEIConfig(n_small=5000, n_large=20_000)
+    a = OnlineCalibrator(SENSOR, cfg)
+    feed(a, rec, range(20))
+    state = a.state_dict()
+    b = OnlineCalibrator.from_state(state)
+    cuts = np.searchsorted(rec.events["t_us"], rec.frames.t_us)
+    for cal in (a, b):
+        prev = int(cuts[19])
+        for k in range(20, 40):
+            cal.feed_events(rec.events[prev : cuts[k]])
+            prev = int(cuts[k])
+            cal.feed_frame(int(rec.frames.t_us[k]), rec.frames.images[k])
+    np.testing.assert_array_equal(a.calibration().contrast, b.calibration().contrast)
+    assert a.status() == b.status()
+    bad = dict(state, fr_images=state["fr_images"][:, :5])
+    with pytest.raises(ValueError, match="frames have shapes"):
+        OnlineCalibrator.from_state(bad)
+    with pytest.raises(ValueError, match="lacks 'counts'"):
+        OnlineCalibrator.from_state({k: v for k, v in state.items() if k != "counts"})
+    with pytest.raises(ValueError, match="format"):
+        OnlineCalibrator.from_state(dict(state, format=np.array("evcal.onei.v1")))
+
+
+def test_onei_needs_frames():
+    rec = random_recording(SENSOR, 100, 1)
+    with pytest.raises(EventError, match="needs frames"):
+        onei(rec)
