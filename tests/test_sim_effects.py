@@ -65,6 +65,52 @@ def test_deterministic_for_a_seed(name: str) -> None:
         r3.recording.events, r1.recording.events)
 
 
+SHORTCUT_CASES = {
+    "ideal": [],
+    "all": [Refractory(period_us=300.0), Leak(rate_hz=3.0), ShotNoise(rate_hz=20.0),
+            ThresholdNoise(sigma=0.2)],
+    "delay, light-dependent leak": [Refractory(period_us=300.0, mode="delay"),
+                                    Leak(rate_hz=3.0, light_exponent=0.5)],
+    "bandwidth": [Bandwidth(cutoff_hz=30.0), Leak(rate_hz=3.0)],
+}
+
+
+@pytest.mark.parametrize("case", SHORTCUT_CASES)
+def test_the_no_crossing_shortcut_changes_no_event(case: str, monkeypatch) -> None:
+    """The kernel skips the crossing search for pixels that cannot fire; every pixel running
+    the search must give the same events, labels and frames."""
+    from evcal.sim import kernel, nonideal  # noqa: PLC0415
+
+    cfg = SimConfig(**{**CFG.to_dict(), "duration_s": 0.3, "trajectory": CFG.trajectory})
+    fast = simulate(cfg, SHORTCUT_CASES[case])
+    monkeypatch.setattr(nonideal, "run_steps", lambda *args: kernel.run_steps(*args, False))
+    exact = simulate(cfg, SHORTCUT_CASES[case])
+    assert fast.recording.n_events > 1000
+    np.testing.assert_array_equal(fast.recording.events, exact.recording.events)
+    np.testing.assert_array_equal(fast.truth["labels"], exact.truth["labels"])
+
+
+def test_step_sort_is_a_stable_sort_by_time() -> None:
+    """The kernel's per-step sort (counting sort on microseconds, insertion inside them, merge
+    where a microsecond is crowded, coarser buckets for long steps) is a stable argsort."""
+    from evcal.sim.kernel import _sort_step  # noqa: PLC0415
+
+    rng = np.random.default_rng(0)
+    for dt, m, n_keys in ((1000.0, 5000, 1003), (1000.0, 3000, 1003), (1e6, 4000, 1003),
+                          (1000.0, 2000, 50)):
+        t_f = 500.0 + np.round(rng.uniform(0, dt, m), 1)
+        if m == 3000:  # a crowded microsecond
+            t_f[:1000] = 900.0 + np.round(rng.uniform(0, 0.9, 1000), 2)
+        t_i = np.arange(m, dtype=np.int64)
+        others = [rng.integers(0, 100, m).astype(d) for d in (np.int32, np.int8, np.uint8)]
+        expect = np.argsort(t_f, kind="stable")
+        key = np.empty(n_keys, np.int64)
+        scratch = [np.empty(m, d) for d in (np.int64, np.int32, np.int64, np.int32, np.int8,
+                                            np.uint8)]
+        _sort_step(t_f, t_i, *others, 0, m, 500.0, dt, key, *scratch)
+        np.testing.assert_array_equal(t_i, expect)
+
+
 def test_refractory_drop_removes_short_intervals_and_delay_keeps_the_count() -> None:
     ideal = simulate(CFG).recording
     drop = simulate(CFG, [Refractory(period_us=2000.0, mode="drop")]).recording

@@ -139,12 +139,15 @@ def observe(rec: Recording, *, saturation_dn: tuple[float, float] = (0.0, 255.0)
 def fit_pixels(P: np.ndarray, E: np.ndarray, dL: np.ndarray, wgt: np.ndarray
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Closed-form per-pixel least squares of ``dL = c P + b E``; returns ``c, b, ok``."""
-    spp = (wgt * P * P).sum(0)
-    spe = (wgt * P * E).sum(0)
-    see = (wgt * E * E).sum(0)
-    spy = (wgt * P * dL).sum(0)
-    sey = (wgt * E * dL).sum(0)
-    n_ev = (wgt * E).sum(0)
+    return fit_from_sums((wgt * P * P).sum(0), (wgt * P * E).sum(0), (wgt * E * E).sum(0),
+                         (wgt * P * dL).sum(0), (wgt * E * dL).sum(0), (wgt * E).sum(0))
+
+
+def fit_from_sums(spp: np.ndarray, spe: np.ndarray, see: np.ndarray, spy: np.ndarray,
+                  sey: np.ndarray, n_ev: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`fit_pixels` from the per-pixel weighted sums of ``P P``, ``P E``, ``E E``,
+    ``P dL``, ``E dL`` and ``E``."""
     det = spp * see - spe * spe
     scale = spp * see
     ok = (scale > 0) & (det > 1e-3 * np.maximum(scale, 1e-30)) & (n_ev >= MIN_FIT_EVENTS)
@@ -432,7 +435,11 @@ def stat_lag(obs: Observation) -> StatValue:
 
 
 def stat_timestamp_quantum(obs: Observation) -> StatValue:
-    t = obs.t_us
+    return timestamp_quantum(obs.t_us)
+
+
+def timestamp_quantum(t: np.ndarray) -> StatValue:
+    """:func:`stat_timestamp_quantum` of event times ``t`` (us)."""
     v = np.array([np.mean(t % q == 0) if t.size else 0.0 for q in (10, 100, 1000)])
     return StatValue("timestamp_quantum", v, ["t % 10 us == 0", "t % 100 us == 0",
                                               "t % 1000 us == 0"], 0.01)

@@ -15,6 +15,11 @@ Between two internal samples the (optionally low-passed) log intensity of a pixe
 
 Randomness comes from a per-pixel xorshift64* stream seeded by the caller, so results do not
 depend on the order pixels are visited in, and there is no global RNG state.
+
+Speed: most pixels cannot fire in a given step, which a branch-free pass over all pixels tells
+from bounds in the intensity domain (no logarithm); only the others run the crossing search.
+The search's arithmetic is that of the plain per-pixel version, so the shortcut changes no
+event (``run_steps(..., shortcut=False)`` runs the search everywhere, for tests).
 """
 
 from __future__ import annotations
@@ -37,7 +42,8 @@ def _next_u01(state, i):  # pragma: no cover - compiled
     x ^= x >> np.uint64(27)
     state[i] = x
     r = x * np.uint64(2685821657736338717)
-    return (r >> np.uint64(11)) * (1.0 / 9007199254740992.0)
+    # 53 bits: through int64 the conversion is exact as from uint64, and it vectorises
+    return np.float64(np.int64(r >> np.uint64(11))) * (1.0 / 9007199254740992.0)
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -54,57 +60,125 @@ def _grow(buf, n):  # pragma: no cover - compiled
     return out
 
 
+# relative margin of the no-crossing test in the intensity domain (float32 bounds): far above
+# the rounding of exp, log and float32 (1e-7), so a pixel it lets through cannot have fired
+_MARGIN = 1e-6
+_F32_TINY = 1.1754943508222875e-38  # smallest normal float32
+# the same for the shot-noise test (float64 products: a few 1e-16)
+_SHOT_MARGIN = 1e-12
+# events in one bucket of the per-step sort above which insertion would cost more than merging
+_MAX_BUCKET = 256
+# buckets of the per-step sort (a microsecond each, up to steps of this length)
+_MAX_KEYS = 1 << 20
+
+
 @numba.njit(cache=True, nogil=True)
-def _step(
-    k, i_start, n, t_f, t_i, pix, pol, lab,
-    intensity, times, log_offset, lf, ref, th_on_nom, th_off_nom, th_on, th_off, dead_until,
-    last_fire, leak_rate, leak_debt, rng_state, th_sigma, refr_us, refr_delay, leak_light_exp,
-    leak_ref_dn, shot_rate_hz, shot_ref_dn, bw_cutoff_hz, bw_ref_dn, bw_min_hz,
+def _sort_step(t_f, t_i, pix, pol, lab, start, n, t0, dt, key, order, bkt, tmp_i, tmp_p,
+               tmp_o, tmp_l):  # pragma: no cover - compiled
+    """Stable sort of the events ``start..n`` of one step by ``t_f`` (all in ``[t0, t0 +
+    dt]``): a counting sort on buckets of a microsecond (coarser for steps longer than
+    ``key`` allows), then insertion within each bucket; a merge sort where one bucket holds
+    too many. ``t_f`` itself is left in emission order (nothing reads it after the sort)."""
+    m = n - start
+    if m < 2:
+        return
+    # any monotone bucketing keeps the sort exact
+    scale = min(1.0, (key.size - 3) / dt) if dt > 0 else 1.0
+    nb = int(dt * scale) + 2
+    for j in range(nb + 1):
+        key[j] = 0
+    for q in range(m):
+        b = np.int32((t_f[start + q] - t0) * scale)
+        bkt[q] = b
+        key[b + 1] += 1
+    crowded = False
+    for j in range(1, nb + 1):
+        crowded |= key[j] > _MAX_BUCKET
+        key[j] += key[j - 1]
+    if crowded:
+        o = np.argsort(t_f[start:n], kind="mergesort")
+        for q in range(m):
+            order[q] = o[q]
+    else:
+        for q in range(m):
+            b = bkt[q]
+            d = key[b]
+            key[b] = d + 1
+            order[d] = q
+        # insertion inside buckets (stable: move only past strictly later times)
+        for q in range(1, m):
+            oq = order[q]
+            tq = t_f[start + oq]
+            bq = bkt[oq]
+            r = q - 1
+            while r >= 0:
+                o_r = order[r]
+                if bkt[o_r] != bq or t_f[start + o_r] <= tq:
+                    break
+                order[r + 1] = o_r
+                r -= 1
+            order[r + 1] = oq
+    for q in range(m):
+        tmp_i[q] = t_i[start + q]
+        tmp_p[q] = pix[start + q]
+        tmp_o[q] = pol[start + q]
+        tmp_l[q] = lab[start + q]
+    for q in range(m):
+        o = order[q]
+        t_i[start + q] = tmp_i[o]
+        pix[start + q] = tmp_p[o]
+        pol[start + q] = tmp_o[o]
+        lab[start + q] = tmp_l[o]
+
+
+@numba.njit(cache=True, nogil=True)
+def _search(
+    j0, n_slow, slow_idx, k, intensity, times, log_offset, lf, lf_ok, i_prev, hi_i, lo_i, ref_i,
+    ref, th_on_nom, th_off_nom, th_on, th_off, dead_until, last_fire, leak_debt, rng_state,
+    u_shot, th_sigma, refr_us, refr_delay, shot_rate_hz, shot_ref_dn, bw_cutoff_hz, bw_ref_dn,
+    bw_min_hz, t_f, t_i, pix, pol, lab, n,
 ):  # pragma: no cover - compiled
-    """Pixels ``i_start..`` of step ``k``; returns ``(n, i)``: ``i < N`` when the buffers are
-    too small for pixel ``i`` (nothing of it was done: grow and call again from ``i``)."""
-    n_pix = intensity.shape[1]
+    """The exact crossing search of step ``k`` for the pixels ``slow_idx[j0:n_slow]``;
+    returns ``(n, j)``, ``j < n_slow`` when the buffers have no room for pixel
+    ``slow_idx[j]`` (nothing of it done: grow them and call again from ``j``)."""
     cap = t_f.size
     drop = refr_us > 0.0 and not refr_delay
     delay = refr_us > 0.0 and refr_delay
+    bw = bw_cutoff_hz > 0.0
+    shot = shot_rate_hz > 0.0
     t0 = times[k]
     t1 = times[k + 1]
     dt = float(t1 - t0)
     dt_s = dt * 1e-6
-    for i in range(i_start, n_pix):
-        inten = intensity[k, i]
-        a = lf[i]
+    for j in range(j0, n_slow):
+        i = slow_idx[j]
+        inten32 = intensity[k, i]
+        inten = np.float64(inten32)
+        r = ref[i]
+        a = lf[i] if lf_ok[i] else math.log(np.float64(i_prev[i]) + log_offset)
         lraw = math.log(inten + log_offset)
-        if bw_cutoff_hz > 0.0:
+        if bw:
             fc_hz = max(bw_min_hz, bw_cutoff_hz * (inten + log_offset) / bw_ref_dn)
             alpha = 1.0 - math.exp(-TWO_PI * fc_hz * dt_s)
             b = a + alpha * (lraw - a)
         else:
             b = lraw
-        drift = 0.0
-        if leak_rate[i] > 0.0:
-            rate = leak_rate[i]
-            if leak_light_exp != 0.0:
-                rate *= (max(inten, 1e-3) / leak_ref_dn) ** leak_light_exp
-            drift = rate * th_on_nom[i] * dt_s
-        r = ref[i] - drift
-        # worst case of this pixel's events (thresholds are >= 0.2 of nominal)
+        # worst case of this pixel's events (thresholds are >= 0.2 of nominal); nothing of
+        # the pixel's step is done yet when there is no room
         th_min = 0.2 * min(th_on_nom[i], th_off_nom[i])
         need = int((abs(b - r) + abs(a - r)) / th_min) + 8
         if n + need > cap:
-            return n, i
-        leak_debt[i] += drift
-        span = b - a
-        # shot noise: at most one event in this step, at fraction fn
+            return n, j
         fn = 2.0
         npol = 0
-        if shot_rate_hz > 0.0:
+        if shot:
+            u = u_shot[i]
             rate = shot_rate_hz * shot_ref_dn / max(inten, 0.1 * shot_ref_dn)
             pr = rate * dt_s
-            u = _next_u01(rng_state, i)
             if u < pr:
                 fn = u / pr
                 npol = 1 if _next_u01(rng_state, i) < 0.5 else -1
+        span = b - a
         fc = 0.0
         # two passes: crossings up to the noise event (if any), then the rest of the step
         for part in range(2):
@@ -124,7 +198,7 @@ def _step(
                 lc = a if fc == 0.0 else a + fc * span
                 le = b if f_end >= 1.0 else a + f_end * span
                 hi = max(lc, le)
-                lo = min(lc, le)
+                low = min(lc, le)
                 level_on = r + th_on[i]
                 level_off = r - th_off[i]
                 if level_on <= hi:
@@ -134,7 +208,7 @@ def _step(
                         f = fc
                     else:
                         f = (level - a) / span if span > 0 else 1.0
-                elif level_off >= lo:
+                elif level_off >= low:
                     level = level_off
                     p = -1
                     if lc <= level:
@@ -163,7 +237,8 @@ def _step(
                 r = level
                 if th_sigma > 0.0:
                     th_on[i] = th_on_nom[i] * max(0.2, 1.0 + th_sigma * _normal(rng_state, i))
-                    th_off[i] = th_off_nom[i] * max(0.2, 1.0 + th_sigma * _normal(rng_state, i))
+                    th_off[i] = th_off_nom[i] * max(0.2,
+                                                    1.0 + th_sigma * _normal(rng_state, i))
                 fc = f
                 if drop:
                     dead_until[i] = tf + refr_us
@@ -192,22 +267,37 @@ def _step(
                     n += 1
                     r = a + fn * span
                     if th_sigma > 0.0:
-                        th_on[i] = th_on_nom[i] * max(0.2, 1.0 + th_sigma * _normal(rng_state, i))
-                        th_off[i] = th_off_nom[i] * max(0.2, 1.0 + th_sigma * _normal(rng_state, i))
+                        th_on[i] = th_on_nom[i] * max(
+                            0.2, 1.0 + th_sigma * _normal(rng_state, i))
+                        th_off[i] = th_off_nom[i] * max(
+                            0.2, 1.0 + th_sigma * _normal(rng_state, i))
                     if drop:
                         dead_until[i] = tf + refr_us
         ref[i] = r
         lf[i] = b
-    return n, n_pix
+        if not bw:
+            # float32 rounds by far less than the margin, except below its normal range:
+            # there hi goes to 0 (no shortcut) and lo up to the smallest normal
+            hi = math.exp(r + th_on[i]) * (1.0 - _MARGIN)
+            lo = math.exp(r - th_off[i]) * (1.0 + _MARGIN)
+            hi_i[i] = np.float32(hi) if hi >= _F32_TINY else np.float32(0.0)
+            lo_i[i] = np.float32(lo) if lo >= _F32_TINY else np.float32(_F32_TINY)
+            ref_i[i] = r
+    return n, n_slow
 
 
 @numba.njit(cache=True, nogil=True)
 def run_steps(
-    intensity,  # [K, N] float64: intensity (DN) at times[1..K]
+    intensity,  # [K, N] float32: intensity (DN) at times[1..K]
     times,  # [K + 1] int64 us: times[0] is the previous sample (the state's time)
     log_offset,
     # per-pixel state (updated in place)
-    lf,  # log intensity seen by the comparator at times[0]
+    lf,  # log intensity seen by the comparator at times[0] (where lf_ok)
+    lf_ok,  # uint8: lf is up to date (else it is log(i_prev + log_offset), not yet computed)
+    i_prev,  # float32 intensity (DN) at times[0]
+    hi_i,  # float32 intensity-domain bounds: below exp(ref + th_on), above exp(ref - th_off)
+    lo_i,
+    ref_i,  # ref when hi_i, lo_i were computed (leak moves ref down between events)
     ref,
     th_on_nom,
     th_off_nom,
@@ -229,28 +319,164 @@ def run_steps(
     bw_cutoff_hz,
     bw_ref_dn,
     bw_min_hz,
-    capacity,
+    # output, appended from n on (grown as needed; the grown arrays are returned)
+    t_f,
+    t_i,
+    pix,
+    pol,
+    lab,
+    n,
+    shortcut=True,  # False: every pixel runs the exact search (for tests of the shortcut)
 ):  # pragma: no cover - compiled
-    """Events of ``K`` steps: ``(t_float_us, t_us, pixel, polarity, label)``, unsorted."""
+    """Events of ``K`` steps appended to ``(t_float_us, t_us, pixel, polarity, label)`` from
+    ``n`` on; returns the arrays and the new ``n``. The events of each step are sorted by time
+    (stable), all but ``t_float_us``, which stays in emission order; in delay mode, whose
+    events can move past the step's end, nothing is sorted (the caller sorts by
+    ``t_float_us``).
+
+    Each step runs in two passes. The first, over all pixels and free of branches, books the
+    leak drift, draws the shot-noise number and tests whether the pixel can fire: not if its
+    intensity at both ends of the step lies strictly between the intensity-domain images of
+    its two levels (the log is monotone) and no shot noise or dead time is due. That is most
+    pixels; the second pass runs the exact crossing search, with the arithmetic of the
+    one-pass version, on the others only, so the events do not depend on the shortcut.
+    """
     k_steps, n_pix = intensity.shape
-    t_f = np.empty(capacity, np.float64)
-    t_i = np.empty(capacity, np.int64)
-    pix = np.empty(capacity, np.int32)
-    pol = np.empty(capacity, np.int8)
-    lab = np.empty(capacity, np.uint8)
-    n = 0
+    drop = refr_us > 0.0 and not refr_delay
+    delay = refr_us > 0.0 and refr_delay
+    bw = bw_cutoff_hz > 0.0
+    shot = shot_rate_hz > 0.0
+    leak = False
+    for i in range(n_pix):
+        if leak_rate[i] > 0.0:
+            leak = True
+            break
+    max_dt = 0
     for k in range(k_steps):
-        i = 0
-        while i < n_pix:
-            n, i = _step(k, i, n, t_f, t_i, pix, pol, lab, intensity, times, log_offset, lf,
-                         ref, th_on_nom, th_off_nom, th_on, th_off, dead_until, last_fire,
-                         leak_rate, leak_debt, rng_state, th_sigma, refr_us, refr_delay,
-                         leak_light_exp, leak_ref_dn, shot_rate_hz, shot_ref_dn, bw_cutoff_hz,
-                         bw_ref_dn, bw_min_hz)
-            if i < n_pix:
+        max_dt = max(max_dt, int(times[k + 1] - times[k]))
+    key = np.empty(min(max_dt, _MAX_KEYS) + 3, np.int64)
+    order = np.empty(0, np.int64)
+    bkt = np.empty(0, np.int32)
+    tmp_i = np.empty(0, np.int64)
+    tmp_p = np.empty(0, np.int32)
+    tmp_o = np.empty(0, np.int8)
+    tmp_l = np.empty(0, np.uint8)
+    slow = np.empty(n_pix, np.uint8)
+    slow_idx = np.empty(n_pix, np.int64)
+    u_shot = np.empty(n_pix, np.float64)
+    shot_quiet = np.empty(n_pix, np.bool_)
+    for k in range(k_steps):
+        t0 = times[k]
+        t1 = times[k + 1]
+        dt = float(t1 - t0)
+        dt_s = dt * 1e-6
+        n_start = n
+        # pass 1 (loops the compiler vectorises): leak drift, the shot-noise draw (the first
+        # draw of the pixel's step either way, so its random stream does not depend on the
+        # pass that handles it) and the no-crossing test
+        # without light dependence, the drift goes into the test's loop (ref is read once)
+        fused = leak and leak_light_exp == 0.0 and shortcut and not bw
+        if leak and not fused:
+            for i in range(n_pix):
+                rate = leak_rate[i]
+                if leak_light_exp != 0.0 and rate > 0.0:
+                    rate *= (max(np.float64(intensity[k, i]), 1e-3) / leak_ref_dn
+                             ) ** leak_light_exp
+                d = rate * th_on_nom[i] * dt_s
+                ref[i] = ref[i] - d
+                leak_debt[i] += d
+        if shot:
+            # u < p = (rate ref / max(I, 0.1 ref)) dt is decided here without the division
+            # where u max(I, 0.1 ref) is clearly above rate ref dt (pass 2 decides the rest,
+            # with the division)
+            c_quiet = shot_rate_hz * shot_ref_dn * dt_s * (1.0 + _SHOT_MARGIN)
+            i_min = 0.1 * shot_ref_dn
+            for i in range(n_pix):
+                u = _next_u01(rng_state, i)
+                u_shot[i] = u
+                x = np.float64(intensity[k, i])
+                x = x if x > i_min else i_min
+                shot_quiet[i] = u * x > c_quiet
+        if bw or not shortcut:
+            for i in range(n_pix):
+                slow[i] = 1
+        elif fused:
+            for i in range(n_pix):
+                d = leak_rate[i] * th_on_nom[i] * dt_s
+                r = ref[i] - d
+                ref[i] = r
+                leak_debt[i] += d
+                xa = np.float64(i_prev[i]) + log_offset
+                xb = np.float64(intensity[k, i]) + log_offset
+                # exp(r + th_on) >= exp(ref_i + th_on) (1 - (ref_i - r)): leak lowers it
+                h = np.float64(hi_i[i]) * (1.0 - (ref_i[i] - r))
+                lo = np.float64(lo_i[i])
+                quiet = (xa < h) & (xb < h) & (xa > lo) & (xb > lo)
+                if drop:
+                    quiet &= dead_until[i] <= t0
+                if shot:
+                    quiet &= shot_quiet[i]
+                slow[i] = np.uint8(not quiet)
+        else:
+            for i in range(n_pix):
+                xa = np.float64(i_prev[i]) + log_offset
+                xb = np.float64(intensity[k, i]) + log_offset
+                h = np.float64(hi_i[i]) * (1.0 - (ref_i[i] - ref[i]))
+                lo = np.float64(lo_i[i])
+                quiet = (xa < h) & (xb < h) & (xa > lo) & (xb > lo)
+                if drop:
+                    quiet &= dead_until[i] <= t0
+                if shot:
+                    quiet &= shot_quiet[i]
+                slow[i] = np.uint8(not quiet)
+        n_slow = 0
+        for i in range(n_pix):
+            slow_idx[n_slow] = i
+            n_slow += slow[i]
+        # pass 2: the exact search where a pixel may fire (returns early when the buffers
+        # are full: growing them here, not in its loop, keeps reference counting out of it)
+        j = 0
+        while j < n_slow:
+            n, j = _search(j, n_slow, slow_idx, k, intensity, times, log_offset, lf, lf_ok,
+                           i_prev, hi_i, lo_i, ref_i, ref, th_on_nom, th_off_nom, th_on,
+                           th_off, dead_until, last_fire, leak_debt, rng_state, u_shot,
+                           th_sigma, refr_us, refr_delay, shot_rate_hz, shot_ref_dn,
+                           bw_cutoff_hz, bw_ref_dn, bw_min_hz, t_f, t_i, pix, pol, lab, n)
+            if j < n_slow:
                 t_f = _grow(t_f, n)
                 t_i = _grow(t_i, n)
                 pix = _grow(pix, n)
                 pol = _grow(pol, n)
                 lab = _grow(lab, n)
-    return t_f[:n], t_i[:n], pix[:n], pol[:n], lab[:n]
+        # every pixel moves on to this step's intensity; lf is up to date where pass 2 ran
+        for i in range(n_pix):
+            i_prev[i] = intensity[k, i]
+            lf_ok[i] = slow[i]
+        m = n - n_start
+        # delayed events may leave their step: the caller sorts those globally
+        if m > 1 and not delay:
+            if order.size < m:
+                order = np.empty(2 * m, np.int64)
+                bkt = np.empty(2 * m, np.int32)
+                tmp_i = np.empty(2 * m, np.int64)
+                tmp_p = np.empty(2 * m, np.int32)
+                tmp_o = np.empty(2 * m, np.int8)
+                tmp_l = np.empty(2 * m, np.uint8)
+            _sort_step(t_f, t_i, pix, pol, lab, n_start, n, float(t0), dt, key, order, bkt,
+                       tmp_i, tmp_p, tmp_o, tmp_l)
+    return t_f, t_i, pix, pol, lab, n
+
+
+@numba.njit(cache=True, nogil=True)
+def fill_events(t_out, x_out, y_out, p_out, t_us, pix, pol, width):  # pragma: no cover
+    """The fields of an events array (views) from times, flat pixel indices and polarities."""
+    # y = q // width by a float reciprocal (an integer division per event costs more than the
+    # rest): (q + 0.5) / width is at least 0.5 / width from an integer, far above the error
+    inv_w = 1.0 / width
+    for j in range(t_us.size):
+        t_out[j] = t_us[j]
+        q = np.int64(pix[j])
+        y = np.int64((q + 0.5) * inv_w)
+        y_out[j] = y
+        x_out[j] = q - y * width
+        p_out[j] = pol[j]

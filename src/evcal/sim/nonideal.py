@@ -3,8 +3,10 @@
 :func:`simulate` draws the per-pixel ``c``, ``b`` maps exactly as
 :func:`~evcal.sim.ideal.simulate_ideal` does (:func:`~evcal.sim.ideal.draw_maps`, same seed,
 same reference initialisation), renders the intensity at the internal rate
-(:func:`~evcal.sim.ideal.internal_times_us`), and runs the numba kernel of
-:mod:`evcal.sim.kernel` over chunks of steps, vectorised over pixels. Effects that need no
+(:func:`~evcal.sim.ideal.internal_times_us`) in blocks of ``chunk_steps`` (through the
+source's ``render_block`` where it has one), and runs the numba kernel of
+:mod:`evcal.sim.kernel` over each block, appending to event buffers kept for the whole run
+(the kernel sorts each step's events, so steps come out in time order). Effects that need no
 per-pixel sequence (hot pixels, timestamp jitter) are applied to the event arrays afterwards.
 With no effect it reproduces the ideal simulator's events.
 
@@ -41,7 +43,7 @@ from .effects import (
     effect_set,
 )
 from .ideal import SimConfig, SimResult, draw_maps, frame_times_us, internal_times_us
-from .kernel import run_steps
+from .kernel import fill_events, run_steps
 from .sources import MovingScene
 
 Source = Callable[[float], np.ndarray]
@@ -69,6 +71,12 @@ def _aps_frame(source: Source, t_us: int, aps: ApsConfig, rng: np.random.Generat
     return np.maximum(img, 0.0).astype(np.float32)
 
 
+def _resized(buf: np.ndarray, size: int, n: int) -> np.ndarray:
+    out = np.empty(size, buf.dtype)
+    out[:n] = buf[:n]
+    return out
+
+
 def simulate(
     cfg: SimConfig,
     effects: Iterable[Effect] | Mapping[str, Effect] | None = (),
@@ -79,7 +87,7 @@ def simulate(
     frames: Frames | None = None,
     times_us: np.ndarray | None = None,
     t_origin_us: int = 0,
-    chunk_steps: int = 16,
+    chunk_steps: int = 64,
     progress: Callable[[int], None] | None = None,
 ) -> SimResult:
     """Simulate a recording with the given effects.
@@ -169,6 +177,12 @@ def simulate(
                               ) if isinstance(bw, Bandwidth) else (0.0, 128.0, 0.5)
 
     lf = l0.copy()
+    lf_ok = np.ones(npix, np.uint8)
+    i_prev = i0.astype(np.float32).ravel()
+    # intensity-domain bounds of the levels; 0 until a pixel's first step computes them
+    hi_i = np.zeros(npix, np.float32)
+    lo_i = np.zeros(npix, np.float32)
+    ref_i = ref.copy()
     dead = np.full(npix, -np.inf)
     last_fire = np.full(npix, -np.inf)
     debt = np.zeros(npix)
@@ -183,45 +197,54 @@ def simulate(
         f_img.append(_aps_frame(source, int(times[0]), aps, r_aps, i0))
         frame_pos = 1
 
-    out_tf, out_ti, out_pix, out_p, out_lab = [], [], [], [], []
+    render_block = getattr(source, "render_block", None)
     n_steps = times.size - 1
+    block_buf = np.empty((min(chunk_steps, n_steps), cfg.height, cfg.width), np.float32)
+    # event buffers for the whole run, grown by the kernel when full and ahead of it when the
+    # rate so far says they will be (one early copy instead of doublings)
+    cap = max(4096, int(npix * min(n_steps, chunk_steps) * 0.02))
+    buf_tf = np.empty(cap, np.float64)
+    buf_ti = np.empty(cap, np.int64)
+    buf_pix = np.empty(cap, np.int32)
+    buf_p = np.empty(cap, np.int8)
+    buf_lab = np.empty(cap, np.uint8)
+    n_ev = 0
     k = 0
     while k < n_steps:
         kk = min(chunk_steps, n_steps - k)
-        block = np.empty((kk, npix), np.float64)
+        t_blk = times[k + 1 : k + kk + 1]
+        if render_block is not None:
+            block = np.asarray(render_block(t_blk * 1e-6, out=block_buf[:kk]),
+                               np.float32).reshape(kk, npix)
+        else:
+            block = block_buf[:kk].reshape(kk, npix)
+            for j in range(kk):
+                block[j] = np.asarray(source(int(t_blk[j]) * 1e-6), np.float32).ravel()
         for j in range(kk):
-            t = int(times[k + 1 + j])
-            img = np.asarray(source(t * 1e-6), np.float32)
-            block[j] = img.ravel()
+            t = int(t_blk[j])
             if frame_pos < frame_t.size and frame_t[frame_pos] == t:
                 f_t.append(t)
-                f_img.append(_aps_frame(source, t, aps, r_aps, img))
+                f_img.append(_aps_frame(source, t, aps, r_aps,
+                                        block[j].reshape(cfg.height, cfg.width)))
                 frame_pos += 1
-        cap = max(1024, int(npix * kk * 0.05))
-        tf, ti, pix, pol, lab = run_steps(
-            block, times[k : k + kk + 1], offset, lf, ref, th_on_nom, th_off_nom, th_on, th_off,
-            dead, last_fire, leak_rate, debt, rng_state, th_sigma, refr_us, refr_delay,
-            leak_exp, leak_ref, shot_rate, shot_ref, bw_cut, bw_ref, bw_min, cap)
-        if tf.size:
-            out_tf.append(tf)
-            out_ti.append(ti)
-            out_pix.append(pix)
-            out_p.append(pol)
-            out_lab.append(lab)
+        buf_tf, buf_ti, buf_pix, buf_p, buf_lab, n_ev = run_steps(
+            block, times[k : k + kk + 1], offset, lf, lf_ok, i_prev, hi_i, lo_i, ref_i, ref,
+            th_on_nom, th_off_nom, th_on, th_off, dead, last_fire, leak_rate, debt, rng_state,
+            th_sigma, refr_us, refr_delay, leak_exp, leak_ref, shot_rate, shot_ref, bw_cut,
+            bw_ref, bw_min, buf_tf, buf_ti, buf_pix, buf_p, buf_lab, n_ev)
         k += kk
+        want = int(1.1 * n_ev * n_steps / k) + 1024
+        if k < n_steps and want > buf_tf.size:
+            buf_tf, buf_ti, buf_pix, buf_p, buf_lab = (
+                _resized(b, want, n_ev) for b in (buf_tf, buf_ti, buf_pix, buf_p, buf_lab))
         if progress is not None:
             progress(k)
 
-    def cat(parts: list[np.ndarray], dtype: Any) -> np.ndarray:
-        return np.concatenate(parts) if parts else np.zeros(0, dtype)
-
-    t_float = cat(out_tf, np.float64)
-    t_int = cat(out_ti, np.int64)
-    pix = cat(out_pix, np.int32)
-    pol = cat(out_p, np.int8)
-    lab = cat(out_lab, np.uint8)
-    order = np.argsort(t_float, kind="stable")
-    t_int, pix, pol, lab = t_int[order], pix[order], pol[order], lab[order]
+    t_int, pix, pol, lab = buf_ti[:n_ev], buf_pix[:n_ev], buf_p[:n_ev], buf_lab[:n_ev]
+    if refr_delay and refr_us > 0:
+        # delayed events can leave their step: the kernel leaves those in emission order
+        order = np.argsort(buf_tf[:n_ev], kind="stable")
+        t_int, pix, pol, lab = t_int[order], pix[order], pol[order], lab[order]
 
     hot_mask = np.zeros(npix, bool)
     hot = eff.get(HotPixels.name)
@@ -241,7 +264,8 @@ def simulate(
         order = np.argsort(t_int, kind="stable")
         t_int, pix, pol, lab = t_int[order], pix[order], pol[order], lab[order]
 
-    t_int = t_int + int(t_origin_us)
+    if t_origin_us:
+        t_int = t_int + int(t_origin_us)
     jit = eff.get(TimestampJitter.name)
     if isinstance(jit, TimestampJitter) and (jit.sigma_us > 0 or jit.quantum_us > 1):
         if jit.sigma_us > 0:
@@ -254,10 +278,7 @@ def simulate(
         t_int, pix, pol, lab = t_int[order], pix[order], pol[order], lab[order]
 
     ev = np.empty(t_int.size, EVENTS_DTYPE)
-    ev["t_us"] = t_int
-    ev["x"] = pix % cfg.width
-    ev["y"] = pix // cfg.width
-    ev["p"] = pol
+    fill_events(ev["t_us"], ev["x"], ev["y"], ev["p"], t_int, pix, pol, cfg.width)
     if frames is None:
         if f_img:
             frames = Frames(t_us=np.asarray(f_t, np.int64) + int(t_origin_us),

@@ -10,7 +10,9 @@ forth over textured regions (every pixel sees intensity rise and fall, which is 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
+import numba
 import numpy as np
 
 SCENES = ("camera", "astronaut", "coffee", "chelsea", "rocket", "brick", "grass", "gravel",
@@ -66,13 +68,15 @@ class Trajectory:
             if not np.isfinite(getattr(self, name)) or getattr(self, name) < 0:
                 raise ValueError(f"trajectory {name}={getattr(self, name)} must be finite and >= 0")
 
+    @cached_property
     def _phases(self) -> np.ndarray:
+        # drawn once per trajectory (a generator per pose would cost more than the pose)
         return np.random.default_rng(self.seed).uniform(0, 2 * np.pi, size=12)
 
     def pose(self, t_s: np.ndarray | float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """``(tx_px, ty_px, rot_rad, log_zoom)`` at times ``t_s`` (seconds)."""
         t = np.asarray(t_s, np.float64) * self.speed
-        ph = self._phases()
+        ph = self._phases
         w = 2 * np.pi
         tx = self.pan_px * (0.7 * np.sin(w * 0.31 * t + ph[0]) + 0.3 * np.sin(w * 0.83 * t + ph[1]))
         ty = self.pan_px * (0.6 * np.sin(w * 0.23 * t + ph[2]) + 0.4 * np.sin(w * 0.67 * t + ph[3]))
@@ -92,9 +96,6 @@ class Renderer:
         self.shape = (int(shape[0]), int(shape[1]))
         self.trajectory = trajectory
         h, w = self.shape
-        yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
-        self._u = xx - (w - 1) / 2.0
-        self._v = yy - (h - 1) / 2.0
         # The sensor sees a window of the scene scaled so that the motion stays inside it.
         sh, sw = self.scene.shape
         margin = trajectory.pan_px + trajectory.shake_px + 2
@@ -102,14 +103,90 @@ class Renderer:
         self._scale = min(1.0, (min(sh, sw) / 2 - 1) / reach) if reach > 0 else 1.0
         self._cx, self._cy = (sw - 1) / 2.0, (sh - 1) / 2.0
 
-    def render(self, t_s: float) -> np.ndarray:
-        """Scene intensity (DN, float32 ``[H, W]``) seen at time ``t_s``."""
+    def _pose_params(self, t_s: float) -> tuple[float, float, float, float, float]:
+        """``(scale, cos, sin, tx, ty)`` of the scene coordinates at time ``t_s``: pixel
+        ``(u, v)`` from the centre samples the scene at
+        ``(cx + scale (cos u - sin v) + tx, cy + scale (sin u + cos v) + ty)``."""
         tx, ty, rot, lz = self.trajectory.pose(t_s)
         s = np.exp(float(lz)) * self._scale
         cr, sr = np.cos(float(rot)), np.sin(float(rot))
-        xs = self._cx + s * (cr * self._u - sr * self._v) + float(tx) * self._scale
-        ys = self._cy + s * (sr * self._u + cr * self._v) + float(ty) * self._scale
-        return bilinear(self.scene, xs, ys)
+        return (float(s), float(cr), float(sr), float(tx) * self._scale,
+                float(ty) * self._scale)
+
+    def render(self, t_s: float) -> np.ndarray:
+        """Scene intensity (DN, float32 ``[H, W]``) seen at time ``t_s``."""
+        return self.render_many([t_s])[0]
+
+    def render_many(self, t_s: np.ndarray | list[float], out: np.ndarray | None = None
+                    ) -> np.ndarray:
+        """:meth:`render` at each of the times ``t_s``: float32 ``[K, H, W]`` (into ``out``
+        when given)."""
+        params = np.array([self._pose_params(float(t)) for t in t_s], np.float64).reshape(-1, 5)
+        shape = (params.shape[0], *self.shape)
+        if out is None:
+            out = np.empty(shape, np.float32)
+        elif out.shape != shape or out.dtype != np.float32 or not out.flags.c_contiguous:
+            raise ValueError(f"out has shape {out.shape} and dtype {out.dtype}; expected a "
+                             f"C-contiguous float32 array of shape {shape}")
+        _render_poses(self.scene, params, self._cx, self._cy, out)
+        return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _render_poses(scene, params, cx, cy, out):  # pragma: no cover - compiled
+    """Bilinear samples of ``scene`` for each pose ``params[k] = (s, cos, sin, tx, ty)`` into
+    ``out[k]``: the arithmetic (and its order) of :func:`bilinear` on the coordinates of
+    :meth:`Renderer._pose_params`, so the floats are those of the numpy version. Per row, the
+    coordinates first (a loop the compiler vectorises), then the samples."""
+    sh, sw = scene.shape
+    flat = scene.ravel()
+    h, w = out.shape[1], out.shape[2]
+    o = out.reshape(out.shape[0], h * w)
+    x_max = sw - 1.000001
+    y_max = sh - 1.000001
+    hu = (w - 1) / 2.0
+    hv = (h - 1) / 2.0
+    us = np.empty(w, np.float64)
+    for xx in range(w):
+        us[xx] = xx - hu
+    idx = np.empty(w, np.int64)
+    fxs = np.empty(w, np.float32)
+    fys = np.empty(w, np.float32)
+    for k in range(params.shape[0]):
+        s = params[k, 0]
+        cr = params[k, 1]
+        sr = params[k, 2]
+        tx = params[k, 3]
+        ty = params[k, 4]
+        for yy in range(h):
+            v = yy - hv
+            sv = sr * v
+            cv = cr * v
+            for xx in range(w):
+                u = us[xx]
+                xs = cx + s * (cr * u - sv) + tx
+                ys = cy + s * (sr * u + cv) + ty
+                # np.clip(xs, 0, x_max)
+                xs = xs if xs > 0.0 else 0.0
+                xs = xs if xs < x_max else x_max
+                ys = ys if ys > 0.0 else 0.0
+                ys = ys if ys < y_max else y_max
+                x0 = np.int64(xs)
+                y0 = np.int64(ys)
+                fxs[xx] = np.float32(xs - np.float64(x0))
+                fys[xx] = np.float32(ys - np.float64(y0))
+                idx[xx] = y0 * sw + x0
+            base = yy * w
+            for xx in range(w):
+                i00 = idx[xx]
+                fx = fxs[xx]
+                a = flat[i00]
+                b = flat[i00 + 1]
+                c = flat[i00 + sw]
+                d = flat[i00 + sw + 1]
+                top = a + (b - a) * fx
+                bot = c + (d - c) * fx
+                o[k, base + xx] = top + (bot - top) * fys[xx]
 
 
 def bilinear(img: np.ndarray, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:

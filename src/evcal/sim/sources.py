@@ -8,7 +8,10 @@
   resized to the sensor. The gap workflow drives its simulations with the measured frames
   through this class.
 
-Time ``t_s`` is seconds from the start of the simulation.
+Time ``t_s`` is seconds from the start of the simulation. A source may also have
+``render_block(t_s, out=None) -> [K, H, W]`` float32, the intensity at several times in one
+call, written into ``out`` when given (the simulator renders its steps in blocks through it
+when there is one).
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
+import numba
 import numpy as np
 
 from ..recording import Frames
@@ -88,10 +92,19 @@ class MovingScene:
         self.illumination = illumination
 
     def __call__(self, t_s: float) -> np.ndarray:
-        tau = self.speed.warp(t_s) if self.speed is not None else t_s
-        img = self.renderer.render(tau)
+        return self.render_block([t_s])[0]
+
+    def render_block(self, t_s: np.ndarray | list[float], out: np.ndarray | None = None
+                     ) -> np.ndarray:
+        """The intensity at each of the times ``t_s``, float32 ``[K, H, W]`` (one call for a
+        block of simulator steps; the same floats as calling the source at each time), into
+        ``out`` when given."""
+        ts = [float(t) for t in t_s]
+        taus = [self.speed.warp(t) for t in ts] if self.speed is not None else ts
+        img = self.renderer.render_many(taus, out)
         if self.illumination is not None:
-            img = img * np.float32(self.illumination.gain(t_s))
+            img *= np.array([np.float32(self.illumination.gain(t)) for t in ts],
+                            np.float32)[:, None, None]
         return img
 
 
@@ -146,3 +159,44 @@ class FrameInterpolator:
         w = float((t_s - tr[k]) / (tr[k + 1] - tr[k]))
         a, b = self.images[k], self.images[k + 1]
         return a + np.float32(w) * (b - a)
+
+    def render_block(self, t_s: np.ndarray | list[float], out: np.ndarray | None = None
+                     ) -> np.ndarray:
+        """The source at each of the times ``t_s``: float32 ``[K, H, W]``, the same floats as
+        calling it at each time (into ``out`` when given)."""
+        ts = np.asarray(t_s, np.float64).reshape(-1)
+        tr = self._t_rel_s
+        shape = (ts.size, *self.images.shape[1:])
+        if out is None:
+            out = np.empty(shape, np.float32)
+        elif out.shape != shape or out.dtype != np.float32 or not out.flags.c_contiguous:
+            raise ValueError(f"out has shape {out.shape} and dtype {out.dtype}; expected a "
+                             f"C-contiguous float32 array of shape {shape}")
+        # k = -1: the first frame, k = -2: the last, else between frames k and k + 1
+        k = np.searchsorted(tr, ts, side="right") - 1
+        k = np.where(ts <= tr[0], -1, np.where(ts >= tr[-1], -2, k))
+        kk = np.clip(k, 0, max(tr.size - 2, 0))
+        nxt = np.minimum(kk + 1, tr.size - 1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            w = ((ts - tr[kk]) / (tr[nxt] - tr[kk])).astype(np.float32)
+        _lerp_frames(self.images, k, w, out)
+        return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _lerp_frames(images, k, w, out):  # pragma: no cover - compiled
+    """``out[j] = a + w[j] (b - a)`` in float32 with ``a, b`` frames ``k[j], k[j] + 1`` (the
+    first or last frame where ``k[j]`` is -1 or -2), as :meth:`FrameInterpolator.__call__`."""
+    n_f = images.shape[0]
+    for j in range(k.size):
+        if k[j] == -1 or k[j] == -2:
+            src = images[0] if k[j] == -1 else images[n_f - 1]
+            out[j] = src
+            continue
+        a = images[k[j]]
+        b = images[k[j] + 1]
+        wj = w[j]
+        o = out[j]
+        for y in range(a.shape[0]):
+            for x in range(a.shape[1]):
+                o[y, x] = a[y, x] + wj * (b[y, x] - a[y, x])
