@@ -62,8 +62,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--duration", type=float, default=6.0, help="seconds of simulated data")
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--camera", default="demo/cam0")
-    p.add_argument("--n-small", type=int, default=20_000,
-                   help="OnEI events per equation (default 20000)")
+    p.add_argument("--n-small", type=int, default=100_000,
+                   help="OnEI events per small buffer (default 100000: ~30 updates)")
     p.add_argument("--n-large", type=int, default=5_000_000,
                    help="OnEI sliding buffer in events (default 5M: the whole demo)")
     p.add_argument("--timeout", type=float, default=100.0,
@@ -149,7 +149,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"evcal demo: the service failed: {failure[0]}", file=sys.stderr)
         return 1
     _say(f"live calibration after {status['updates']} updates, median latency "
-         f"{status['latency_ms']['mean']:.1f} ms; computing the offline reference")
+         f"{status['latency_ms']['median']:.1f} ms; computing the offline reference")
 
     from evcal.calibration import Calibration
 

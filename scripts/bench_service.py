@@ -1,22 +1,33 @@
 """Benchmarks of the live service (figures, not tests): throughput, latency, memory.
 
-    python scripts/bench_service.py throughput [--sizes 346x260,1280x720] [--events 20e6]
-    python scripts/bench_service.py latency [--seconds 20]
+    python scripts/bench_service.py throughput [--sizes 346x260,1280x720] [--events 40e6]
+    python scripts/bench_service.py latency [--rates 1e6,2e6,5e6] [--seconds 20] [--rrd]
     python scripts/bench_service.py memory [--minutes 10]
     python scripts/bench_service.py all
 
 The service runs as its own process (``python -m evcal.service``) on ``tcp/127.0.0.1`` with
-``--on-full block``; this process publishes like ``evcal replay --max-rate`` does (encoding
-included) and reads the service's status and calibration outputs.
+``--on-full block``; this process publishes like ``evcal replay`` does (encoding included, on
+the same machine: publisher and service share its cores) and reads the service's status and
+calibration outputs.
 
-throughput  events/s from publishing to the service's event counter at 20 M events/s of
-            sensor time: "events" (no frames: decode, validate, OnEI's pending buffer),
-            "frames" (25 Hz frames fold the events into the accumulators, no re-solve),
-            "updates" (OnEI's default sizes: a re-solve and a published calibration at
-            every frame).
-latency     wall time from a frame's put to the calibration it triggered arriving back, and
-            the service's own figure (frame arrival to publication), at 346x260.
-memory      the service's RSS every 10 s while a 346x260 camera streams in real time.
+throughput  sustained events/s from the first put to the service's event counter, after a
+            warm-up (camera creation, compiled kernels loaded) that is not timed; the stream
+            is 20 M events/s of sensor time in 100 k-event messages, like
+            ``evcal replay --max-rate``. Modes: "events" (no frames: decode, validate, OnEI's
+            pending buffer), "frames" (25 Hz frames: the events are folded into OnEI's
+            accumulators and interval counts, no re-solve: the acceptance figure),
+            "updates" (OnEI's default sizes: small-buffer equations and a re-solve with a
+            published calibration at every frame).
+latency     a DAVIS346-like real-time stream: 346x260, 25 Hz frames, events at ``--rates``
+            events/s in 10 ms packets sent when their last event has happened, OnEI's default
+            sizes. Figure of the issue: the service's own latency from a frame's arrival
+            (its message received by the service) to the calibration that frame triggered
+            being published (``status.latency_ms``), median and p95 over the updates, with
+            the median of each step (queue wait, OnEI fold + re-solve, calibration maps,
+            encode, publish). Also the round trip seen by the client: frame put -> that
+            calibration received back.
+memory      the service's RSS every 10 s while a 346x260 camera streams 1 M events/s and
+            25 Hz frames in real time (re-solves every ~10 frames).
 """
 
 from __future__ import annotations
@@ -37,6 +48,7 @@ from evcal.service.testing import ServiceProcess, endpoint, free_port, wait_for
 from evcal.service.transport import Transport, ZenohOptions
 
 ZARGS = ["--no-multicast-scouting"]
+FRAME_US = 40_000  # 25 Hz
 
 
 def synthetic_chunk(rng: np.random.Generator, sensor: SensorSize, n: int, t0_us: int,
@@ -61,6 +73,65 @@ def start_service(extra: list[str]) -> tuple[ServiceProcess, str]:
     return sp, ep
 
 
+class OtherLoad:
+    """CPU used by other processes while a figure is measured (in cores), to flag runs that
+    shared the machine: ``with OtherLoad(pid) as load: ...; load.cores``."""
+
+    def __init__(self, *pids: int):
+        self.procs = [psutil.Process(p) for p in (*pids, psutil.Process().pid)]
+        self.cores = float("nan")
+
+    @staticmethod
+    def _busy() -> float:
+        t = psutil.cpu_times()  # guest time is already counted in user
+        return float(sum(t) - t.idle - sum(getattr(t, k, 0.0)
+                                           for k in ("iowait", "guest", "guest_nice")))
+
+    def _ours(self) -> float:
+        total = 0.0
+        for p in self.procs:
+            try:
+                c = p.cpu_times()
+                total += c.user + c.system
+            except psutil.Error:
+                pass
+        return total
+
+    def __enter__(self) -> OtherLoad:
+        self._t0, self._busy0, self._ours0 = time.monotonic(), self._busy(), self._ours()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        wall = time.monotonic() - self._t0
+        other = (self._busy() - self._busy0) - (self._ours() - self._ours0)
+        self.cores = max(0.0, other) / wall if wall > 0 else float("nan")
+
+
+class Stream:
+    """One camera's publishers and sequence numbers (what ``evcal replay`` keeps)."""
+
+    def __init__(self, t: Transport, camera: str, sensor: SensorSize):
+        self.sensor = sensor
+        self.pub_ev = t.publisher(keys.camera_key("evcal", camera, "events"), keys.ENC_EVENTS,
+                                  block=True)
+        self.pub_fr = t.publisher(keys.camera_key("evcal", camera, "frames"), keys.ENC_FRAME,
+                                  block=True)
+        self.seq_ev = self.seq_fr = 0
+        wait_for(lambda: self.pub_ev.has_subscribers and self.pub_fr.has_subscribers,
+                 timeout_s=10)
+
+    def events(self, ev: np.ndarray) -> None:
+        self.pub_ev.put(encode_events(ev, height=self.sensor.height, width=self.sensor.width,
+                                      seq=self.seq_ev))
+        self.seq_ev += 1
+
+    def frame(self, t_us: int, image: np.ndarray) -> None:
+        self.pub_fr.put(encode_frame(t_us, image, exposure_us=0, seq=self.seq_fr))
+        self.seq_fr += 1
+
+
+# ----------------------------------------------------------------------------- throughput
+
 THROUGHPUT_MODES = {
     # name: (frames at 25 Hz of sensor time, service arguments)
     "events": (False, ["--n-small", "2000000000", "--n-large", "2000000000"]),
@@ -69,8 +140,8 @@ THROUGHPUT_MODES = {
 }
 
 
-def throughput(sensor: SensorSize, n_events: int, *, mode: str, chunk: int = 100_000
-               ) -> dict:
+def throughput(sensor: SensorSize, n_events: int, *, mode: str, chunk: int = 100_000,
+               warmup_events: int = 4_000_000) -> dict:
     rng = np.random.default_rng(0)
     rate_hz = 20e6  # sensor-time event rate of the synthetic stream
     span = int(chunk / rate_hz * 1e6)
@@ -78,52 +149,65 @@ def throughput(sensor: SensorSize, n_events: int, *, mode: str, chunk: int = 100
     base = [synthetic_chunk(rng, sensor, chunk, 0, span) for _ in range(4)]
     img = rng.integers(0, 255, sensor.shape).astype(np.uint8)
     frames, extra = THROUGHPUT_MODES[mode]
+    frame_every = max(1, int(FRAME_US * rate_hz / 1e6 / chunk))  # 25 Hz of sensor time
     sp, ep = start_service(extra)
     cam = f"bench/{sensor}"
     try:
         with Transport(ZenohOptions.loopback(connect=[ep])) as t:
             wait_for(lambda: t.alive("evcal/@service/*", timeout_s=1.0), timeout_s=60)
-            pub_ev = t.publisher(keys.camera_key("evcal", cam, "events"), keys.ENC_EVENTS,
-                                 block=True)
-            pub_fr = t.publisher(keys.camera_key("evcal", cam, "frames"), keys.ENC_FRAME,
-                                 block=True)
-            wait_for(lambda: pub_ev.has_subscribers, timeout_s=10)
-            n_msgs = n_events // chunk
-            frame_every = max(1, int(40_000 * rate_hz / 1e6 / chunk))  # 25 Hz sensor time
-            seq_f = 0
-            t0 = time.monotonic()
-            for i in range(n_msgs):
-                ev = base[i % 4].copy()
-                ev["t_us"] += i * span
-                if frames and i % frame_every == 0:
-                    pub_fr.put(encode_frame(int(ev["t_us"][0]), img, exposure_us=0,
-                                            seq=seq_f))
-                    seq_f += 1
-                pub_ev.put(encode_events(ev, height=sensor.height, width=sensor.width,
-                                         seq=i))
-            t_pub = time.monotonic() - t0
-            total = n_msgs * chunk
-            wait_for(lambda: status(t, cam).get("events", 0) >= total, timeout_s=600,
+            s = Stream(t, cam, sensor)
+
+            def send(i0: int, i1: int) -> None:
+                for i in range(i0, i1):
+                    ev = base[i % 4].copy()
+                    ev["t_us"] += i * span
+                    if frames and i % frame_every == 0:
+                        s.frame(int(ev["t_us"][0]), img)
+                    s.events(ev)
+
+            # warm-up, not timed: the camera's state is allocated, kernels are loaded
+            n_warm = warmup_events // chunk
+            send(0, n_warm)
+            wait_for(lambda: status(t, cam).get("events", 0) >= n_warm * chunk, timeout_s=120,
                      interval_s=0.05)
-            t_all = time.monotonic() - t0
+            n_msgs = n_events // chunk
+            with OtherLoad(sp.pid) as load:
+                t0 = time.monotonic()
+                send(n_warm, n_warm + n_msgs)
+                t_pub = time.monotonic() - t0
+                total = (n_warm + n_msgs) * chunk
+                wait_for(lambda: status(t, cam).get("events", 0) >= total, timeout_s=600,
+                         interval_s=0.02)
+                t_all = time.monotonic() - t0
             st = status(t, cam)
         rss = psutil.Process(sp.pid).memory_info().rss
     finally:
         sp.stop()
-    return {"sensor": str(sensor), "mode": mode, "events": total,
-            "publish_s": t_pub, "total_s": t_all, "events_per_s": total / t_all,
+    timed = n_msgs * chunk
+    return {"sensor": str(sensor), "mode": mode, "events": timed,
+            "publish_s": t_pub, "total_s": t_all, "events_per_s": timed / t_all,
             "updates": st.get("updates"), "errors": st.get("errors_total"),
-            "service_rss_mb": rss / 2**20}
+            "service_rss_mb": rss / 2**20, "other_load_cores": load.cores}
 
 
-def latency(seconds: float) -> dict:
-    """Real-time 346x260 stream at 2 M events/s, 25 Hz frames, OnEI's default buffer sizes
-    (an update about every 5 frames); latency of the frames that triggered an update."""
+# ----------------------------------------------------------------------------- latency
+
+
+def latency(rate: float, seconds: float, *, chunk_ms: float = 10.0, rrd: str | None = None,
+            warmup_s: float = 3.0) -> dict:
+    """A real-time 346x260 stream at ``rate`` events/s, 25 Hz frames, OnEI's default sizes."""
     sensor = SensorSize(260, 346)
     rng = np.random.default_rng(1)
-    rate = 2_000_000  # events/s of sensor time
-    per_frame = rate // 25
-    sp, ep = start_service([])
+    chunk_us = int(chunk_ms * 1000)
+    per_chunk = int(rate * chunk_us / 1e6)
+    chunks_per_frame = FRAME_US // chunk_us
+    # one second of distinct packets and eight frames, re-stamped (the publisher's CPU is
+    # the machine's too)
+    pool = [synthetic_chunk(rng, sensor, per_chunk, 0, chunk_us)
+            for _ in range(1_000_000 // chunk_us)]
+    images = [rng.integers(0, 255, sensor.shape).astype(np.uint8) for _ in range(8)]
+    extra = ["--rrd", rrd] if rrd else []
+    sp, ep = start_service(extra)
     cam = "bench/latency"
     sent: dict[int, float] = {}
     got: list[float] = []
@@ -136,44 +220,58 @@ def latency(seconds: float) -> dict:
 
                 t_us = msgpack.unpackb(payload)["t_us"]
                 if t_us in sent:
-                    got.append(time.monotonic() - sent[t_us])
+                    got.append(time.monotonic() - sent.pop(t_us))
 
             t.subscribe(keys.camera_key("evcal", cam, "calibration"), on_cal)
-            pub_ev = t.publisher(keys.camera_key("evcal", cam, "events"), keys.ENC_EVENTS,
-                                 block=True)
-            pub_fr = t.publisher(keys.camera_key("evcal", cam, "frames"), keys.ENC_FRAME,
-                                 block=True)
-            wait_for(lambda: pub_ev.has_subscribers, timeout_s=10)
-            n_frames = int(seconds * 25)
-            wall0 = time.monotonic()
-            for k in range(n_frames):
-                t_us = k * 40_000
-                due = wall0 + t_us * 1e-6
-                time.sleep(max(0.0, due - time.monotonic()))
-                img = rng.integers(0, 255, sensor.shape).astype(np.uint8)
-                sent[t_us] = time.monotonic()
-                pub_fr.put(encode_frame(t_us, img, exposure_us=0, seq=k))
-                ev = synthetic_chunk(rng, sensor, per_frame, t_us, 40_000)
-                for j in range(0, per_frame, 20_000):  # 10 ms-ish chunks
-                    pub_ev.put(encode_events(ev[j:j + 20_000], height=260, width=346,
-                                             seq=k * 100 + j // 20_000))
+
+            def stream(s: Stream, duration_s: float, record: bool) -> int:
+                n_frames = int(duration_s * 1e6 / FRAME_US)
+                wall0 = time.monotonic()
+                for k in range(n_frames):
+                    t_f = k * FRAME_US
+                    time.sleep(max(0.0, wall0 + t_f * 1e-6 - time.monotonic()))
+                    if record:
+                        sent[t_f] = time.monotonic()
+                    s.frame(t_f, images[k % len(images)])
+                    for j in range(chunks_per_frame):
+                        t0 = t_f + j * chunk_us
+                        # a packet leaves when its last event has happened
+                        time.sleep(max(0.0, wall0 + (t0 + chunk_us) * 1e-6 - time.monotonic()))
+                        ev = pool[(k * chunks_per_frame + j) % len(pool)].copy()
+                        ev["t_us"] += t0
+                        s.events(ev)
+                return n_frames
+
+            # warm-up on another camera: the service process loads its compiled kernels
+            stream(Stream(t, "bench/warmup", sensor), warmup_s, record=False)
+            with OtherLoad(sp.pid) as load:
+                n_frames = stream(Stream(t, cam, sensor), seconds, record=True)
             time.sleep(1.0)
             st = status(t, cam)
+            info = t.get("evcal/cameras", timeout_s=2.0)
+            recorder = json.loads(info[0].payload) if info and info[0].ok else {}
+        rss = psutil.Process(sp.pid).memory_info().rss
     finally:
         sp.stop()
-    lat = np.array(got[3:]) * 1e3
-    return {"frames": n_frames, "calibrations_back": len(got),
-            "roundtrip_ms_median": float(np.median(lat)) if lat.size else None,
-            "roundtrip_ms_p95": float(np.percentile(lat, 95)) if lat.size else None,
-            "roundtrip_ms_max": float(lat.max()) if lat.size else None,
-            "service_latency_ms": st.get("latency_ms")}
+    rt = np.array(got) * 1e3
+    return {"rate": rate, "frames": n_frames, "updates": st.get("updates"),
+            "calibrations_back": len(got),
+            "roundtrip_ms_median": float(np.median(rt)) if rt.size else float("nan"),
+            "roundtrip_ms_p95": float(np.percentile(rt, 95)) if rt.size else float("nan"),
+            "service_latency_ms": st.get("latency_ms") or {},
+            "errors": st.get("errors_total"), "dropped": st.get("dropped"),
+            "recorder_dropped": recorder.get("recorder_dropped") if rrd else None,
+            "service_rss_mb": rss / 2**20, "other_load_cores": load.cores}
+
+
+# ----------------------------------------------------------------------------- memory
 
 
 def memory(minutes: float) -> dict:
     sensor = SensorSize(260, 346)
     rng = np.random.default_rng(2)
     rate = 1_000_000
-    per_frame = rate // 25
+    per_frame = rate * FRAME_US // 1_000_000
     sp, ep = start_service([])
     cam = "bench/memory"
     samples: list[tuple[float, float]] = []
@@ -182,11 +280,7 @@ def memory(minutes: float) -> dict:
     try:
         with Transport(ZenohOptions.loopback(connect=[ep])) as t:
             wait_for(lambda: t.alive("evcal/@service/*", timeout_s=1.0), timeout_s=60)
-            pub_ev = t.publisher(keys.camera_key("evcal", cam, "events"), keys.ENC_EVENTS,
-                                 block=True)
-            pub_fr = t.publisher(keys.camera_key("evcal", cam, "frames"), keys.ENC_FRAME,
-                                 block=True)
-            wait_for(lambda: pub_ev.has_subscribers, timeout_s=10)
+            s = Stream(t, cam, sensor)
 
             def sampler() -> None:
                 t0 = time.monotonic()
@@ -198,63 +292,88 @@ def memory(minutes: float) -> dict:
             th = threading.Thread(target=sampler, daemon=True)
             th.start()
             wall0 = time.monotonic()
-            img = rng.integers(0, 255, sensor.shape).astype(np.uint8)
-            ev = synthetic_chunk(rng, sensor, per_frame, 0, 40_000)
+            imgs = [rng.integers(0, 255, sensor.shape).astype(np.uint8) for _ in range(4)]
+            evs = [synthetic_chunk(rng, sensor, per_frame, 0, FRAME_US) for _ in range(4)]
             k = 0
             while time.monotonic() - wall0 < minutes * 60:
-                t_us = k * 40_000
+                t_us = k * FRAME_US
                 time.sleep(max(0.0, wall0 + t_us * 1e-6 - time.monotonic()))
-                pub_fr.put(encode_frame(t_us, img, exposure_us=0, seq=k))
-                chunk = ev.copy()
+                s.frame(t_us, imgs[k % 4])
+                chunk = evs[k % 4].copy()
                 chunk["t_us"] += t_us
-                pub_ev.put(encode_events(chunk, height=260, width=346, seq=k))
+                s.events(chunk)
                 k += 1
             stop.set()
             st = status(t, cam)
     finally:
         stop.set()
         sp.stop()
-    rss = np.array([s[1] for s in samples])
+    rss = np.array([x[1] for x in samples])
     half = len(rss) // 2
     return {"minutes": minutes, "frames": k, "updates": st.get("updates"),
-            "rss_mb_first": float(rss[0]) if rss.size else None,
-            "rss_mb_mid": float(rss[half]) if rss.size else None,
-            "rss_mb_last": float(rss[-1]) if rss.size else None,
-            "rss_mb_max": float(rss.max()) if rss.size else None}
+            "errors": st.get("errors_total"),
+            "rss_mb_first": float(rss[0]) if rss.size else float("nan"),
+            "rss_mb_mid": float(rss[half]) if rss.size else float("nan"),
+            "rss_mb_last": float(rss[-1]) if rss.size else float("nan"),
+            "rss_mb_max": float(rss.max()) if rss.size else float("nan"),
+            "rss_mb_growth_2nd_half": (float(rss[-1] - rss[half]) if rss.size
+                                       else float("nan"))}
+
+
+# ----------------------------------------------------------------------------- main
+
+
+def print_latency(r: dict) -> None:
+    sl = r["service_latency_ms"]
+    parts = sl.get("parts_median") or {}
+    nan = float("nan")
+    print(f"latency 346x260, {r['rate'] / 1e6:g} M ev/s, 25 Hz frames, default OnEI sizes, "
+          f"{r['updates']} updates in {r['frames']} frames:\n"
+          f"  frame arrival -> calibration published (service): median "
+          f"{sl.get('median') or nan:.1f} ms, p95 {sl.get('p95') or nan:.1f} ms, max "
+          f"{sl.get('max') or nan:.1f} ms\n"
+          f"    median steps: " + ", ".join(f"{k} {v:.1f}" for k, v in parts.items()) + " ms\n"
+          f"  frame put -> calibration received (client round trip): median "
+          f"{r['roundtrip_ms_median']:.1f} ms, p95 {r['roundtrip_ms_p95']:.1f} ms "
+          f"({r['calibrations_back']} calibrations back); errors {r['errors']}, dropped "
+          f"{r['dropped']}, service RSS {r['service_rss_mb']:.0f} MiB"
+          + (f"; recording, recorder dropped {r['recorder_dropped']} calls"
+             if r["recorder_dropped"] is not None else "")
+          + f"; other processes used {r['other_load_cores']:.2f} cores", flush=True)
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(description=(__doc__ or "").split("\n")[0])
     p.add_argument("what", choices=["throughput", "latency", "memory", "all"])
-    p.add_argument("--sizes", default="346x260,1280x720")
-    p.add_argument("--events", type=float, default=20e6)
-    p.add_argument("--seconds", type=float, default=20.0)
-    p.add_argument("--minutes", type=float, default=10.0)
+    p.add_argument("--sizes", default="346x260,1280x720", help="throughput: sensor sizes")
+    p.add_argument("--modes", default=",".join(THROUGHPUT_MODES),
+                   help="throughput: modes (events, frames, updates)")
+    p.add_argument("--events", type=float, default=40e6, help="throughput: timed events")
+    p.add_argument("--rates", default="1e6,2e6,5e6", help="latency: events/s, comma-separated")
+    p.add_argument("--seconds", type=float, default=20.0, help="latency: stream length")
+    p.add_argument("--rrd", metavar="PATH", help="latency: the service also records to PATH")
+    p.add_argument("--minutes", type=float, default=10.0, help="memory: stream length")
     args = p.parse_args(argv)
     if args.what in ("throughput", "all"):
         for size in args.sizes.split(","):
-            for mode in THROUGHPUT_MODES:
+            for mode in args.modes.split(","):
                 r = throughput(SensorSize.parse(size), int(args.events), mode=mode)
                 print(f"throughput {r['sensor']:>9} {mode:<8} "
-                      f"{r['events_per_s'] / 1e6:6.1f} M events/s end to end "
-                      f"({r['events'] / 1e6:.0f} M events in {r['total_s']:.2f} s; published "
-                      f"in {r['publish_s']:.2f} s; {r['updates']} updates; service RSS "
-                      f"{r['service_rss_mb']:.0f} MiB)", flush=True)
+                      f"{r['events_per_s'] / 1e6:6.1f} M events/s sustained "
+                      f"({r['events'] / 1e6:.0f} M events in {r['total_s']:.2f} s after the "
+                      f"warm-up; published in {r['publish_s']:.2f} s; {r['updates']} updates; "
+                      f"{r['errors']} errors; service RSS {r['service_rss_mb']:.0f} MiB; "
+                      f"other processes used {r['other_load_cores']:.2f} cores)", flush=True)
     if args.what in ("latency", "all"):
-        r = latency(args.seconds)
-        sl = r["service_latency_ms"] or {}
-        print(f"latency 346x260, 2 M ev/s, 25 Hz frames, default OnEI sizes: frame put -> "
-              f"calibration "
-              f"received median {r['roundtrip_ms_median']:.1f} ms, p95 "
-              f"{r['roundtrip_ms_p95']:.1f} ms, max {r['roundtrip_ms_max']:.1f} ms "
-              f"({r['calibrations_back']} of {r['frames']} frames); inside the service "
-              f"(arrival -> published) mean {sl.get('mean', float('nan')):.1f} ms, p95 "
-              f"{sl.get('p95', float('nan')):.1f} ms", flush=True)
+        for rate in args.rates.split(","):
+            print_latency(latency(float(rate), args.seconds, rrd=args.rrd))
     if args.what in ("memory", "all"):
         r = memory(args.minutes)
-        print(f"memory 346x260, 1 M ev/s real time for {r['minutes']:g} min: service RSS "
-              f"{r['rss_mb_first']:.1f} -> {r['rss_mb_mid']:.1f} -> {r['rss_mb_last']:.1f} MiB "
-              f"(max {r['rss_mb_max']:.1f}); {r['updates']} updates", flush=True)
+        print(f"memory 346x260, 1 M ev/s and 25 Hz in real time for {r['minutes']:g} min: "
+              f"service RSS {r['rss_mb_first']:.1f} -> {r['rss_mb_mid']:.1f} -> "
+              f"{r['rss_mb_last']:.1f} MiB (max {r['rss_mb_max']:.1f}; second half "
+              f"{r['rss_mb_growth_2nd_half']:+.1f} MiB); {r['updates']} updates, "
+              f"{r['errors']} errors", flush=True)
     return 0
 
 

@@ -6,9 +6,12 @@ id, and publishes through a ``publish(key, payload, encoding)`` callable; the ze
 is tested without a network.
 
 Threads: ``on_sample`` runs in the transport's receive thread and only copies the payload
-into the camera's bounded queue; one worker thread per camera decodes, validates, feeds the
-camera's :class:`~evcal.online.OnlineCalibrator` and publishes. Queries read the camera's
-cached, already-encoded outputs and never wait for a worker.
+into the camera's bounded queue; per camera, a decoder thread decodes and validates the wire
+messages (numpy, mostly outside the GIL) and hands them to the camera's worker thread, at most
+two messages ahead, which checks them against the camera's state, feeds the camera's
+:class:`~evcal.online.OnlineCalibrator` and publishes. The recorder (if any) runs in a thread
+of its own (:class:`ObserverThread`), after the publication and never holding it. Queries
+read the camera's cached, already-encoded outputs and never wait for a worker.
 
 Back-pressure (per camera, both input keys share the camera's queue of ``queue_bytes``):
 
@@ -20,8 +23,9 @@ Back-pressure (per camera, both input keys share the camera's queue of ``queue_b
   flow control slows the publisher to the service's pace. It stalls the whole session's
   receive path (every camera and query) while any camera's queue is full.
 
-Memory is bounded by ``max_cameras`` x (``queue_bytes`` + one OnEI state of at most
-``max_pixels`` pixels); cameras beyond ``max_cameras`` and sensors beyond ``max_pixels`` are
+Memory is bounded by ``max_cameras`` x (``queue_bytes`` + two decoded messages + one OnEI
+state of at most ``max_pixels`` pixels) plus the recorder's queue (256 MiB of referenced
+arrays at most); cameras beyond ``max_cameras`` and sensors beyond ``max_pixels`` are
 rejected with an error.
 """
 
@@ -56,6 +60,10 @@ PublishFn = Callable[[str, bytes, str], None]
 MatchFn = Callable[[str, str], bool]  # (key expression, concrete key) -> intersects
 
 ON_FULL = ("drop", "block")
+_CAL_MAPS = ("contrast", "bias", "valid", "reason", "stderr_contrast", "stderr_bias", "special",
+             "n_events")
+# the steps of status.latency_ms.parts_median, in order
+LATENCY_PARTS = ("queue", "estimator", "calibration", "encode", "publish")
 STATE_FORMAT = "evcal.service.camera.v1"
 
 
@@ -96,14 +104,74 @@ class ServiceConfig:
 class Observer(Protocol):
     """What the service tells a recorder (the Rerun logger); every method may be a no-op.
 
-    Calls for one camera come from that camera's worker thread, in stream order.
+    Calls come from one recorder thread (:class:`ObserverThread`), each camera's in stream
+    order; ``discard(camera)`` follows calls of that camera that were dropped because the
+    recorder fell behind (an open reconstruction window is then incomplete).
     """
 
     def events(self, camera: str, events: np.ndarray) -> None: ...
     def frame(self, camera: str, t_us: int, image: np.ndarray) -> None: ...
     def updated(self, camera: str, cal: Calibration, t_us: int, status: dict[str, Any]
                 ) -> None: ...
+    def discard(self, camera: str, dropped: int) -> None: ...
     def close(self) -> None: ...
+
+
+class ObserverThread:
+    """Runs the observer's calls in a thread of its own, off the cameras' publication path.
+
+    A camera worker only appends ``(method, args)`` to a queue bounded by ``max_bytes`` of
+    referenced arrays (the events, frames and maps are not copied: the worker never modifies
+    them after the call); when the recorder falls behind, calls are dropped and counted
+    (``dropped``), never waited for, and the observer is told with ``discard(camera, n)``.
+    """
+
+    def __init__(self, call: Callable[..., None], *, max_bytes: int = 256 << 20):
+        self._call = call
+        self.max_bytes = int(max_bytes)
+        self.nbytes = 0
+        self.dropped = 0
+        self._dropped_by_camera: dict[str, int] = {}
+        self._items: deque[tuple[str, tuple[Any, ...], int]] = deque()
+        self._cond = threading.Condition()
+        self._closed = False
+        self.thread = threading.Thread(target=self._run, name="evcal-recorder", daemon=True)
+        self.thread.start()
+
+    def submit(self, method: str, args: tuple[Any, ...], nbytes: int) -> bool:
+        camera = str(args[0])
+        with self._cond:
+            if self._closed:
+                return False
+            if self._items and self.nbytes + nbytes > self.max_bytes:
+                self.dropped += 1
+                self._dropped_by_camera[camera] = self._dropped_by_camera.get(camera, 0) + 1
+                return False
+            lost = self._dropped_by_camera.pop(camera, 0)
+            if lost:
+                self._items.append(("discard", (camera, lost), 0))
+            self._items.append((method, args, nbytes))
+            self.nbytes += nbytes
+            self._cond.notify_all()
+            return True
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                while not self._items and not self._closed:
+                    self._cond.wait()
+                if not self._items:
+                    return  # closed and drained
+                method, args, nbytes = self._items.popleft()
+                self.nbytes -= nbytes
+            self._call(method, *args)
+
+    def close(self, timeout_s: float = 30.0) -> None:
+        """Process what is queued, then stop the thread."""
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+        self.thread.join(timeout_s)
 
 
 # ----------------------------------------------------------------------------- errors
@@ -185,6 +253,47 @@ class CameraQueue:
             self._cond.notify_all()
 
 
+class Handoff:
+    """Decoded messages between a camera's decoder thread and its worker: at most
+    ``capacity`` items (the decoder waits for room), so decoding runs at most that many
+    messages ahead of the estimator, in parallel with it."""
+
+    def __init__(self, capacity: int = 2):
+        self.capacity = int(capacity)
+        self._items: deque[Any] = deque()
+        self._cond = threading.Condition()
+        self.closed = False
+
+    def put(self, item: Any) -> bool:
+        with self._cond:
+            while len(self._items) >= self.capacity and not self.closed:
+                self._cond.wait(0.5)
+            if self.closed:
+                return False
+            self._items.append(item)
+            self._cond.notify_all()
+            return True
+
+    def get(self, timeout_s: float) -> Any | None:
+        with self._cond:
+            if not self._items and not self.closed:
+                self._cond.wait(timeout_s)
+            if not self._items:
+                return None
+            item = self._items.popleft()
+            self._cond.notify_all()
+            return item
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def close(self) -> None:
+        """No more puts; ``get`` still returns what is in."""
+        with self._cond:
+            self.closed = True
+            self._cond.notify_all()
+
+
 # ----------------------------------------------------------------------------- one camera
 
 
@@ -242,6 +351,9 @@ class Camera:
         self.key_status = keys.camera_key(cfg.prefix, camera_id, "status")
         self.key_errors = keys.camera_key(cfg.prefix, camera_id, "errors")
         self.queue = CameraQueue(cfg.queue_bytes)
+        self.handoff = Handoff(2)
+        self.in_flight = 0  # messages queued, being decoded or processed
+        self._flight_lock = threading.Lock()
         self.lock = threading.Lock()  # guards the calibrator against snapshots
         self.sensor: SensorSize | None = None
         self.calibrator: OnlineCalibrator | None = None
@@ -253,12 +365,15 @@ class Camera:
         self.calibration: Calibration | None = None
         self.last_update_wall: float | None = None
         self.latency_ms: deque[float] = deque(maxlen=200)
+        self.latency_parts_ms: deque[tuple[float, ...]] = deque(maxlen=200)
         self.rate = RateWindow()
         self.started_wall = time.time()
         self.dirty = False  # changed since the last snapshot
         self._err_tokens = cfg.error_rate_hz
         self._err_last = time.monotonic()
         self._stop = threading.Event()
+        self.decoder = threading.Thread(target=self._decode_loop,
+                                        name=f"evcal-dec-{camera_id}", daemon=True)
         self.thread = threading.Thread(target=self._run, name=f"evcal-cam-{camera_id}",
                                        daemon=True)
 
@@ -271,42 +386,82 @@ class Camera:
                                        f"exceeds the limit of {cfg.max_message_bytes} bytes "
                                        "(--max-message-bytes)"))
             return
+        with self._flight_lock:  # counted before the put: the worker may finish it at once
+            self.in_flight += 1
         if not self.queue.put((kind, payload, t_recv), block=cfg.on_full == "block"):
+            self._done()
             self.counters.dropped[kind] += 1
 
-    # -- worker ----------------------------------------------------------------------------
+    def _done(self) -> None:
+        with self._flight_lock:
+            self.in_flight -= 1
+
+    # -- decoder and worker ----------------------------------------------------------------
 
     def start(self) -> None:
+        self.decoder.start()
         self.thread.start()
 
     def stop(self, timeout_s: float = 10.0, drain: bool = True) -> None:
-        """Stop the worker; with ``drain`` it first processes what is queued."""
+        """Stop the decoder and the worker; with ``drain`` they first process what is
+        queued."""
         if drain:
             deadline = time.monotonic() + timeout_s
-            while len(self.queue) and time.monotonic() < deadline and self.thread.is_alive():
+            while (self.in_flight > 0 and time.monotonic() < deadline
+                   and self.thread.is_alive() and self.decoder.is_alive()):
                 time.sleep(0.01)
         self._stop.set()
         self.queue.close()
+        if self.decoder.is_alive():
+            self.decoder.join(timeout_s)
+        self.handoff.close()  # the worker finishes what the decoder handed over
         if self.thread.is_alive():
             self.thread.join(timeout_s)
 
-    def _run(self) -> None:
+    def _decode_loop(self) -> None:
+        """Decoder thread: wire decoding and validation, in parallel with the worker."""
         while not self._stop.is_set():
             item = self.queue.get(0.2)
             if item is None:
                 continue
             kind, payload, t_recv = item
+            decoded: Any
             try:
+                decoded = decode_events(payload) if kind == "events" else decode_frame(payload)
+            except WireError as exc:
+                decoded = Rejected(classify_wire_error(str(exc)), str(exc))
+            except Exception as exc:  # a bug must not kill the camera's decoder
+                log.exception("camera %s: unexpected error decoding a %s message", self.id,
+                              kind)
+                decoded = Rejected("internal", f"{type(exc).__name__}: {exc}")
+            if not self.handoff.put((kind, decoded, len(payload), t_recv)):
+                self._done()
+                return
+
+    def _run(self) -> None:
+        """Worker thread: checks that need the camera's state, OnEI, publication."""
+        while True:
+            item = self.handoff.get(0.2)
+            if item is None:
+                if self.handoff.closed:
+                    return
+                continue
+            kind, decoded, nbytes, t_recv = item
+            try:
+                if isinstance(decoded, Rejected):
+                    raise decoded
                 with self.lock:
                     if kind == "events":
-                        self._on_events(payload, t_recv)
+                        self._on_events(decoded, nbytes, t_recv)
                     else:
-                        self._on_frame(payload, t_recv)
+                        self._on_frame(decoded, nbytes, t_recv, time.monotonic())
             except Rejected as exc:
                 self.reject(kind, exc)
             except Exception as exc:  # a bug must not kill the camera's worker
                 log.exception("camera %s: unexpected error on a %s message", self.id, kind)
                 self.reject(kind, Rejected("internal", f"{type(exc).__name__}: {exc}"))
+            finally:
+                self._done()
 
     def _check_sensor(self, h: int, w: int, what: str) -> None:
         if self.sensor is None:
@@ -336,11 +491,9 @@ class Camera:
                 self.calibrator.mark_gap()
         self.next_seq[kind] = seq + 1
 
-    def _on_events(self, payload: bytes, t_recv: float) -> None:
-        try:
-            ev, header = decode_events(payload)
-        except WireError as exc:
-            raise Rejected(classify_wire_error(str(exc)), str(exc)) from None
+    def _on_events(self, decoded: tuple[np.ndarray, dict[str, Any]], nbytes: int,
+                   t_recv: float) -> None:
+        ev, header = decoded
         what = f"events message seq {header['seq']}"
         self._check_sensor(header["height"], header["width"], what)
         assert self.calibrator is not None
@@ -357,17 +510,15 @@ class Camera:
         c = self.counters
         c.events += int(ev.size)
         c.event_messages += 1
-        c.bytes_in += len(payload)
+        c.bytes_in += nbytes
         self.rate.add(time.monotonic(), int(ev.size))
         self.dirty = True
         if ev.size:
             self.service.observe("events", self.id, ev)
 
-    def _on_frame(self, payload: bytes, t_recv: float) -> None:
-        try:
-            t_us, exposure_us, image, header = decode_frame(payload)
-        except WireError as exc:
-            raise Rejected(classify_wire_error(str(exc)), str(exc)) from None
+    def _on_frame(self, decoded: tuple[int, int, np.ndarray, dict[str, Any]], nbytes: int,
+                  t_recv: float, t_start: float | None = None) -> None:
+        t_us, exposure_us, image, header = decoded
         what = f"frame message seq {header['seq']}"
         self._check_sensor(header["height"], header["width"], what)
         assert self.calibrator is not None
@@ -381,19 +532,32 @@ class Camera:
         except ValueError as exc:
             raise Rejected("rejected", f"{what}: {exc}") from None
         if updated:
-            self._publish_calibration(t_us, t_recv)
+            self._publish_calibration(t_us, t_recv, t_start if t_start is not None else t_recv)
         # counted once its outputs are out: a status showing n frames implies their updates
         self.counters.frames += 1
-        self.counters.bytes_in += len(payload)
+        self.counters.bytes_in += nbytes
         self.dirty = True
         self.service.observe("frame", self.id, t_us, image)
 
-    def _publish_calibration(self, t_us: int, t_recv: float) -> None:
+    def _publish_calibration(self, t_us: int, t_recv: float, t_start: float) -> None:
+        """Publish the calibration of the update this frame triggered.
+
+        The Calibration is built once per update and shared by the published message, the
+        query cache and the recorder; the recorder runs in its own thread afterwards.
+        """
         assert self.calibrator is not None
+        t_fed = time.monotonic()
         cal = self.calibrator.calibration()
+        t_cal = time.monotonic()
         msg = encode_calibration(cal, t_us=t_us, seq=self.calibration_seq)
+        t_enc = time.monotonic()
         self.service.publish(self.key_calibration, msg, keys.ENC_CALIBRATION)
-        self.latency_ms.append((time.monotonic() - t_recv) * 1e3)
+        t_pub = time.monotonic()
+        self.latency_ms.append((t_pub - t_recv) * 1e3)
+        # where the time went: queue wait, OnEI (fold + re-solve), calibration maps, encode,
+        # publish
+        self.latency_parts_ms.append((t_start - t_recv, t_fed - t_start, t_cal - t_fed,
+                                      t_enc - t_cal, t_pub - t_enc))
         self.calibration_seq += 1
         self.calibration = cal
         self.calibration_msg = msg
@@ -453,14 +617,24 @@ class Camera:
             "last_update_wall": self.last_update_wall,
             "latency_ms": {
                 "last": float(lat[-1]) if lat.size else None,
+                "median": float(np.median(lat)) if lat.size else None,
                 "mean": float(lat.mean()) if lat.size else None,
                 "p95": float(np.percentile(lat, 95)) if lat.size else None,
                 "max": float(lat.max()) if lat.size else None,
+                "parts_median": self._latency_parts(),
             },
             "valid_fraction": (self.calibration.valid_fraction
                                if self.calibration is not None else None),
             "estimator": cal.status() if cal is not None else None,
         }
+
+    def _latency_parts(self) -> dict[str, float] | None:
+        """Median ms of each step between a frame's arrival and its calibration's publication
+        (over the last 200 updates)."""
+        if not self.latency_parts_ms:
+            return None
+        med = np.median(np.asarray(self.latency_parts_ms, np.float64), axis=0) * 1e3
+        return {name: float(v) for name, v in zip(LATENCY_PARTS, med, strict=True)}
 
     def calibration_reply(self, params: dict[str, str]) -> tuple[bytes, str]:
         """The current calibration in the format and fields a query asks for.
@@ -578,6 +752,8 @@ class Service:
         self.rejected_cameras = 0
         self.publish_errors = 0
         self.observer_errors = 0
+        self._observer_thread = (ObserverThread(self._observe_now) if observer is not None
+                                 else None)
         self._closed = False
         self._last_status = 0.0
         self._last_snapshot = time.monotonic()
@@ -593,11 +769,27 @@ class Service:
             log.warning("cannot publish on %s: %s", key, exc)
 
     def observe(self, method: str, *args: Any) -> None:
-        """Tell the recorder; its failures are logged and counted, never an input's fault."""
-        if self.observer is None:
+        """Hand a call to the recorder's thread (returns at once; see :class:`ObserverThread`)."""
+        if self._observer_thread is None:
+            return
+        nbytes = sum(int(a.nbytes) for a in args if isinstance(a, np.ndarray))
+        if method == "updated":
+            nbytes += sum(int(getattr(args[1], name).nbytes) for name in _CAL_MAPS)
+        self._observer_thread.submit(method, args, nbytes)
+
+    @property
+    def observer_dropped(self) -> int:
+        return self._observer_thread.dropped if self._observer_thread is not None else 0
+
+    def _observe_now(self, method: str, *args: Any) -> None:
+        """Call the recorder (in its thread); its failures are logged and counted, never an
+        input's fault."""
+        assert self.observer is not None
+        fn = getattr(self.observer, method, None)
+        if fn is None:  # an observer without the optional ``discard``
             return
         try:
-            getattr(self.observer, method)(*args)
+            fn(*args)
         except Exception:
             self.observer_errors += 1
             if self.observer_errors <= 3:
@@ -682,6 +874,7 @@ class Service:
             "rejected_cameras": self.rejected_cameras,
             "publish_errors": self.publish_errors,
             "recorder_errors": self.observer_errors,
+            "recorder_dropped": self.observer_dropped,
             "cameras": [{"id": c.id, "sensor": str(c.sensor) if c.sensor else None,
                          "updates": c.counters.updates, "events": c.counters.events,
                          "last_update_t_us": c.calibration_t_us}
@@ -750,6 +943,8 @@ class Service:
             self._closed = True
         for cam in list(self.cameras.values()):
             cam.stop(timeout_s=drain_s)
+        if self._observer_thread is not None:
+            self._observer_thread.close()  # the recorder finishes what the cameras handed it
         self.tick(force=True)
 
 

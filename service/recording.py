@@ -282,6 +282,15 @@ class RrdLogger:
             self.rec.log(entity(camera, "hist", name), rr.BarChart(
                 counts.astype(np.float64), abscissa=0.5 * (edges[:-1] + edges[1:])))
 
+    def discard(self, camera: str, dropped: int) -> None:
+        """The service dropped ``dropped`` calls of ``camera`` (this recorder fell behind): an
+        open reconstruction window misses events, so it is abandoned."""
+        cl = self._cams.get(camera)
+        if cl is not None:
+            cl.recon_start, cl.recon_events, cl.recon_n = None, [], 0
+        self.note(camera, f"the recorder fell behind: {dropped} call(s) dropped (maps, "
+                          "frames or events); the open reconstruction was abandoned")
+
     def note(self, camera: str, text: str, level: str = "WARN") -> None:
         if camera in self._cams:
             self._set_time(None)

@@ -25,7 +25,13 @@ from evcal.io.wire import (
 )
 from evcal.online import OnEIConfig
 from evcal.service import keys
-from evcal.service.core import CameraQueue, Service, ServiceConfig, classify_wire_error
+from evcal.service.core import (
+    LATENCY_PARTS,
+    CameraQueue,
+    Service,
+    ServiceConfig,
+    classify_wire_error,
+)
 from evcal.service.state import StateStore
 
 # ----------------------------------------------------------------------------- wire
@@ -114,7 +120,7 @@ def feed(svc: Service, camera: str, msgs) -> None:
 
 def settle(svc: Service, timeout_s: float = 10.0) -> None:
     deadline = time.monotonic() + timeout_s
-    while any(len(c.queue) for c in svc.cameras.values()) and time.monotonic() < deadline:
+    while any(c.in_flight for c in svc.cameras.values()) and time.monotonic() < deadline:
         time.sleep(0.01)
     time.sleep(0.05)
 
@@ -289,3 +295,230 @@ def test_snapshot_restore_answers_at_once(tmp_path):
 ])
 def test_classify_wire_errors(message, reason):
     assert classify_wire_error(message) == reason
+
+
+# ----------------------------------------------------------------------------- latency path
+
+
+def test_status_reports_latency_median_and_its_steps():
+    svc, pub = make_service()
+    try:
+        feed(svc, "cam0", stream())
+        settle(svc)
+        lat = svc.cameras["cam0"].status()["latency_ms"]
+        assert lat["median"] is not None
+        assert lat["median"] <= lat["max"]
+        parts = lat["parts_median"]
+        assert list(parts) == list(LATENCY_PARTS)
+        assert all(v >= 0 for v in parts.values())
+        # the steps add up to the whole (medians of each: roughly)
+        assert sum(parts.values()) <= 3 * lat["max"] + 1.0
+    finally:
+        svc.close()
+
+
+def test_published_calibration_does_not_change_afterwards():
+    # the cached Calibration answers field queries later: it must be the published one,
+    # not a view of the estimator's live state
+    svc, pub = make_service()
+    try:
+        msgs = stream(n_frames=30)
+        feed(svc, "cam0", msgs[:20])
+        settle(svc)
+        cam = svc.cameras["cam0"]
+        first, first_msg = cam.calibration, pub.on("evcal/cam0/calibration")[-1]
+        assert first is not None
+        feed(svc, "cam0", msgs[20:])
+        settle(svc)
+        assert cam.counters.updates >= 2
+        assert cam.calibration is not first
+        ref, _ = decode_calibration(first_msg)
+        for name in CALIBRATION_MAP_DTYPES:
+            np.testing.assert_array_equal(getattr(first, name), getattr(ref, name))
+    finally:
+        svc.close()
+
+
+class RecordingObserver:
+    def __init__(self, gate: threading.Event | None = None):
+        self.calls: list[tuple] = []
+        self.threads: set[str] = set()
+        self.gate = gate
+        self.closed = False
+
+    def _note(self, *call):
+        if self.gate is not None:
+            self.gate.wait(10)
+        self.threads.add(threading.current_thread().name)
+        self.calls.append(call)
+
+    def events(self, camera, events):
+        self._note("events", camera, int(events.size))
+
+    def frame(self, camera, t_us, image):
+        self._note("frame", camera, t_us)
+
+    def updated(self, camera, cal, t_us, status):
+        self._note("updated", camera, t_us)
+
+    def discard(self, camera, dropped):
+        self.calls.append(("discard", camera, dropped))
+
+    def close(self):
+        self.closed = True
+
+
+def test_recorder_runs_in_its_own_thread_in_stream_order():
+    obs = RecordingObserver()
+    pub = Collector()
+    svc = Service(ServiceConfig(onei=OnEIConfig(n_small=50, n_large=10_000)), pub, observer=obs)
+    feed(svc, "cam0", stream())
+    settle(svc)
+    svc.close()  # drains the recorder's queue
+    assert obs.threads == {"evcal-recorder"}
+    frames = [c[2] for c in obs.calls if c[0] == "frame"]
+    assert frames == sorted(frames)
+    assert len(frames) == 12
+    updates = [c for c in obs.calls if c[0] == "updated"]
+    assert len(updates) == svc.cameras["cam0"].counters.updates >= 1
+    assert svc.observer_dropped == 0
+
+
+def test_a_slow_recorder_never_holds_the_publication():
+    gate = threading.Event()  # the recorder is stuck until set
+    obs = RecordingObserver(gate)
+    pub = Collector()
+    svc = Service(ServiceConfig(onei=OnEIConfig(n_small=50, n_large=10_000)), pub, observer=obs)
+    try:
+        svc._observer_thread.max_bytes = 2_000  # a few calls' worth
+        feed(svc, "cam0", stream(n_frames=20))
+        settle(svc)
+        cam = svc.cameras["cam0"]
+        assert cam.counters.frames == 20
+        assert cam.counters.updates >= 1
+        assert len(pub.on("evcal/cam0/calibration")) == cam.counters.updates
+        assert svc.observer_dropped > 0
+        assert svc.cameras_info()["recorder_dropped"] > 0
+    finally:
+        gate.set()
+        feed(svc, "cam0", stream(n_frames=2, t0=10_000_000)[:1])  # one more call after drops
+        settle(svc)
+        svc.close()
+    kinds = [c[0] for c in obs.calls]
+    assert "discard" in kinds  # told that calls were dropped, before the next one
+    assert kinds.index("discard") < len(kinds) - 1
+
+
+# ----------------------------------------------------------------------------- fast solve
+
+
+def _reference_solve(ne, n_events, limits, overlap, lam):
+    """The numpy formulas the compiled per-pixel pass replaced (lsq before the rewrite)."""
+    a11, a12, a22, r1, r2, yy = ne.system(lam)
+    det = a11 * a22 - a12 * a12
+    scale = a11 * a22
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ok = (scale > 0) & (det > limits.min_decorrelation * scale)
+        safe = np.where(ok, det, 1.0)
+        c = np.where(ok, (a22 * r1 - a12 * r2) / safe, 0.1)
+        b = np.where(ok, (a11 * r2 - a12 * r1) / safe, 0.0)
+        rss = np.maximum(yy - 2 * (c * r1 + b * r2) + c * c * a11 + 2 * c * b * a12
+                         + b * b * a22, 0.0)
+        n_eff = ne.n_eq / max(overlap, 1.0)
+        sigma2 = np.where(n_eff > 2.0, rss / np.maximum(ne.n_eq, 1e-9) * n_eff
+                          / np.maximum(n_eff - 2.0, 1e-9), np.inf)
+        se_c = np.sqrt(sigma2 * overlap * np.where(ok, a22 / safe, np.inf))
+        se_b = np.sqrt(sigma2 * overlap * np.where(ok, a11 / safe, np.inf))
+    reason = np.zeros(ne.n_pixels, np.uint8)
+    reason[~ok] = 3
+    in_range = (c > limits.min_contrast) & (c < limits.max_contrast) & (
+        np.abs(b) < limits.max_bias_ratio * c)
+    reason[ok & ~in_range] = 6
+    reason[(n_events < limits.min_events) | (ne.n_eq < limits.min_equations)] = 2
+    reason[n_events == 0] = 1
+    valid = reason == 0
+    mask = ok & (n_events >= limits.min_events) & in_range
+    out = (np.where(valid, c, 0.1), np.where(valid, b, 0.0), valid, reason,
+           np.where(valid & np.isfinite(se_c), se_c, np.inf),
+           np.where(valid & np.isfinite(se_b), se_b, np.inf))
+    return out, (c, b, mask)
+
+
+def random_normal_equations(seed: int, n: int = 3000):
+    from evcal.lsq import NormalEquations
+
+    rng = np.random.default_rng(seed)
+    ne = NormalEquations(n)
+    c_true = rng.uniform(0.05, 0.4, n)
+    b_true = rng.normal(0, 0.03, n)
+    for _ in range(12):
+        on = rng.poisson(rng.uniform(0, 6, n)).astype(float)
+        off = rng.poisson(rng.uniform(0, 6, n)).astype(float)
+        q = rng.integers(-1, 2, n).astype(float) - rng.integers(-1, 2, n)
+        a = rng.integers(0, 2, n).astype(float) - rng.integers(0, 2, n)
+        dl = c_true * (on - off) + b_true * (on + off) + rng.normal(0, 0.05, n)
+        ne.add(on - off, on + off, q, a, dl, (rng.random(n) > 0.1).astype(float))
+    ne.m[:, : n // 10] = 0.0  # never observed
+    ne.m[:, n // 10: n // 5] *= 1e-300  # degenerate scales
+    n_events = rng.integers(0, 60, n)
+    return ne, n_events
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("lam", [0.0, 0.17])
+def test_compiled_solve_is_bit_identical_to_the_numpy_formulas(seed, lam):
+    from evcal.lsq import SolveLimits, correction_lambda, solve_pixels
+
+    ne, n_events = random_normal_equations(seed)
+    limits = SolveLimits(min_events=10, min_equations=3.0)
+    for overlap in (0.5, 1.0, 3.7):
+        sol = solve_pixels(ne, n_events, limits=limits, overlap=overlap, residual_lambda=lam)
+        want, _ = _reference_solve(ne, n_events, limits, overlap, lam)
+        got = (sol.contrast, sol.bias, sol.valid, sol.reason, sol.stderr_contrast,
+               sol.stderr_bias)
+        for g, w in zip(got, want, strict=True):
+            np.testing.assert_array_equal(g, w)
+        assert 0.2 < sol.valid.mean() < 0.9  # the cases are mixed
+    # the residual-correction factor: the plain fit's trusted pixels, numpy's sums
+    _, (c0, b0, mask) = _reference_solve(ne, n_events, limits, 1.0, 0.0)
+    ref_lam = float(np.clip(ne.residual_lambda(0.0, c0, b0, mask), 0.0, 0.5))
+    assert correction_lambda(ne, "auto", limits, n_events) == ref_lam
+
+
+def test_compiled_classify_equals_the_generic_path():
+    from evcal.special import classify
+
+    rng = np.random.default_rng(3)
+    for n_valid_fraction in (0.0005, 0.5, 1.0):
+        c = rng.normal(0.2, 0.02, (40, 50))
+        b = rng.normal(0.0, 0.01, (40, 50))
+        c[::7, ::5] += rng.choice([-0.15, 0.2], c[::7, ::5].shape)
+        b[::9, ::4] += rng.choice([-0.05, 0.05], b[::9, ::4].shape)
+        se_c = rng.uniform(0, 0.02, c.shape)
+        se_b = np.where(rng.random(c.shape) < 0.1, np.inf, rng.uniform(0, 0.01, c.shape))
+        valid = rng.random(c.shape) < n_valid_fraction
+        fast = classify(c, b, se_c, se_b, valid)
+        ref = _reference_classify(c, b, se_c, se_b, valid)
+        np.testing.assert_array_equal(fast, ref)
+        assert fast.dtype == np.uint8
+        assert fast.shape == c.shape
+    assert set(np.unique(ref)) >= {1, 2, 3, 4, 5}
+
+
+def _reference_classify(c, b, se_c, se_b, valid, k=3.0, z=2.0):
+    out = np.zeros(c.shape, np.uint8)
+    out[valid] = 1
+    if np.count_nonzero(valid) < 10:
+        return out
+
+    def spread(v):
+        med = float(np.median(v))
+        return med, 1.4826 * float(np.median(np.abs(v - med)))
+
+    c_med, c_s = spread(c[valid])
+    b_med, b_s = spread(b[valid])
+    out[valid & (b + z * se_b < b_med - k * b_s)] = 4
+    out[valid & (b - z * se_b > b_med + k * b_s)] = 5
+    out[valid & (c + z * se_c < c_med - k * c_s)] = 2
+    out[valid & (c - z * se_c > c_med + k * c_s)] = 3
+    return out

@@ -180,15 +180,12 @@ def _add_sparse(m, idx, p, e, q, a, dl, w, sign):  # pragma: no cover - compiled
         m[15, k] += ws
 
 
-def _solve2(a11, a12, a22, r1, r2, min_decorrelation):
-    det = a11 * a22 - a12 * a12
-    scale = a11 * a22
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ok = (scale > 0) & (det > min_decorrelation * scale)
-        safe = np.where(ok, det, 1.0)
-        c = np.where(ok, (a22 * r1 - a12 * r2) / safe, DEFAULT_CONTRAST)
-        b = np.where(ok, (a11 * r2 - a12 * r1) / safe, DEFAULT_BIAS)
-    return c, b, ok, safe
+# Reason codes as plain ints for the compiled kernels
+_VALID = int(Reason.VALID)
+_NO_EVENTS = int(Reason.NO_EVENTS)
+_TOO_FEW_EVENTS = int(Reason.TOO_FEW_EVENTS)
+_RANK_DEFICIENT = int(Reason.RANK_DEFICIENT)
+_OUT_OF_RANGE = int(Reason.OUT_OF_RANGE)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -201,6 +198,108 @@ class SolveLimits:
     min_contrast: float = 0.01
     max_contrast: float = 2.0
     max_bias_ratio: float = 0.95  # |b| < ratio * c keeps both thresholds positive
+
+
+@numba.njit(inline="always")
+def _pixel_fit(m, i, lam, min_decorrelation):  # pragma: no cover - compiled
+    """``(a11, a12, a22, r1, r2, c, b, ok, safe_det)`` of pixel ``i``: the system of
+    :meth:`NormalEquations.system` and its 2x2 solve (defaults where rank deficient)."""
+    l2 = 2 * lam
+    ll = lam * lam
+    a11 = m[0, i] + l2 * m[2, i] + ll * m[7, i]
+    a12 = m[1, i] + lam * (m[3, i] + m[5, i]) + ll * m[8, i]
+    a22 = m[4, i] + l2 * m[6, i] + ll * m[9, i]
+    r1 = m[10, i] + lam * m[12, i]
+    r2 = m[11, i] + lam * m[13, i]
+    det = a11 * a22 - a12 * a12
+    scale = a11 * a22
+    ok = (scale > 0) & (det > min_decorrelation * scale)
+    safe = det if ok else 1.0
+    c = (a22 * r1 - a12 * r2) / safe if ok else DEFAULT_CONTRAST
+    b = (a11 * r2 - a12 * r1) / safe if ok else DEFAULT_BIAS
+    return a11, a12, a22, r1, r2, c, b, ok, safe
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _solve_pixels(m, n_events, lam, overlap, min_events, min_equations, min_decorrelation,
+                  min_contrast, max_contrast, max_bias_ratio, extra_reason
+                  ):  # pragma: no cover - compiled
+    """One pass of :func:`solve_normal_equations` over the pixels: the same operations in the
+    same order as the numpy formulas it replaced, so bit-identical results; written with
+    selects rather than branches so that it vectorises."""
+    n = m.shape[1]
+    c_out = np.empty(n, np.float64)
+    b_out = np.empty(n, np.float64)
+    se_c_out = np.empty(n, np.float64)
+    se_b_out = np.empty(n, np.float64)
+    reason = np.empty(n, np.uint8)
+    ov1 = overlap if overlap >= 1.0 else 1.0
+    yy, n_eq = m[14], m[15]
+    for i in range(n):
+        a11, a12, a22, r1, r2, c, b, ok, safe = _pixel_fit(m, i, lam, min_decorrelation)
+        # residual variance (np.maximum semantics: NaN propagates) and standard errors
+        rss = yy[i] - 2 * (c * r1 + b * r2) + c * c * a11 + 2 * c * b * a12 + b * b * a22
+        rss = 0.0 if rss < 0.0 else rss
+        neq = n_eq[i]
+        n_eff = neq / ov1
+        neq_1 = neq if (neq >= 1e-9) | (neq != neq) else 1e-9
+        dof = n_eff - 2.0
+        dof_1 = dof if (dof >= 1e-9) | (dof != dof) else 1e-9
+        sigma2 = rss / neq_1 * n_eff / dof_1 if n_eff > 2.0 else np.inf
+        se_c = np.sqrt(sigma2 * overlap * (a22 / safe if ok else np.inf))
+        se_b = np.sqrt(sigma2 * overlap * (a11 / safe if ok else np.inf))
+        # reasons, later ones take precedence
+        in_range = (c > min_contrast) & (c < max_contrast) & (abs(b) < max_bias_ratio * c)
+        r = _VALID if ok else _RANK_DEFICIENT
+        r = _OUT_OF_RANGE if ok & (not in_range) else r
+        ne_i = n_events[i]
+        r = _TOO_FEW_EVENTS if (ne_i < min_events) | (neq < min_equations) else r
+        ex = extra_reason[i]
+        r = ex if ex != _VALID else r
+        r = _NO_EVENTS if ne_i == 0 else r
+        reason[i] = r
+        valid = r == _VALID
+        c_out[i] = c if valid else DEFAULT_CONTRAST
+        b_out[i] = b if valid else DEFAULT_BIAS
+        se_c_out[i] = se_c if valid & np.isfinite(se_c) else np.inf
+        se_b_out[i] = se_b if valid & np.isfinite(se_b) else np.inf
+    return c_out, b_out, reason, se_c_out, se_b_out
+
+
+@dataclass(frozen=True)
+class PixelSolution:
+    """The per-pixel solve as flat maps (float64 ``c``, ``b`` and standard errors)."""
+
+    contrast: np.ndarray
+    bias: np.ndarray
+    valid: np.ndarray
+    reason: np.ndarray
+    stderr_contrast: np.ndarray
+    stderr_bias: np.ndarray
+
+
+def solve_pixels(
+    ne: NormalEquations,
+    n_events: np.ndarray,
+    *,
+    limits: SolveLimits,
+    overlap: float = 1.0,
+    extra_reason: np.ndarray | None = None,
+    residual_lambda: float = 0.0,
+) -> PixelSolution:
+    """The closed-form 2x2 solve of :func:`solve_normal_equations` without building a
+    :class:`Calibration` (no special-pixel classification): one compiled pass over the
+    pixels. Invalid pixels hold the defaults and ``inf`` standard errors."""
+    n = ne.n_pixels
+    n_ev = np.ascontiguousarray(np.broadcast_to(np.asarray(n_events, np.int64).ravel(), (n,)))
+    extra = (np.zeros(n, np.uint8) if extra_reason is None
+             else np.ascontiguousarray(np.asarray(extra_reason).ravel(), np.uint8))
+    c, b, reason, se_c, se_b = _solve_pixels(
+        ne.m, n_ev, float(residual_lambda), float(overlap), int(limits.min_events),
+        float(limits.min_equations), float(limits.min_decorrelation),
+        float(limits.min_contrast), float(limits.max_contrast), float(limits.max_bias_ratio),
+        extra)
+    return PixelSolution(c, b, reason == _VALID, reason, se_c, se_b)
 
 
 def solve_normal_equations(
@@ -221,46 +320,18 @@ def solve_normal_equations(
     ``overlap`` is how many equations share each piece of data (``d`` for overlapping windows);
     the residual degrees of freedom are divided by it.
     """
-    lam = float(residual_lambda)
-    a11, a12, a22, r1, r2, yy = ne.system(lam)
-    c, b, ok, safe_det = _solve2(a11, a12, a22, r1, r2, limits.min_decorrelation)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        rss = yy - 2 * (c * r1 + b * r2) + c * c * a11 + 2 * c * b * a12 + b * b * a22
-        rss = np.maximum(rss, 0.0)
-        # per-equation residual variance, with the fit's 2 parameters taken from the
-        # n_eq / overlap independent equations
-        n_eff = ne.n_eq / max(overlap, 1.0)
-        sigma2 = np.where(n_eff > 2.0, rss / np.maximum(ne.n_eq, 1e-9) * n_eff
-                          / np.maximum(n_eff - 2.0, 1e-9), np.inf)
-        se_c = np.sqrt(sigma2 * overlap * np.where(ok, a22 / safe_det, np.inf))
-        se_b = np.sqrt(sigma2 * overlap * np.where(ok, a11 / safe_det, np.inf))
-
-    reason = np.full(ne.n_pixels, Reason.VALID, np.uint8)
-    reason[~ok] = Reason.RANK_DEFICIENT
-    in_range = (c > limits.min_contrast) & (c < limits.max_contrast) & (
-        np.abs(b) < limits.max_bias_ratio * c
-    )
-    reason[ok & ~in_range] = Reason.OUT_OF_RANGE
-    reason[(n_events < limits.min_events) | (ne.n_eq < limits.min_equations)] = Reason.TOO_FEW_EVENTS
-    if extra_reason is not None:
-        flagged = extra_reason != Reason.VALID
-        reason[flagged] = extra_reason[flagged]
-    reason[n_events == 0] = Reason.NO_EVENTS
-    valid = reason == Reason.VALID
-    c = np.where(valid, c, DEFAULT_CONTRAST)
-    b = np.where(valid, b, DEFAULT_BIAS)
-    se_c = np.where(valid & np.isfinite(se_c), se_c, np.inf)
-    se_b = np.where(valid & np.isfinite(se_b), se_b, np.inf)
+    sol = solve_pixels(ne, n_events, limits=limits, overlap=overlap,
+                       extra_reason=extra_reason, residual_lambda=residual_lambda)
     from .special import classify  # noqa: PLC0415 - avoid an import cycle
 
-    special = classify(c, b, se_c, se_b, valid)
+    special = classify(sol.contrast, sol.bias, sol.stderr_contrast, sol.stderr_bias, sol.valid)
     return Calibration(
-        contrast=c.reshape(shape),
-        bias=b.reshape(shape),
-        valid=valid.reshape(shape),
-        reason=reason.reshape(shape),
-        stderr_contrast=se_c.reshape(shape),
-        stderr_bias=se_b.reshape(shape),
+        contrast=sol.contrast.reshape(shape),
+        bias=sol.bias.reshape(shape),
+        valid=sol.valid.reshape(shape),
+        reason=sol.reason.reshape(shape),
+        stderr_contrast=sol.stderr_contrast.reshape(shape),
+        stderr_bias=sol.stderr_bias.reshape(shape),
         special=special.reshape(shape),
         log_offset=float(log_offset),
         method=method,
@@ -310,6 +381,27 @@ def _window_terms(s_j: Snapshot, s_k: Snapshot):
     return on - off, on + off, qk - qj, np.abs(qk) - np.abs(qj)
 
 
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _lambda_terms(m, n_events, min_events, min_decorrelation, min_contrast, max_contrast,
+                  max_bias_ratio):  # pragma: no cover - compiled
+    """Per pixel, the plain fit (``lam = 0``) of :func:`correction_lambda`: the trust mask,
+    the residual's ``Q`` cross product and ``c Q^2`` of :meth:`NormalEquations.
+    residual_lambda` (the same operations in the same order as the numpy version)."""
+    n = m.shape[1]
+    mask = np.empty(n, np.bool_)
+    res_q = np.empty(n, np.float64)
+    cq = np.empty(n, np.float64)
+    lam = 0.0
+    pq, eq, qq, qa, qy = m[2], m[5], m[7], m[8], m[12]
+    for i in range(n):
+        _, _, _, _, _, c, b, ok, _ = _pixel_fit(m, i, lam, min_decorrelation)
+        mask[i] = (ok & (n_events[i] >= min_events) & (c > min_contrast) & (c < max_contrast)
+                   & (abs(b) < max_bias_ratio * c))
+        res_q[i] = qy[i] - c * (pq[i] + lam * qq[i]) - b * (eq[i] + lam * qa[i])
+        cq[i] = c * qq[i]
+    return mask, res_q, cq
+
+
 def correction_lambda(ne: NormalEquations, setting: str | float, limits: SolveLimits,
                       n_events: np.ndarray) -> float:
     """The residual-correction factor: 0 for ``"off"``, a given number, or estimated.
@@ -322,13 +414,17 @@ def correction_lambda(ne: NormalEquations, setting: str | float, limits: SolveLi
         return 0.0
     if setting != "auto":
         return float(setting)
-    a11, a12, a22, r1, r2, _ = ne.system(0.0)
-    c, b, ok, _ = _solve2(a11, a12, a22, r1, r2, limits.min_decorrelation)
-    mask = ok & (n_events >= limits.min_events) & (c > limits.min_contrast) & (
-        c < limits.max_contrast) & (np.abs(b) < limits.max_bias_ratio * c)
+    n_ev = np.ascontiguousarray(np.broadcast_to(np.asarray(n_events, np.int64).ravel(),
+                                                (ne.n_pixels,)))
+    # one compiled pass; the sums stay numpy's (pairwise) so lam is bit-identical
+    mask, res_q, cq = _lambda_terms(ne.m, n_ev, int(limits.min_events),
+                                    float(limits.min_decorrelation), float(limits.min_contrast),
+                                    float(limits.max_contrast), float(limits.max_bias_ratio))
     if not mask.any():
         return 0.0
-    return float(np.clip(ne.residual_lambda(0.0, c, b, mask), 0.0, 0.5))
+    den = float(cq[mask].sum())
+    lam = 0.0 if den <= 0 else 0.0 + float(res_q[mask].sum()) / den
+    return float(np.clip(lam, 0.0, 0.5))
 
 
 def _check_frames(rec: Recording, d: int) -> None:

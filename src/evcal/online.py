@@ -55,13 +55,14 @@ from .lsq import (
     SolveLimits,
     correction_lambda,
     log_intensity,
-    solve_normal_equations,
+    solve_pixels,
     usable,
 )
 from .recording import Recording
 from .special import classify
 
 STATE_FORMAT = "evcal.onei.v2"
+_VALID = int(Reason.VALID)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -87,6 +88,26 @@ def _sparse_sum(idx, on, off, scratch):  # pragma: no cover - compiled
         scratch[0, k] = 0.0
         scratch[1, k] = 0.0
     return out_idx, s_on, s_off
+
+
+@numba.njit(cache=True, nogil=True)
+def _low_pass(c_new, b_new, se_c_new, se_b_new, ok, reason_new, smoothing, c, b, se_c, se_b,
+              seen, n_solved, reason):  # pragma: no cover - compiled
+    """Fold one solve into the smoothed estimate, in place (OnEI's low-pass with start-up
+    correction). New values pass through float32, as they did through a Calibration."""
+    for i in range(c.size):
+        if ok[i]:
+            n_solved[i] += 1
+            n = n_solved[i] if n_solved[i] >= 1 else 1
+            a = 1.0 / n
+            if smoothing >= a:
+                a = smoothing
+            c[i] += a * (np.float64(np.float32(c_new[i])) - c[i])
+            b[i] += a * (np.float64(np.float32(b_new[i])) - b[i])
+            se_c[i] = np.float64(np.float32(se_c_new[i]))
+            se_b[i] = np.float64(np.float32(se_b_new[i]))
+            seen[i] = True
+        reason[i] = _VALID if seen[i] else reason_new[i]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -397,25 +418,13 @@ class OnlineCalibrator:
         # consecutive small buffers share their events: divide the degrees of freedom by
         # the number of small buffers each event lies in
         overlap = max(1.0, self.n_equations * self.n_small / max(self.buffer_events, 1))
-        new = solve_normal_equations(
-            self._ne, self._counts, (self.sensor.n_pixels, 1), limits=cfg.limits,
-            overlap=overlap, log_offset=cfg.log_offset, method="onei",
-            residual_lambda=self.lam,
-        )
-        ok = new.valid.ravel()
-        c_new = new.contrast.ravel().astype(np.float64)
-        b_new = new.bias.ravel().astype(np.float64)
+        new = solve_pixels(self._ne, self._counts, limits=cfg.limits, overlap=overlap,
+                           residual_lambda=self.lam)
         # low-pass with a start-up correction: a pixel's first 1/smoothing solutions are
         # averaged with equal weights (the first one is not trusted more than the later ones)
-        self._n_solved[ok] += 1
-        a = np.maximum(cfg.smoothing, 1.0 / np.maximum(self._n_solved[ok], 1))
-        self._c[ok] += a * (c_new[ok] - self._c[ok])
-        self._b[ok] += a * (b_new[ok] - self._b[ok])
-        self._se_c[ok] = new.stderr_contrast.ravel()[ok]
-        self._se_b[ok] = new.stderr_bias.ravel()[ok]
-        self._seen |= ok
-        r = new.reason.ravel()
-        self._reason = np.where(self._seen, np.uint8(Reason.VALID), r).astype(np.uint8)
+        _low_pass(new.contrast, new.bias, new.stderr_contrast, new.stderr_bias, new.valid,
+                  new.reason, float(cfg.smoothing), self._c, self._b, self._se_c, self._se_b,
+                  self._seen, self._n_solved, self._reason)
         self.n_updates += 1
 
     # -- output ------------------------------------------------------------------------------
@@ -427,22 +436,25 @@ class OnlineCalibrator:
         return self._frames[-1].cum_events - self._frames[0].cum_events
 
     def calibration(self) -> Calibration:
-        """The current smoothed estimate (defaults where no valid solution was seen yet)."""
+        """The current smoothed estimate (defaults where no valid solution was seen yet).
+
+        The maps are copies: the result does not change when the calibrator goes on.
+        """
         shape = self.sensor.shape
-        valid = self._seen
+        valid = self._seen.copy()
         special = classify(self._c, self._b, self._se_c, self._se_b, valid)
-        special = np.where(valid, special, np.uint8(Special.UNOBSERVED))
+        special[~valid] = Special.UNOBSERVED
         return Calibration(
-            contrast=self._c.reshape(shape),
+            contrast=self._c.reshape(shape),  # float32 copies (Calibration casts)
             bias=self._b.reshape(shape),
             valid=valid.reshape(shape),
-            reason=self._reason.reshape(shape),
+            reason=self._reason.reshape(shape).copy(),
             stderr_contrast=np.where(valid, self._se_c, np.inf).reshape(shape),
             stderr_bias=np.where(valid, self._se_b, np.inf).reshape(shape),
             special=special.reshape(shape),
             log_offset=self.config.log_offset,
             method="onei",
-            n_events=self._counts.reshape(shape),
+            n_events=self._counts.reshape(shape).copy(),
             params=self.status() | {"config": json.loads(self.config.to_json())},
         )
 

@@ -8,9 +8,14 @@ pixels): it is both far from the others and measured well enough to say so. The 
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 from .calibration import Special
+
+_UNOBSERVED, _NORMAL = int(Special.UNOBSERVED), int(Special.NORMAL)
+_HOT, _COLD = int(Special.HOT), int(Special.COLD)
+_WARM, _COOL = int(Special.WARM), int(Special.COOL)
 
 
 def robust_spread(v: np.ndarray) -> tuple[float, float]:
@@ -30,6 +35,11 @@ def classify(
     z_measurement: float = 2.0,
 ) -> np.ndarray:
     """Special-pixel class codes (:class:`~evcal.calibration.Special`, uint8, same shape)."""
+    if (_all_float64(contrast, bias, stderr_contrast, stderr_bias)
+            and isinstance(valid, np.ndarray) and valid.dtype == bool
+            and valid.shape == np.shape(contrast)):
+        return _classify_f64(contrast, bias, stderr_contrast, stderr_bias, valid,
+                             k_population, z_measurement)
     out = np.full(np.shape(contrast), Special.UNOBSERVED, np.uint8)
     out[valid] = Special.NORMAL
     if np.count_nonzero(valid) < 10:
@@ -46,3 +56,75 @@ def classify(
     out[valid & (c_hi_ci < c_med - k_population * c_s)] = Special.HOT
     out[valid & (c_lo_ci > c_med + k_population * c_s)] = Special.COLD
     return out
+
+
+def _all_float64(*arrays: object) -> bool:
+    shape = np.shape(arrays[0])
+    return all(isinstance(a, np.ndarray) and a.dtype == np.float64 and a.shape == shape
+               for a in arrays)
+
+
+def _classify_f64(contrast: np.ndarray, bias: np.ndarray, stderr_contrast: np.ndarray,
+                  stderr_bias: np.ndarray, valid: np.ndarray, k_population: float,
+                  z_measurement: float) -> np.ndarray:
+    """:func:`classify` for float64 maps: numpy's medians, then one compiled pass (the same
+    operations as the generic path, so the same classes)."""
+    shape = np.shape(contrast)
+    v = np.ascontiguousarray(valid).ravel()
+    c, b = np.ravel(contrast), np.ravel(bias)
+    n_valid = int(np.count_nonzero(v))
+    if n_valid < 10:
+        limits = np.zeros(4)
+    else:
+        c_med, c_s = _robust_spread_f64(c[v])
+        b_med, b_s = _robust_spread_f64(b[v])
+        limits = np.array([b_med - k_population * b_s, b_med + k_population * b_s,
+                           c_med - k_population * c_s, c_med + k_population * c_s])
+    out = _label(np.ascontiguousarray(c), np.ascontiguousarray(b),
+                 np.ascontiguousarray(np.ravel(stderr_contrast)),
+                 np.ascontiguousarray(np.ravel(stderr_bias)), v, float(z_measurement), limits,
+                 n_valid >= 10)
+    return out.reshape(shape)
+
+
+@numba.njit(cache=True, nogil=True)
+def _label(c, b, se_c, se_b, valid, z, limits, significant):  # pragma: no cover - compiled
+    n = c.size
+    out = np.empty(n, np.uint8)
+    b_low, b_high, c_low, c_high = limits[0], limits[1], limits[2], limits[3]
+    for i in range(n):
+        if not valid[i]:
+            out[i] = _UNOBSERVED
+            continue
+        k = _NORMAL
+        if significant:
+            if b[i] + z * se_b[i] < b_low:
+                k = _WARM
+            if b[i] - z * se_b[i] > b_high:
+                k = _COOL
+            if c[i] + z * se_c[i] < c_low:
+                k = _HOT
+            if c[i] - z * se_c[i] > c_high:
+                k = _COLD
+        out[i] = k
+    return out
+
+
+def _median_f64(v: np.ndarray) -> float:
+    """``np.median`` of a 1-D float64 array, faster: one single-kth partition (numpy's median
+    partitions at two kth, ~10x slower), the other middle value being the largest of the
+    lower half. Same value: an order statistic, or ``(a + b) / 2`` of the two middle ones."""
+    n = v.size
+    if n == 0 or np.isnan(v).any():
+        return float(np.median(v))
+    h = n // 2
+    part = np.partition(v, h)
+    if n % 2:
+        return float(part[h])
+    return float((part[:h].max() + part[h]) / 2)
+
+
+def _robust_spread_f64(v: np.ndarray) -> tuple[float, float]:
+    """:func:`robust_spread` of a 1-D float64 array (same values, see :func:`_median_f64`)."""
+    med = _median_f64(v)
+    return med, 1.4826 * _median_f64(np.abs(v - med))

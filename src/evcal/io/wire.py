@@ -357,8 +357,9 @@ def encode_calibration(cal: Any, *, t_us: int, seq: int,
     log_offset = float(cal.log_offset)
     if not math.isfinite(log_offset):
         raise WireError(f"cannot encode calibration: log_offset={log_offset} is not finite")
-    maps = {name: np.ascontiguousarray(getattr(cal, name),
-                                       dtype=CALIBRATION_MAP_DTYPES[name]).tobytes()
+    # memoryviews: msgpack copies each map once into the message (no intermediate bytes)
+    maps = {name: memoryview(np.ascontiguousarray(getattr(cal, name),
+                                                  dtype=CALIBRATION_MAP_DTYPES[name]).reshape(-1))
             for name in names}
     msg = {
         "version": WIRE_VERSION, "height": int(h), "width": int(w), "seq": seq,
