@@ -504,7 +504,9 @@ class Camera:
                            f"before the previous chunk's last t_us={last}")
         self._check_seq("events", header["seq"])
         try:
-            self.calibrator.feed_events(ev)
+            # decode_events validated them against the header's sensor, which _check_sensor
+            # matched to this camera's
+            self.calibrator.feed_events(ev, validated=True)
         except ValueError as exc:
             raise Rejected("rejected", f"{what}: {exc}") from None
         c = self.counters

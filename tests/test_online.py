@@ -79,6 +79,9 @@ def test_bad_input_is_refused_with_the_reason():
     cal.feed_events(make_events([1500, 1600], [1, 2], [1, 2], [1, 0]))
     with pytest.raises(EventError, match="sorted|before"):
         cal.feed_events(make_events([1550], [1], [1], [1]))
+    # pre-validated input (the service's decoder ran validate_events) keeps the order check
+    with pytest.raises(EventError, match="backwards"):
+        cal.feed_events(make_events([1580], [1], [1], [1]), validated=True)
     # events before the latest frame arrive late: counted, never silently mixed in
     cal.feed_frame(3000, img)
     cal.feed_events(make_events([2500, 3100], [1, 1], [1, 1], [1, 1]))

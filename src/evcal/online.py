@@ -233,9 +233,22 @@ class OnlineCalibrator:
 
     # -- input ------------------------------------------------------------------------------
 
-    def feed_events(self, events: np.ndarray) -> None:
-        """Add a sorted chunk of events (validated; raises :class:`EventError`)."""
-        validate_events(events, self.sensor, where="events", after_t_us=self.last_event_t_us)
+    def feed_events(self, events: np.ndarray, *, validated: bool = False) -> None:
+        """Add a sorted chunk of events (validated; raises :class:`EventError`).
+
+        ``validated=True`` is for callers that already ran :func:`~evcal.events.
+        validate_events` against this sensor (the service's wire decoder does): only the
+        dtype and the time order across chunks are checked again.
+        """
+        if validated and isinstance(events, np.ndarray) and events.dtype == EVENTS_DTYPE:
+            if (events.size and self.last_event_t_us is not None
+                    and int(events["t_us"][0]) < self.last_event_t_us):
+                raise EventError(
+                    f"events: time goes backwards: first t_us={int(events['t_us'][0])} is "
+                    f"before the previous chunk's last t_us={self.last_event_t_us}")
+        else:
+            validate_events(events, self.sensor, where="events",
+                            after_t_us=self.last_event_t_us)
         if events.size == 0:
             return
         self.last_event_t_us = int(events["t_us"][-1])
