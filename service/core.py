@@ -117,60 +117,128 @@ class Observer(Protocol):
     def close(self) -> None: ...
 
 
+# ----------------------------------------------------------------------------- queues
+
+
+class BoundedQueue:
+    """FIFO bounded by the total size of its items (``size_of``; 1 per item by default).
+
+    ``put`` drops (returns False) or, with ``block``, waits for room when full; a single item
+    larger than the bound is accepted when the queue is empty. After ``close`` puts fail and
+    ``get`` still returns what is in, then None at once.
+    """
+
+    def __init__(self, limit: int, size_of: Callable[[Any], int] | None = None):
+        self.limit = int(limit)
+        self._size_of = size_of or (lambda item: 1)
+        self.used = 0
+        self._items: deque[Any] = deque()
+        self._cond = threading.Condition()
+        self.closed = False
+
+    def put(self, item: Any, *, block: bool = True) -> bool:
+        size = self._size_of(item)
+        with self._cond:
+            if block:
+                while not self.closed and self.used + size > self.limit and self._items:
+                    self._cond.wait(0.5)
+            if self.closed or (self.used + size > self.limit and self._items):
+                return False
+            self._items.append(item)
+            self.used += size
+            self._cond.notify_all()
+            return True
+
+    def get(self, timeout_s: float) -> Any | None:
+        with self._cond:
+            if not self._items and not self.closed:
+                self._cond.wait(timeout_s)
+            if not self._items:
+                return None
+            item = self._items.popleft()
+            self.used -= self._size_of(item)
+            self._cond.notify_all()
+            return item
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def close(self) -> None:
+        with self._cond:
+            self.closed = True
+            self._cond.notify_all()
+
+
+class CameraQueue(BoundedQueue):
+    """A camera's input: ``(kind, payload, t_recv_s)`` bounded in payload bytes."""
+
+    def __init__(self, max_bytes: int):
+        super().__init__(max_bytes, lambda item: len(item[1]))
+
+    @property
+    def nbytes(self) -> int:
+        return self.used
+
+
 class ObserverThread:
     """Runs the observer's calls in a thread of its own, off the cameras' publication path.
 
-    A camera worker only appends ``(method, args)`` to a queue bounded by ``max_bytes`` of
-    referenced arrays (the events, frames and maps are not copied: the worker never modifies
-    them after the call); when the recorder falls behind, calls are dropped and counted
-    (``dropped``), never waited for, and the observer is told with ``discard(camera, n)``.
+    A camera worker only appends ``(method, args, nbytes)`` to a queue bounded by
+    ``max_bytes`` of referenced arrays (the events, frames and maps are not copied: the worker
+    never modifies them after the call); when the recorder falls behind, calls are dropped and
+    counted (``dropped``), never waited for, and the observer is told with
+    ``discard(camera, n)``.
     """
 
     def __init__(self, call: Callable[..., None], *, max_bytes: int = 256 << 20):
         self._call = call
-        self.max_bytes = int(max_bytes)
-        self.nbytes = 0
+        self._queue = BoundedQueue(max_bytes, lambda item: item[2])
         self.dropped = 0
         self._dropped_by_camera: dict[str, int] = {}
-        self._items: deque[tuple[str, tuple[Any, ...], int]] = deque()
-        self._cond = threading.Condition()
-        self._closed = False
+        self._lock = threading.Lock()  # one submitter at a time: discards stay in order
         self.thread = threading.Thread(target=self._run, name="evcal-recorder", daemon=True)
         self.thread.start()
 
+    @property
+    def nbytes(self) -> int:
+        return self._queue.used
+
+    @property
+    def max_bytes(self) -> int:
+        return self._queue.limit
+
+    @max_bytes.setter
+    def max_bytes(self, value: int) -> None:
+        self._queue.limit = int(value)
+
     def submit(self, method: str, args: tuple[Any, ...], nbytes: int) -> bool:
         camera = str(args[0])
-        with self._cond:
-            if self._closed:
+        with self._lock:
+            if self._queue.closed:
                 return False
-            if self._items and self.nbytes + nbytes > self.max_bytes:
+            lost = self._dropped_by_camera.get(camera, 0)
+            if lost and self._queue.put(("discard", (camera, lost), 0), block=False):
+                del self._dropped_by_camera[camera]
+            if self._queue.put((method, args, nbytes), block=False):
+                return True
+            if not self._queue.closed:
                 self.dropped += 1
                 self._dropped_by_camera[camera] = self._dropped_by_camera.get(camera, 0) + 1
-                return False
-            lost = self._dropped_by_camera.pop(camera, 0)
-            if lost:
-                self._items.append(("discard", (camera, lost), 0))
-            self._items.append((method, args, nbytes))
-            self.nbytes += nbytes
-            self._cond.notify_all()
-            return True
+            return False
 
     def _run(self) -> None:
         while True:
-            with self._cond:
-                while not self._items and not self._closed:
-                    self._cond.wait()
-                if not self._items:
+            item = self._queue.get(0.5)
+            if item is None:
+                if self._queue.closed:
                     return  # closed and drained
-                method, args, nbytes = self._items.popleft()
-                self.nbytes -= nbytes
+                continue
+            method, args, _ = item
             self._call(method, *args)
 
     def close(self, timeout_s: float = 30.0) -> None:
         """Process what is queued, then stop the thread."""
-        with self._cond:
-            self._closed = True
-            self._cond.notify_all()
+        self._queue.close()
         self.thread.join(timeout_s)
 
 
@@ -205,93 +273,6 @@ class Rejected(Exception):
     def __init__(self, reason: str, message: str):
         super().__init__(message)
         self.reason = reason
-
-
-# ----------------------------------------------------------------------------- queue
-
-
-class CameraQueue:
-    """FIFO of ``(kind, payload, t_recv_s)`` bounded in bytes; drop or block when full."""
-
-    def __init__(self, max_bytes: int):
-        self.max_bytes = int(max_bytes)
-        self.nbytes = 0
-        self._items: deque[tuple[str, bytes, float]] = deque()
-        self._cond = threading.Condition()
-        self._closed = False
-
-    def put(self, item: tuple[str, bytes, float], *, block: bool) -> bool:
-        size = len(item[1])
-        with self._cond:
-            if block:
-                while not self._closed and self.nbytes + size > self.max_bytes and self._items:
-                    self._cond.wait(0.5)
-            if self._closed or (self.nbytes + size > self.max_bytes and self._items):
-                return False
-            self._items.append(item)
-            self.nbytes += size
-            self._cond.notify_all()
-            return True
-
-    def get(self, timeout_s: float) -> tuple[str, bytes, float] | None:
-        with self._cond:
-            if not self._items:
-                self._cond.wait(timeout_s)
-            if not self._items:
-                return None
-            item = self._items.popleft()
-            self.nbytes -= len(item[1])
-            self._cond.notify_all()
-            return item
-
-    def __len__(self) -> int:
-        return len(self._items)
-
-    def close(self) -> None:
-        with self._cond:
-            self._closed = True
-            self._cond.notify_all()
-
-
-class Handoff:
-    """Decoded messages between a camera's decoder thread and its worker: at most
-    ``capacity`` items (the decoder waits for room), so decoding runs at most that many
-    messages ahead of the estimator, in parallel with it."""
-
-    def __init__(self, capacity: int = 2):
-        self.capacity = int(capacity)
-        self._items: deque[Any] = deque()
-        self._cond = threading.Condition()
-        self.closed = False
-
-    def put(self, item: Any) -> bool:
-        with self._cond:
-            while len(self._items) >= self.capacity and not self.closed:
-                self._cond.wait(0.5)
-            if self.closed:
-                return False
-            self._items.append(item)
-            self._cond.notify_all()
-            return True
-
-    def get(self, timeout_s: float) -> Any | None:
-        with self._cond:
-            if not self._items and not self.closed:
-                self._cond.wait(timeout_s)
-            if not self._items:
-                return None
-            item = self._items.popleft()
-            self._cond.notify_all()
-            return item
-
-    def __len__(self) -> int:
-        return len(self._items)
-
-    def close(self) -> None:
-        """No more puts; ``get`` still returns what is in."""
-        with self._cond:
-            self.closed = True
-            self._cond.notify_all()
 
 
 # ----------------------------------------------------------------------------- one camera
@@ -351,7 +332,8 @@ class Camera:
         self.key_status = keys.camera_key(cfg.prefix, camera_id, "status")
         self.key_errors = keys.camera_key(cfg.prefix, camera_id, "errors")
         self.queue = CameraQueue(cfg.queue_bytes)
-        self.handoff = Handoff(2)
+        # decoded messages for the worker: decoding runs at most 2 messages ahead of OnEI
+        self.handoff = BoundedQueue(2)
         self.in_flight = 0  # messages queued, being decoded or processed
         self._flight_lock = threading.Lock()
         self.lock = threading.Lock()  # guards the calibrator against snapshots

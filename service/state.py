@@ -22,6 +22,8 @@ from urllib.parse import quote, unquote
 
 import numpy as np
 
+from ..io._util import load_npz_arrays
+
 log = logging.getLogger("evcal.service.state")
 
 SUFFIX = ".npz"
@@ -64,12 +66,7 @@ def atomic_savez(path: Path, arrays: dict[str, np.ndarray]) -> Path:
 
 
 def load_npz(path: Path) -> dict[str, np.ndarray]:
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            return {k: z[k] for k in z.files}
-    except Exception as exc:
-        raise StateError(f"{path}: cannot read the snapshot: {type(exc).__name__}: {exc}") \
-            from None
+    return load_npz_arrays(path, StateError, "the snapshot")
 
 
 class StateStore:

@@ -55,3 +55,22 @@ def check_sensor_arg(found: SensorSize, given: SensorSize | None, where: str) ->
             f"{where}: the file declares a {found} sensor, but sensor={given} was given"
         )
     return found
+
+
+def load_npz_arrays(path: str | Path, error: type[Exception], what: str = ""
+                    ) -> dict[str, np.ndarray]:
+    """Every array of the ``.npz`` archive at ``path`` (no pickles), or ``error`` naming the
+    problem: no such file, a bare ``.npy``, a truncated or corrupt archive."""
+    path = Path(path)
+    if not path.is_file():
+        raise error(f"{path}: no such file")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            if not hasattr(z, "files"):
+                raise error(f"{path}: a single .npy array, not an .npz archive")
+            return {k: z[k] for k in z.files}
+    except error:
+        raise
+    except Exception as exc:  # zipfile, zlib, OS and format errors of a damaged archive
+        raise error(f"{path}: cannot read {what or 'as .npz'} (truncated or corrupt?): "
+                    f"{type(exc).__name__}: {exc}") from None

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from ..calibration import Calibration, Reason, Special
-from ._util import to_jsonable
+from ._util import load_npz_arrays, to_jsonable
 
 MAP_DTYPES: dict[str, np.dtype] = {
     "contrast": np.dtype(np.float32),
@@ -75,18 +75,7 @@ def load_calibration(path: str | os.PathLike[str]) -> Calibration:
         Naming the missing key, the map of the wrong shape or dtype, or the bad value.
     """
     path = Path(path)
-    if not path.is_file():
-        raise CalibrationFileError(f"{path}: no such file")
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            if not hasattr(z, "files"):
-                raise CalibrationFileError(f"{path}: a single .npy array, not an .npz archive")
-            data = {k: z[k] for k in z.files}
-    except CalibrationFileError:
-        raise
-    except Exception as exc:  # zipfile, zlib, OS and format errors of a damaged archive
-        raise CalibrationFileError(f"{path}: cannot read as .npz (truncated or corrupt?): "
-                                   f"{type(exc).__name__}: {exc}") from None
+    data = load_npz_arrays(path, CalibrationFileError)
     missing = sorted(CALIBRATION_KEYS - set(data))
     if missing:
         hint = " (this looks like a recording, not a calibration)" if "events" in data else ""

@@ -22,7 +22,7 @@ import numpy as np
 
 from ..events import EVENTS_DTYPE, SensorSize
 from ..recording import Frames, Recording, RecordingError
-from ._util import check_sensor_arg, metadata_from_json, metadata_to_json
+from ._util import check_sensor_arg, load_npz_arrays, metadata_from_json, metadata_to_json
 
 _FRAME_KEYS = ("frame_t_us", "frame_images", "frame_exposure_us")
 
@@ -90,18 +90,7 @@ def read_npz(path: str | os.PathLike[str], *, sensor: SensorSize | None = None) 
     """
     path = Path(path)
     where = str(path)
-    if not path.is_file():
-        raise RecordingError(f"{path}: no such file")
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            if not hasattr(z, "files"):
-                raise RecordingError(f"{path}: a single .npy array, not an .npz archive")
-            data = {k: z[k] for k in z.files}
-    except RecordingError:
-        raise
-    except Exception as exc:  # zipfile, zlib, OS and format errors of a damaged archive
-        raise RecordingError(f"{path}: cannot read as .npz (truncated or corrupt?): "
-                             f"{type(exc).__name__}: {exc}") from None
+    data = load_npz_arrays(path, RecordingError)
     if "sensor" not in data:
         raise RecordingError(f"{path}: no 'sensor' array ([height, width]); arrays: "
                              f"{sorted(data)}")
