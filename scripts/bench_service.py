@@ -44,7 +44,7 @@ import psutil
 from evcal.events import EVENTS_DTYPE, SensorSize
 from evcal.io.wire import encode_events, encode_frame
 from evcal.service import keys
-from evcal.service.testing import ServiceProcess, endpoint, free_port, wait_for
+from evcal.testing import ServiceProcess, endpoint, free_port, wait_for
 from evcal.service.transport import Transport, ZenohOptions
 
 ZARGS = ["--no-multicast-scouting"]

@@ -9,7 +9,7 @@ pytest.importorskip("zenoh")
 pytest.importorskip("rerun")
 
 from evcal.service.recording import read_entities  # noqa: E402
-from evcal.service.testing import endpoint, free_port, run_client  # noqa: E402
+from evcal.testing import endpoint, free_port, run_client  # noqa: E402
 
 pytestmark = pytest.mark.timeout(180)
 

@@ -14,7 +14,7 @@ from evcal.io.wire import decode_calibration  # noqa: E402
 from evcal.online import OnEIConfig  # noqa: E402
 from evcal.service.core import ServiceConfig  # noqa: E402
 from evcal.service.server import run  # noqa: E402
-from evcal.service.testing import endpoint, free_port, run_client, wait_for  # noqa: E402
+from evcal.testing import endpoint, free_port, run_client, wait_for  # noqa: E402
 from evcal.service.transport import Transport, ZenohOptions  # noqa: E402
 from evcal.sim.ideal import SimConfig, simulate_ideal  # noqa: E402
 

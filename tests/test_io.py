@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 from PIL import Image
 
-from evcal.calibration import Calibration, Special
+from evcal.calibration import Calibration, Diagnostics, Special
 from evcal.events import EVENTS_DTYPE, SensorSize, make_events, validate_events
 from evcal.io import (
     CalibrationFileError,
@@ -397,7 +397,7 @@ def _calibration(seed: int = 0) -> Calibration:
         valid=valid, reason=np.where(valid, 0, 2), stderr_contrast=np.where(valid, 0.01, np.inf),
         stderr_bias=rng.random(shape), special=rng.integers(0, len(Special), shape),
         n_events=rng.integers(0, 1000, shape), log_offset=0.25, method="lsq",
-        params={"min_events": 8, "window_us": np.int64(5000)})
+        diagnostics=Diagnostics(extra={"min_events": 8, "window_us": np.int64(5000)}))
 
 
 def test_calibration_round_trip(tmp_path: Path) -> None:
@@ -413,7 +413,7 @@ def test_calibration_round_trip(tmp_path: Path) -> None:
         assert a.dtype == b.dtype
         np.testing.assert_array_equal(a, b)
     assert (back.log_offset, back.method) == (0.25, "lsq")
-    assert back.params == {"min_events": 8, "window_us": 5000}
+    assert back.diagnostics.to_dict() == {"min_events": 8, "window_us": 5000}
 
 
 def test_calibration_file_errors(tmp_path: Path) -> None:
@@ -431,9 +431,9 @@ def test_calibration_file_errors(tmp_path: Path) -> None:
 
     with pytest.raises(CalibrationFileError, match=r"missing array\(s\) \['bias'\]"):
         load_calibration(broken(bias=None))
-    with pytest.raises(CalibrationFileError, match=r"valid has shape \(30, 41\), contrast has"):
+    with pytest.raises(CalibrationFileError, match=r"valid map has shape \(30, 41\), contrast has"):
         load_calibration(broken(valid=np.ones((30, 41), bool)))
-    with pytest.raises(CalibrationFileError, match="reason has dtype float64"):
+    with pytest.raises(CalibrationFileError, match="reason map has dtype float64"):
         load_calibration(broken(reason=np.zeros((30, 40))))
     with pytest.raises(CalibrationFileError, match="NaN"):
         load_calibration(broken(contrast=np.full((30, 40), np.nan, np.float32)))

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from evcal.bench import random_recording
+from evcal.errors import CalibrationError
 from evcal.events import EventError, SensorSize, make_events
 from evcal.online import OnEIConfig, OnlineCalibrator, onei
 
@@ -79,9 +80,8 @@ def test_bad_input_is_refused_with_the_reason():
     cal.feed_events(make_events([1500, 1600], [1, 2], [1, 2], [1, 0]))
     with pytest.raises(EventError, match="sorted|before"):
         cal.feed_events(make_events([1550], [1], [1], [1]))
-    # pre-validated input (the service's decoder ran validate_events) keeps the order check
     with pytest.raises(EventError, match="backwards"):
-        cal.feed_events(make_events([1580], [1], [1], [1]), validated=True)
+        cal.feed_events(make_events([1580], [1], [1], [1]))
     # events before the latest frame arrive late: counted, never silently mixed in
     cal.feed_frame(3000, img)
     cal.feed_events(make_events([2500, 3100], [1, 1], [1, 1], [1, 1]))
@@ -115,5 +115,5 @@ def test_state_round_trip_mid_stream_and_bad_states():
 
 def test_onei_needs_frames():
     rec = random_recording(SENSOR, 100, 1)
-    with pytest.raises(EventError, match="needs frames"):
+    with pytest.raises(CalibrationError, match="needs frames"):
         onei(rec)

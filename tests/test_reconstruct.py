@@ -7,7 +7,7 @@ import pytest
 
 from evcal.calibration import Calibration
 from evcal.events import EventError, SensorSize, empty_events, make_events
-from evcal.lsq import log_intensity
+from evcal.solver import log_intensity
 from evcal.metrics import image_metrics
 from evcal.recording import Frames, Recording
 from evcal.reconstruct import (
@@ -218,8 +218,9 @@ def test_evaluate_di_against_itself_and_offset_fallback(sim: SimResult) -> None:
     s = res.summary()
     assert s["gain_db"] == 0.0
     assert s["calibrated"] == s["di"]
-    nan_cal = di.replace(log_offset=float("nan"))
-    assert evaluate(sim.recording, nan_cal, frames_per_image=10).log_offset == 30.0
+    # a calibration cannot carry a non-finite offset at all
+    with pytest.raises(ValueError, match="log_offset=nan"):
+        di.replace(log_offset=float("nan"))
     assert evaluate(sim.recording, di, frames_per_image=10, log_offset=50.0).log_offset == 50.0
 
 

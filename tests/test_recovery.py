@@ -13,7 +13,7 @@ import pytest
 
 from evcal.brandli import brandli
 from evcal.calibration import Calibration, Reason
-from evcal.lsq import OffEIConfig, estimate_log_offset, offei
+from evcal.offline import OffEIConfig, estimate_log_offset, offei
 from evcal.offe import offe
 from evcal.online import OnEIConfig, OnlineCalibrator, onei
 from evcal.reconstruct import evaluate
@@ -53,7 +53,7 @@ def test_residual_correction_removes_the_contrast_bias(sim, offei_cal):
     # a plain least squares over-estimates c by a few percent; the correction removes most of it
     assert bias_plain > 0.004
     assert abs(bias_corr) < 0.4 * bias_plain
-    assert 0.03 < offei_cal.params["residual_lambda"] < 0.3
+    assert 0.03 < offei_cal.diagnostics.residual_lambda < 0.3
 
 
 def test_invalid_pixels_keep_defaults_and_say_why(offei_cal):
@@ -95,7 +95,7 @@ def test_onei_converges_within_1p5x_of_offei(sim, offei_cal):
     cal = onei(sim.recording, OnEIConfig(log_offset=30.0), history_every=1)
     rmse_c, rmse_b = _errors(cal, sim.truth)
     off_c, off_b = _errors(offei_cal, sim.truth)
-    hist = cal.params["history"]
+    hist = cal.diagnostics.history
     first = next(h for h in hist if h[3].mean() > 0.5)
     e_first = float(np.sqrt(np.mean((first[1] - sim.truth["contrast"])[first[3]] ** 2)))
     assert rmse_c < e_first  # it improves as data arrive
@@ -105,8 +105,9 @@ def test_onei_converges_within_1p5x_of_offei(sim, offei_cal):
     assert rmse_c <= 1.5 * off_c, (rmse_c, off_c)
     assert rmse_b <= 1.5 * off_b, (rmse_b, off_b)
     # the large buffer holds at most n_large events
-    assert cal.params["buffer_events"] <= cal.params["n_large"]
-    assert cal.params["buffer_equations"] > cal.params["n_large"] / cal.params["n_small"]
+    d = cal.diagnostics
+    assert d.buffer_events <= d.n_large
+    assert d.buffer_equations > d.n_large / d.n_small
 
 
 def test_onei_sliding_equations_equal_a_rebuild(sim):
@@ -118,7 +119,7 @@ def test_onei_sliding_equations_equal_a_rebuild(sim):
     cfg = OnEIConfig(log_offset=30.0, n_small=50_000, n_large=300_000)
     a = onei(short, cfg)
     b = onei(short, replace(cfg, rebuild_every=1))
-    assert a.params["n_updates"] == b.params["n_updates"] > 10
+    assert a.diagnostics.n_updates == b.diagnostics.n_updates > 10
     np.testing.assert_allclose(a.contrast, b.contrast, rtol=0, atol=1e-9)
     np.testing.assert_allclose(a.bias, b.bias, rtol=0, atol=1e-9)
     np.testing.assert_array_equal(a.valid, b.valid)

@@ -19,10 +19,10 @@ pytest.importorskip("zenoh")
 pytest.importorskip("rerun")
 
 from evcal.io import load_calibration, open_recording, write_recording  # noqa: E402
-from evcal.lsq import OffEIConfig, offei  # noqa: E402
+from evcal.offline import OffEIConfig, offei  # noqa: E402
 from evcal.online import OnEIConfig, onei  # noqa: E402
 from evcal.service.recording import read_entities  # noqa: E402
-from evcal.service.testing import (  # noqa: E402
+from evcal.testing import (  # noqa: E402
     ServiceProcess,
     endpoint,
     free_port,

@@ -23,7 +23,7 @@ from evcal.online import OnEIConfig, onei  # noqa: E402
 from evcal.service import keys  # noqa: E402
 from evcal.service.core import ServiceConfig  # noqa: E402
 from evcal.service.server import run  # noqa: E402
-from evcal.service.testing import endpoint, free_port, wait_for  # noqa: E402
+from evcal.testing import endpoint, free_port, wait_for  # noqa: E402
 from evcal.service.transport import Transport, ZenohOptions  # noqa: E402
 from evcal.sim.ideal import SimConfig, simulate_ideal  # noqa: E402
 
@@ -174,8 +174,9 @@ def test_fuzz_one_camera_while_another_streams(live):
     assert gc.errors_total == 0
     assert gc.lost == {"events": 0, "frames": 0}, gc.lost
     assert gc.events == sim.recording.n_events, gc.events
-    assert good_cam.calibrator.status()["late_events"] == 0, good_cam.calibrator.status()
-    live_cal, _ = decode_calibration(good_cam.calibration_msg)
+    est = good_cam.state.calibrator.status()
+    assert est["late_events"] == 0, est
+    live_cal, _ = decode_calibration(good_cam.state.calibration_msg)
     ref = onei(sim.recording, ONEI)
     np.testing.assert_allclose(live_cal.contrast, ref.contrast, atol=1e-6)
     np.testing.assert_array_equal(live_cal.valid, ref.valid)

@@ -10,7 +10,7 @@ import pytest
 pytest.importorskip("zenoh")
 
 from evcal.io import write_recording  # noqa: E402
-from evcal.service.testing import (  # noqa: E402
+from evcal.testing import (  # noqa: E402
     ServiceProcess,
     endpoint,
     free_port,

@@ -54,7 +54,7 @@ def test_snapshots_survive_kill_9_of_the_writer(tmp_path):
 def test_kill_9_service_then_restart_answers_with_last_snapshot(tmp_path):
     pytest.importorskip("zenoh")
     from evcal.io import write_recording
-    from evcal.service.testing import ServiceProcess, endpoint, free_port, wait_for
+    from evcal.testing import ServiceProcess, endpoint, free_port, wait_for
     from evcal.service.transport import Transport, ZenohOptions
     from evcal.sim.ideal import SimConfig, simulate_ideal
 

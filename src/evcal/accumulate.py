@@ -16,6 +16,7 @@ import numpy as np
 
 from .events import SensorSize
 from .recording import Recording
+from .stream import frame_intervals
 
 
 @numba.njit(cache=True, nogil=True)
@@ -67,18 +68,11 @@ class Snapshot:
     last_p: np.ndarray  # int8 polarity of the last event before the frame (0: none yet)
 
 
-def frame_snapshots(rec: Recording, *, chunk_events: int = 2_000_000) -> Iterator[Snapshot]:
+def frame_snapshots(rec: Recording) -> Iterator[Snapshot]:
     """Yield a :class:`Snapshot` at every frame of ``rec`` (events before it accumulated)."""
-    assert rec.frames is not None
     acc = Accumulator(rec.sensor)
-    t_ev = rec.events["t_us"]
-    pos = 0
-    for k in range(len(rec.frames)):
+    for k, chunk in frame_intervals(rec.events, rec.frames.t_us):
+        acc.add(chunk)
         t_f = int(rec.frames.t_us[k])
-        end = int(np.searchsorted(t_ev, t_f, side="left"))
-        while pos < end:
-            stop = min(end, pos + chunk_events)
-            acc.add(rec.events[pos:stop])
-            pos = stop
         yield Snapshot(k, t_f, rec.frames.images[k], acc.on.copy(), acc.off.copy(),
                        acc.last_p.copy())

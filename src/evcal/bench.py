@@ -17,6 +17,7 @@ import numpy as np
 from .accumulate import Accumulator
 from .events import EVENTS_DTYPE, SensorSize
 from .recording import Frames, Recording
+from .stream import frame_cuts, frame_intervals
 
 
 def _best(fn: Callable[[], Any], repeat: int = 3) -> float:
@@ -69,7 +70,7 @@ def bench_accumulation(sensor: SensorSize, n: int) -> dict[str, float]:
 
 
 def bench_offei(sensor: SensorSize, n_frames: int, n_events: int) -> float:
-    from .lsq import OffEIConfig, offei  # noqa: PLC0415
+    from .offline import OffEIConfig, offei  # noqa: PLC0415
 
     rec = random_recording(sensor, n_events, n_frames)
     return _best(lambda: offei(rec, OffEIConfig(log_offset=30.0)), repeat=1)
@@ -89,21 +90,18 @@ def bench_onei(sensor: SensorSize, n_frames: int, events_per_frame: int) -> dict
     total = warm + n_frames
     rec = random_recording(sensor, events_per_frame * total, total)
     cal = OnlineCalibrator(sensor, cfg)
-    t_ev = rec.events["t_us"]
-    cuts = np.searchsorted(t_ev, rec.frames.t_us)  # type: ignore[union-attr]
     frame_s: list[float] = []
     update_s: list[float] = []
-    prev = 0
-    for k in range(total):
-        cal.feed_events(rec.events[prev : cuts[k]])
-        prev = int(cuts[k])
+    for k, chunk in frame_intervals(rec.events, rec.frames.t_us):
+        cal.feed_events(chunk)
         t0 = time.perf_counter()
-        updated = cal.feed_frame(int(rec.frames.t_us[k]), rec.frames.images[k])  # type: ignore[union-attr]
+        updated = cal.feed_frame(int(rec.frames.t_us[k]), rec.frames.images[k])
         dt = time.perf_counter() - t0
         if k >= warm:
             frame_s.append(dt)
             if updated:
                 update_s.append(dt)
+    cuts = frame_cuts(rec.events["t_us"], rec.frames.t_us)
     t_feed = _best(lambda: OnlineCalibrator(sensor).feed_events(rec.events[: cuts[-1]]), 1)
     return {"frame_s_mean": float(np.mean(frame_s)),
             "update_s_median": float(np.median(update_s)) if update_s else float("nan"),

@@ -28,10 +28,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .calibration import DEFAULT_BIAS, DEFAULT_CONTRAST, Calibration, Reason
-from .lsq import CalibrationError, log_intensity, usable
+from .calibration import DEFAULT_BIAS, DEFAULT_CONTRAST, BrandliDiagnostics, Calibration, Reason
+from .errors import CalibrationError
 from .recording import Recording
+from .solver import log_intensity, usable
 from .special import classify
+from .stream import frame_intervals
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -54,7 +56,6 @@ class BrandliConfig:
 def brandli(rec: Recording, config: BrandliConfig | None = None) -> Calibration:
     """Per-pixel ON/OFF gains adapted at every frame from the integration error."""
     cfg = config or BrandliConfig()
-    assert rec.frames is not None
     if len(rec.frames) < 2:
         raise CalibrationError(f"Brandli needs at least 2 frames, the recording has "
                                f"{len(rec.frames)}")
@@ -62,13 +63,12 @@ def brandli(rec: Recording, config: BrandliConfig | None = None) -> Calibration:
     g_on = np.full(n, cfg.initial_contrast)
     g_off = np.full(n, -cfg.initial_contrast)
     n_total = np.zeros(n, np.int64)
-    t_ev = rec.events["t_us"]
-    cuts = np.searchsorted(t_ev, rec.frames.t_us, side="left")
     frames = rec.frames.images
     l_prev = log_intensity(frames[0].ravel(), cfg.log_offset)
     ok_prev = usable(frames[0].ravel(), cfg.saturation_dn)
-    for k in range(1, len(rec.frames)):  # loop over frames, vectorised over pixels
-        ev = rec.events[cuts[k - 1] : cuts[k]]
+    for k, ev in frame_intervals(rec.events, rec.frames.t_us):  # vectorised over pixels
+        if k == 0:
+            continue  # events before the first frame have no start image
         idx = ev["y"].astype(np.int64) * rec.sensor.width + ev["x"]
         on_mask = ev["p"] > 0
         n_on = np.bincount(idx[on_mask], minlength=n)
@@ -99,5 +99,6 @@ def brandli(rec: Recording, config: BrandliConfig | None = None) -> Calibration:
         reason=reason.reshape(shape), stderr_contrast=inf.reshape(shape),
         stderr_bias=inf.reshape(shape), special=special.reshape(shape),
         log_offset=cfg.log_offset, method="brandli", n_events=n_total.reshape(shape),
-        params={"eta": cfg.eta, "min_step": cfg.min_step, "max_step": cfg.max_step},
+        diagnostics=BrandliDiagnostics(eta=cfg.eta, min_step=cfg.min_step,
+                                       max_step=cfg.max_step),
     )

@@ -15,9 +15,8 @@ from typing import Any
 
 import numpy as np
 
+from .estimators import ESTIMATORS
 from .events import SensorSize
-
-METHODS = ("offei", "onei", "offe", "brandli", "di")
 
 
 class CliError(Exception):
@@ -73,7 +72,6 @@ def _positive_int(text: str) -> int:
 
 def cmd_info(args: argparse.Namespace) -> int:
     rec = _open(args.recording, args.sensor_size)
-    assert rec.frames is not None
     n = rec.n_events
     dur = rec.duration_s
     info: dict[str, Any] = {
@@ -103,66 +101,16 @@ def cmd_info(args: argparse.Namespace) -> int:
 # -- calibrate --------------------------------------------------------------------------------
 
 
-def run_calibration(rec, method: str, *, log_offset: float | str = "auto",
-                    window_frames: int | None = None, quiet: bool = True,
-                    n_small: int | None = None, n_large: int | None = None,
-                    smoothing: float | None = None):
-    """The calibration ``method`` of ``rec`` (shared by the CLI, the demo and benchmarks)."""
-    from .calibration import Calibration  # noqa: PLC0415
-    from .lsq import OffEIConfig, estimate_log_offset, offei  # noqa: PLC0415
-
-    def resolved_offset(default: float = 30.0) -> tuple[float, dict]:
-        if log_offset != "auto":
-            return float(log_offset), {"method": "given"}
-        if rec.frames is None or len(rec.frames) < 3 or rec.n_events == 0:
-            return default, {"method": "default (no frames to estimate from)"}
-        wf = window_frames or OffEIConfig().window_frames
-        wf = min(wf, len(rec.frames) - 1)
-        return estimate_log_offset(rec, OffEIConfig(window_frames=wf))
-
-    if method == "offei":
-        kw = {} if window_frames is None else {"window_frames": window_frames}
-        return offei(rec, OffEIConfig(log_offset=log_offset, **kw))
-    if method == "onei":
-        from .online import OnEIConfig, onei  # noqa: PLC0415
-
-        off, info = resolved_offset()
-        kw = {k: v for k, v in (("n_small", n_small), ("n_large", n_large),
-                                ("smoothing", smoothing)) if v is not None}
-        cal = onei(rec, OnEIConfig(log_offset=off, **kw))
-        cal.params["log_offset_estimation"] = info
-        if cal.params["n_updates"] == 0:
-            cal.params.setdefault("warnings", []).append(
-                f"OnEI made no update: the recording has {rec.n_events} events between its "
-                f"frames, fewer than one small buffer of {cal.params['n_small']} events (the "
-                "default scales the paper's 200 k at 240x180 with the sensor); pass a smaller "
-                "--n-small (and --n-large) or use --method offei")
-        return cal
-    if method == "offe":
-        from .offe import offe  # noqa: PLC0415
-
-        return offe(rec)
-    if method == "brandli":
-        from .brandli import BrandliConfig, brandli  # noqa: PLC0415
-
-        off, info = resolved_offset()
-        cal = brandli(rec, BrandliConfig(log_offset=off))
-        cal.params["log_offset_estimation"] = info
-        return cal
-    if method == "di":
-        off, _ = resolved_offset()
-        return Calibration.uniform(rec.sensor.shape, 0.1, 0.0, method="di", log_offset=off)
-    raise CliError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
-
-
 def cmd_calibrate(args: argparse.Namespace) -> int:
     from .io import save_calibration, write_csv  # noqa: PLC0415
 
     rec = _open(args.recording, args.sensor_size)
-    cal = run_calibration(rec, args.method, log_offset=args.log_offset,
-                          window_frames=args.window_frames, quiet=args.quiet,
-                          n_small=args.n_small, n_large=args.n_large, smoothing=args.smoothing)
-    for warning in cal.params.get("warnings", []):
+    from .estimators import calibrate  # noqa: PLC0415
+
+    cal = calibrate(rec, args.method, log_offset=args.log_offset,
+                    window_frames=args.window_frames, n_small=args.n_small,
+                    n_large=args.n_large, smoothing=args.smoothing)
+    for warning in cal.warnings:
         print(f"evcal calibrate: warning: {warning}", file=sys.stderr)
     save_calibration(cal, args.out)
     if args.csv:
@@ -236,7 +184,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
              log_offset=res.truth["log_offset"], seed=res.truth["seed"],
              config_json=json.dumps(cfg.to_dict()))
     rec = res.recording
-    print(f"simulated {rec.n_events} events and {len(rec.frames)} frames "  # type: ignore[arg-type]
+    print(f"simulated {rec.n_events} events and {len(rec.frames)} frames "
           f"({rec.sensor}, {cfg.duration_s} s) -> {out}; truth -> {truth_path}")
     return 0
 
@@ -293,7 +241,9 @@ DELEGATED: dict[str, tuple[Callable[[list[str]], int], str]] = {
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="evcal", description=__doc__.splitlines()[0])
-    p.add_argument("--version", action="version", version="evcal 0.1.0")
+    from . import __version__  # noqa: PLC0415
+
+    p.add_argument("--version", action="version", version=f"evcal {__version__}")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     def common(sp: argparse.ArgumentParser, recording: bool = True) -> None:
@@ -309,7 +259,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     sp = sub.add_parser("calibrate", help="estimate per-pixel contrast and bias")
     common(sp)
-    sp.add_argument("--method", choices=METHODS, default="offei")
+    sp.add_argument("--method", choices=list(ESTIMATORS), default="offei",
+                    help="; ".join(f"{e.name}: {e.summary}" for e in ESTIMATORS.values()))
     sp.add_argument("--out", required=True, help="calibration .npz to write")
     sp.add_argument("--log-offset", type=_offset_arg, default="auto",
                     help="'auto' (estimated) or a number added to frames before the log")

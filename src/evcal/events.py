@@ -16,11 +16,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .errors import ErrorReason, EvcalError
+
 EVENTS_DTYPE = np.dtype([("t_us", "<i8"), ("x", "<u2"), ("y", "<u2"), ("p", "i1")])
 
 
-class EventError(ValueError):
-    """Events that break an invariant (order, range, polarity values)."""
+class EventError(EvcalError):
+    """Events that break an invariant (order, range, polarity values); ``reason`` says which."""
 
 
 @dataclass(frozen=True)
@@ -32,7 +34,8 @@ class SensorSize:
 
     def __post_init__(self) -> None:
         if not (0 < int(self.height) <= 65535 and 0 < int(self.width) <= 65535):
-            raise ValueError(f"sensor size {self.width}x{self.height} is not in 1..65535")
+            raise EvcalError(f"sensor size {self.width}x{self.height} is not in 1..65535",
+                             ErrorReason.OUT_OF_RANGE)
 
     @classmethod
     def parse(cls, text: str) -> SensorSize:
@@ -40,7 +43,8 @@ class SensorSize:
         try:
             w, h = (int(v) for v in text.lower().split("x"))
         except ValueError:
-            raise ValueError(f"sensor size {text!r} is not of the form WxH, e.g. 346x260") from None
+            raise EvcalError(f"sensor size {text!r} is not of the form WxH, e.g. 346x260",
+                             ErrorReason.MALFORMED) from None
         return cls(height=h, width=w)
 
     @property
@@ -70,7 +74,8 @@ def make_events(t_us, x, y, p) -> np.ndarray:
     n = t_us.shape[0]
     for name, col in (("x", x), ("y", y), ("p", p)):
         if np.shape(col) != (n,):
-            raise EventError(f"column {name} has shape {np.shape(col)}, expected ({n},) like t_us")
+            raise EventError(f"column {name} has shape {np.shape(col)}, expected ({n},) like t_us",
+                             ErrorReason.MALFORMED)
     ev = np.empty(n, dtype=EVENTS_DTYPE)
     ev["t_us"] = t_us
     ev["x"] = x
@@ -98,7 +103,8 @@ def validate_events(
     """
     if not isinstance(events, np.ndarray) or events.dtype != EVENTS_DTYPE or events.ndim != 1:
         dt = getattr(events, "dtype", type(events).__name__)
-        raise EventError(f"{where}: expected a 1-D array of EVENTS_DTYPE, got {dt}")
+        raise EventError(f"{where}: expected a 1-D array of EVENTS_DTYPE, got {dt}",
+                         ErrorReason.MALFORMED)
     if events.size == 0:
         return events
     t = events["t_us"]
@@ -108,18 +114,19 @@ def validate_events(
             i = int(back[0]) + 1
             raise EventError(
                 f"{where}: timestamps are not sorted: event {i} has t_us={int(t[i])} "
-                f"after t_us={int(t[i - 1])}"
+                f"after t_us={int(t[i - 1])}", ErrorReason.UNSORTED
             )
     if after_t_us is not None and int(t[0]) < after_t_us:
         raise EventError(
             f"{where}: time goes backwards: first t_us={int(t[0])} is before the previous "
-            f"chunk's last t_us={after_t_us}"
+            f"chunk's last t_us={after_t_us}", ErrorReason.TIME_BACKWARDS
         )
     p = events["p"]
     bad = np.flatnonzero((p != 1) & (p != -1))
     if bad.size:
         i = int(bad[0])
-        raise EventError(f"{where}: event {i} has polarity {int(p[i])}, expected +1 or -1")
+        raise EventError(f"{where}: event {i} has polarity {int(p[i])}, expected +1 or -1",
+                         ErrorReason.BAD_POLARITY)
     if sensor is not None:
         h, w = sensor.shape
         bad = np.flatnonzero((events["x"] >= w) | (events["y"] >= h))
@@ -127,7 +134,7 @@ def validate_events(
             i = int(bad[0])
             raise EventError(
                 f"{where}: event {i} at (x={int(events['x'][i])}, y={int(events['y'][i])}) is "
-                f"outside the {w}x{h} sensor ({bad.size} such events)"
+                f"outside the {w}x{h} sensor ({bad.size} such events)", ErrorReason.OUT_OF_SENSOR
             )
     return events
 

@@ -18,10 +18,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from .accumulate import Accumulator
-from .calibration import DEFAULT_BIAS, DEFAULT_CONTRAST, Calibration, Reason
-from .lsq import CalibrationError
+from .calibration import DEFAULT_BIAS, DEFAULT_CONTRAST, Calibration, OffEDiagnostics, Reason
+from .errors import CalibrationError
 from .recording import Recording
 from .special import classify
+from .stream import frame_cuts
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -54,7 +55,7 @@ def offe(rec: Recording, config: OffEConfig | None = None) -> Calibration:
     acc = Accumulator(rec.sensor)
     s = {k: np.zeros(n) for k in ("e", "p", "ee", "ep", "pp")}
     pos = 0
-    cuts = np.searchsorted(t, steps, side="left")
+    cuts = frame_cuts(t, steps)  # steps cut the stream as frames do
     for cut in cuts:  # loop over time steps, vectorised over pixels
         if cut > pos:
             acc.add(rec.events[pos:cut])
@@ -106,5 +107,6 @@ def offe(rec: Recording, config: OffEConfig | None = None) -> Calibration:
         reason=reason.reshape(shape), stderr_contrast=se_c.reshape(shape),
         stderr_bias=se_b.reshape(shape), special=special.reshape(shape), log_offset=0.0,
         method="offe", n_events=n_events.reshape(shape),
-        params={"step_us": cfg.step_us, "c0": cfg.c0, "scale": scale, "n_steps": int(m_steps)},
+        diagnostics=OffEDiagnostics(step_us=cfg.step_us, c0=cfg.c0, scale=float(scale),
+                                    n_steps=int(m_steps)),
     )

@@ -5,7 +5,7 @@ set of the most recent whole frame intervals holding at most ``n_large`` events;
 interval makes it overflow, the oldest intervals are dropped (the paper's rule). The large
 buffer is split into **small buffers** of about ``n_small`` events, each one equation per
 pixel: ``dL = c (P + lam Q) + b (E + lam A)`` between the frame that opens it and the frame
-that closes it (the OffEI equation with its residual correction, :mod:`evcal.lsq`).
+that closes it (the OffEI equation with its residual correction, :mod:`evcal.offline`).
 
 The split overlaps: a small buffer opens at *every* frame of the large buffer and closes at the
 first later frame by which it holds ``n_small`` events. This is OffEI's overlapping windows
@@ -19,7 +19,7 @@ RMSE 0.0268 with the disjoint split and smoothing 0.2, 0.0119 with this one and 
 State, bounded whatever the rates: per buffered frame its raw image and the polarity of each
 pixel's last event (dense, 1 + itemsize bytes per pixel; at most ``max_buffer_frames``), and
 per interval the sparse ON/OFF counts of the pixels that fired (at most ``n_large`` events'
-worth). The per-pixel normal equations (:class:`~evcal.lsq.NormalEquations`) are updated
+worth). The per-pixel normal equations (:class:`~evcal.solver.NormalEquations`) are updated
 incrementally: a small buffer's equation is added when it closes and subtracted, recomputed
 bit-identically from the same stored data, when the frame that opened it leaves the large
 buffer; every ``rebuild_every`` removals they are rebuilt from the buffer to shed rounding.
@@ -41,16 +41,26 @@ from __future__ import annotations
 
 import json
 from collections import deque
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
 import numba
 import numpy as np
 
 from .accumulate import Accumulator
-from .calibration import DEFAULT_BIAS, DEFAULT_CONTRAST, Calibration, Reason, Special
-from .events import EVENTS_DTYPE, EventError, SensorSize, validate_events
-from .lsq import (
+from .calibration import (
+    DEFAULT_BIAS,
+    DEFAULT_CONTRAST,
+    Calibration,
+    Diagnostics,
+    OnEIDiagnostics,
+    Reason,
+    Special,
+)
+from .errors import CalibrationError, ConfigError, ErrorReason, StateError
+from .events import EVENTS_DTYPE, SensorSize
+from .recording import Recording
+from .solver import (
     NormalEquations,
     SolveLimits,
     correction_lambda,
@@ -58,8 +68,8 @@ from .lsq import (
     solve_pixels,
     usable,
 )
-from .recording import Recording
 from .special import classify
+from .stream import StreamError, StreamGuard, frame_intervals
 
 STATE_FORMAT = "evcal.onei.v2"
 _VALID = int(Reason.VALID)
@@ -135,19 +145,19 @@ class OnEIConfig:
 
     def __post_init__(self) -> None:
         if not 0 < self.smoothing <= 1:
-            raise ValueError(f"smoothing={self.smoothing} must be in (0, 1]")
+            raise ConfigError(f"smoothing={self.smoothing} must be in (0, 1]")
         if self.log_offset < 0:
-            raise ValueError(f"log_offset={self.log_offset} must be >= 0")
+            raise ConfigError(f"log_offset={self.log_offset} must be >= 0")
         for name in ("n_small", "n_large", "max_buffer_frames"):
             v = getattr(self, name)
             if v is not None and v < 1:
-                raise ValueError(f"{name}={v} must be >= 1")
+                raise ConfigError(f"{name}={v} must be >= 1")
         if self.n_small and self.n_large and self.n_large < self.n_small:
-            raise ValueError(f"n_large={self.n_large} must be >= n_small={self.n_small}")
+            raise ConfigError(f"n_large={self.n_large} must be >= n_small={self.n_small}")
         if self.max_buffer_mb <= 0:
-            raise ValueError(f"max_buffer_mb={self.max_buffer_mb} must be > 0")
+            raise ConfigError(f"max_buffer_mb={self.max_buffer_mb} must be > 0")
         if self.rebuild_every < 1:
-            raise ValueError(f"rebuild_every={self.rebuild_every} must be >= 1")
+            raise ConfigError(f"rebuild_every={self.rebuild_every} must be >= 1")
 
     def sizes(self, sensor: SensorSize) -> tuple[int, int]:
         n_small = self.n_small or max(1000, int(round(200_000 / 43_200 * sensor.n_pixels)))
@@ -228,30 +238,33 @@ class OnlineCalibrator:
         self.n_gaps = 0
         self.n_folded_late = 0  # events folded without their frame (pending overflow)
         self.n_late_events = 0  # events that arrived after the frame that ends their interval
-        self.last_event_t_us: int | None = None
-        self.last_frame_t_us: int | None = None
+        self._guard = StreamGuard(sensor)  # time order of this calibrator's input
+
+    @property
+    def last_event_t_us(self) -> int | None:
+        """Time of the latest event fed (None before the first)."""
+        return self._guard.last_event_t_us
+
+    @property
+    def last_frame_t_us(self) -> int | None:
+        """Time of the latest frame fed (None before the first)."""
+        return self._guard.last_frame_t_us
 
     # -- input ------------------------------------------------------------------------------
 
-    def feed_events(self, events: np.ndarray, *, validated: bool = False) -> None:
-        """Add a sorted chunk of events (validated; raises :class:`EventError`).
+    def feed_events(self, events: np.ndarray, *, checked: bool = False) -> None:
+        """Add a sorted chunk of events (raises :class:`~evcal.events.EventError`).
 
-        ``validated=True`` is for callers that already ran :func:`~evcal.events.
-        validate_events` against this sensor (the service's wire decoder does): only the
-        dtype and the time order across chunks are checked again.
+        ``checked=True`` is for callers whose own :class:`~evcal.stream.StreamGuard` accepted
+        the chunk against this sensor (the service does, and a :class:`Recording`'s events are
+        validated whole): nothing is checked again.
         """
-        if validated and isinstance(events, np.ndarray) and events.dtype == EVENTS_DTYPE:
-            if (events.size and self.last_event_t_us is not None
-                    and int(events["t_us"][0]) < self.last_event_t_us):
-                raise EventError(
-                    f"events: time goes backwards: first t_us={int(events['t_us'][0])} is "
-                    f"before the previous chunk's last t_us={self.last_event_t_us}")
+        if checked:
+            self._guard.note_events(events)
         else:
-            validate_events(events, self.sensor, where="events",
-                            after_t_us=self.last_event_t_us)
+            self._guard.accept_events(events, what="events")
         if events.size == 0:
             return
-        self.last_event_t_us = int(events["t_us"][-1])
         self.n_events += int(events.size)
         if self.last_frame_t_us is not None and int(events["t_us"][0]) < self.last_frame_t_us:
             # their frame came first: they are counted in the next interval
@@ -274,20 +287,17 @@ class OnlineCalibrator:
         t_us = int(t_us)
         img = np.asarray(image)
         if img.shape != self.sensor.shape:
-            raise ValueError(
+            raise StreamError(
                 f"frame at t_us={t_us} has shape {img.shape}, the camera is {self.sensor} "
-                f"(expected {self.sensor.shape})"
-            )
-        if img.dtype.kind == "f" and not np.isfinite(img).all():
-            raise ValueError(f"frame at t_us={t_us} contains NaN or infinite values")
+                f"(expected {self.sensor.shape})", ErrorReason.MALFORMED)
         if img.dtype.kind not in "uif":
-            raise ValueError(f"frame at t_us={t_us} has dtype {img.dtype}, expected numbers")
-        if self.last_frame_t_us is not None and t_us <= self.last_frame_t_us:
-            raise ValueError(
-                f"frame time goes backwards: t_us={t_us} after t_us={self.last_frame_t_us}"
-            )
+            raise StreamError(f"frame at t_us={t_us} has dtype {img.dtype}, expected numbers",
+                              ErrorReason.MALFORMED)
+        if img.dtype.kind == "f" and not np.isfinite(img).all():
+            raise StreamError(f"frame at t_us={t_us} contains NaN or infinite values",
+                              ErrorReason.BAD_VALUES)
+        self._guard.accept_frame(t_us, what=f"frame at t_us={t_us}")
         self._fold_pending_before(t_us)
-        self.last_frame_t_us = t_us
         self.n_frames += 1
         if self._frame_cap is None:
             self._frame_cap = self.config.frame_cap(self.sensor, img.dtype.itemsize)
@@ -468,8 +478,12 @@ class OnlineCalibrator:
             log_offset=self.config.log_offset,
             method="onei",
             n_events=self._counts.reshape(shape).copy(),
-            params=self.status() | {"config": json.loads(self.config.to_json())},
+            diagnostics=self.diagnostics(),
         )
+
+    def diagnostics(self) -> OnEIDiagnostics:
+        """The figures of :meth:`status` and the configuration, as typed diagnostics."""
+        return OnEIDiagnostics(config=json.loads(self.config.to_json()), **self.status())
 
     def status(self) -> dict[str, Any]:
         return {
@@ -545,10 +559,13 @@ class OnlineCalibrator:
 
     @classmethod
     def from_state(cls, state: dict[str, np.ndarray]) -> OnlineCalibrator:
-        """Rebuild a calibrator from :meth:`state_dict` (raises ValueError if inconsistent)."""
+        """Rebuild a calibrator from :meth:`state_dict`.
+
+        Raises :class:`~evcal.errors.StateError` if the state is not one or is inconsistent.
+        """
         try:
             if str(state["format"]) != STATE_FORMAT:
-                raise ValueError(f"unknown OnEI state format {state['format']!s} "
+                raise StateError(f"unknown OnEI state format {state['format']!s} "
                                  f"(this version reads {STATE_FORMAT})")
             s = json.loads(str(state["scalars"]))
             sensor = SensorSize(int(s["height"]), int(s["width"]))
@@ -557,7 +574,7 @@ class OnlineCalibrator:
             for name in ("acc_on", "acc_off", "acc_last_p", "counts", "c", "b", "se_c", "se_b",
                          "seen", "n_solved", "reason"):
                 if state[name].shape != (n,):
-                    raise ValueError(f"state {name} has shape {state[name].shape}, "
+                    raise StateError(f"state {name} has shape {state[name].shape}, "
                                      f"expected ({n},)")
             self._acc.on[:] = state["acc_on"]
             self._acc.off[:] = state["acc_off"]
@@ -572,7 +589,7 @@ class OnlineCalibrator:
             self._reason[:] = state["reason"]
             pending = np.asarray(state["pending"])
             if pending.dtype != EVENTS_DTYPE:
-                raise ValueError("state pending events have the wrong dtype")
+                raise StateError("state pending events have the wrong dtype")
             if pending.size:
                 self._pending.append(pending)
             self._n_pending = int(pending.size)
@@ -581,11 +598,11 @@ class OnlineCalibrator:
             meta = np.asarray(state["fr_meta"], np.int64).reshape(-1, 5)
             images, last_p = state["fr_images"], state["fr_last_p"]
             if images.shape != (len(meta), n) or last_p.shape != (len(meta), n):
-                raise ValueError(f"state frames have shapes {images.shape} and {last_p.shape}, "
+                raise StateError(f"state frames have shapes {images.shape} and {last_p.shape}, "
                                  f"expected ({len(meta)}, {n})")
             bounds = np.concatenate([[0], np.cumsum(meta[:, 2])])
             if bounds[-1] != state["fr_idx"].size:
-                raise ValueError("state interval counts do not add up")
+                raise StateError("state interval counts do not add up")
             for i, (t_us, cum, _, opens, closes_at) in enumerate(meta):
                 sl = slice(int(bounds[i]), int(bounds[i + 1]))
                 self._frames.append(_Frame(
@@ -602,8 +619,8 @@ class OnlineCalibrator:
             self._gap = bool(s["gap"])
             self.n_folded_late = int(s["n_folded_late"])
             self.n_late_events = int(s["n_late_events"])
-            self.last_event_t_us = s["last_event_t_us"]
-            self.last_frame_t_us = s["last_frame_t_us"]
+            self._guard.last_event_t_us = s["last_event_t_us"]
+            self._guard.last_frame_t_us = s["last_frame_t_us"]
             self._base = int(s["base"])
             self._next_open = int(s["next_open"])
             self._cum_events = int(s["cum_events"])
@@ -611,7 +628,7 @@ class OnlineCalibrator:
             self._since_resolve = int(s["since_resolve"])
             self._frame_cap = s["frame_cap"]
         except KeyError as exc:
-            raise ValueError(f"OnEI state lacks {exc.args[0]!r}") from None
+            raise StateError(f"OnEI state lacks {exc.args[0]!r}") from None
         return self
 
 
@@ -620,26 +637,27 @@ def onei(rec: Recording, config: OnEIConfig | None = None, *,
     """Run :class:`OnlineCalibrator` over a recording (the path the service uses).
 
     With ``history_every = n > 0`` the calibration after every n-th update is kept in
-    ``params["history"]`` as ``(t_us, contrast, bias, valid)`` tuples (for convergence plots).
+    ``diagnostics.history`` as ``(t_us, contrast, bias, valid)`` tuples (for convergence
+    plots). A run that never updates (fewer events than one small buffer) returns the defaults
+    with a warning saying why.
     """
-    assert rec.frames is not None
     if len(rec.frames) < 2:
-        raise EventError(f"OnEI needs frames: the recording has {len(rec.frames)}")
-    cal_state = OnlineCalibrator(rec.sensor, config)
-    t_ev = rec.events["t_us"]
-    prev = 0
-    history = []
-    for k in range(len(rec.frames)):
+        raise CalibrationError(f"OnEI needs frames: the recording has {len(rec.frames)}")
+    state = OnlineCalibrator(rec.sensor, config)
+    history: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]] = []
+    for k, chunk in frame_intervals(rec.events, rec.frames.t_us):
         t = int(rec.frames.t_us[k])
-        end = int(np.searchsorted(t_ev, t, side="left"))
-        if end > prev:
-            cal_state.feed_events(rec.events[prev:end])
-            prev = end
-        updated = cal_state.feed_frame(t, rec.frames.images[k])
-        if updated and history_every and cal_state.n_updates % history_every == 0:
-            cur = cal_state.calibration()
+        state.feed_events(chunk, checked=True)  # a Recording's events are validated
+        updated = state.feed_frame(t, rec.frames.images[k])
+        if updated and history_every and state.n_updates % history_every == 0:
+            cur = state.calibration()
             history.append((t, cur.contrast.copy(), cur.bias.copy(), cur.valid.copy()))
-    cal = cal_state.calibration()
-    if history_every:
-        cal.params["history"] = history
-    return cal
+    cal = state.calibration()
+    diagnostics: Diagnostics = replace(state.diagnostics(), history=tuple(history))
+    if state.n_updates == 0:
+        diagnostics = diagnostics.with_warning(
+            f"OnEI made no update: the recording has {rec.n_events} events between its "
+            f"frames, fewer than one small buffer of {state.n_small} events (the default "
+            "scales the paper's 200 k at 240x180 with the sensor); pass a smaller n_small "
+            "(--n-small, and --n-large) or use OffEI")
+    return cal.replace(diagnostics=diagnostics)

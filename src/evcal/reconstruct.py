@@ -2,7 +2,7 @@
 
 A calibration is judged by how well it turns events into intensity: starting from the log of
 frame ``k``, every event at a pixel adds its threshold (Wang et al.'s model, as in
-:mod:`evcal.lsq`)::
+:mod:`evcal.solver`)::
 
     L(t_j) = L(t_k) + c * SP + b * SE        SP = ON - OFF,  SE = ON + OFF  in [t_k, t_j)
 
@@ -23,16 +23,18 @@ from typing import Any
 import numpy as np
 
 from .calibration import DEFAULT_CONTRAST, Calibration
-from .events import SensorSize, validate_events
-from .lsq import log_intensity
-from .metrics import METRIC_NAMES, image_metrics
+from .errors import EvcalError
+from .events import SensorSize, empty_events, validate_events
+from .metrics import METRIC_NAMES, image_metrics, psnr
 from .recording import Recording
+from .solver import log_intensity
+from .stream import frame_cuts
 
 FALLBACK_LOG_OFFSET = 30.0  # DN; used when the calibration carries no usable offset
 FULL_SCALE_DN = 255.0
 
 
-class EvaluationError(ValueError):
+class EvaluationError(EvcalError):
     """The recording cannot support the requested evaluation (no frames, too few events...)."""
 
 
@@ -94,7 +96,7 @@ def integrate(log_start: np.ndarray, events: np.ndarray, cal: Calibration) -> np
 def to_intensity(L: np.ndarray, log_offset: float) -> np.ndarray:  # noqa: N803 - L is the model
     """Intensity in frame units: ``clip(exp(L) - offset, 0, 255)`` (float64, DN).
 
-    The inverse of :func:`evcal.lsq.log_intensity` on the 8-bit range. (The reference MATLAB
+    The inverse of :func:`evcal.solver.log_intensity` on the 8-bit range. (The reference MATLAB
     code also rounds to uint8; we keep the float values.)
     """
     return np.clip(np.exp(np.asarray(L, np.float64)) - float(log_offset), 0.0, FULL_SCALE_DN)
@@ -150,7 +152,7 @@ def select_pairs(
         raise ValueError("give events_per_image or frames_per_image")
     if frames_per_image is not None and int(frames_per_image) < 1:
         raise ValueError(f"frames_per_image={frames_per_image} must be >= 1")
-    if frames_per_image is None and int(events_per_image) < 1:  # type: ignore[arg-type]
+    if frames_per_image is None and int(events_per_image) < 1:
         raise ValueError(f"events_per_image={events_per_image} must be >= 1")
     n = int(ft.size)
     if n < 2:
@@ -160,9 +162,9 @@ def select_pairs(
         step = int(frames_per_image)
         ks = np.arange(k0, n - step, step)
         return [(int(k), int(k) + step) for k in ks]
-    need = int(events_per_image)  # type: ignore[arg-type]
+    need = int(events_per_image)
     # cum[i]: events before frame i; events in [t_k, t_j) = cum[j] - cum[k] (non-decreasing)
-    cum = np.searchsorted(et, ft, side="left")
+    cum = frame_cuts(et, ft)
     pairs: list[tuple[int, int]] = []
     k = k0
     while k < n - 1:
@@ -237,7 +239,7 @@ def evaluate(
     """Reconstruct frames from events with ``cal`` and with DI; score both against the frames.
 
     For each pair ``(k, j)`` of :func:`select_pairs`: ``L = log(frame_k + offset)``
-    (:func:`evcal.lsq.log_intensity`), integrate the events of ``[t_k, t_j)``
+    (:func:`evcal.solver.log_intensity`), integrate the events of ``[t_k, t_j)``
     (:func:`integrate`), convert with :func:`to_intensity` and compare with frame ``j`` (as
     float) by :func:`evcal.metrics.image_metrics`. The DI baseline is
     ``Calibration.uniform(shape, di_contrast, 0.0)`` with the same offset and pairs.
@@ -248,7 +250,6 @@ def evaluate(
 
     Raises :class:`EvaluationError` when the recording has no frames or no pair can be formed.
     """
-    assert rec.frames is not None
     frames = rec.frames
     if cal.shape != rec.sensor.shape:
         h, w = cal.shape
@@ -272,7 +273,7 @@ def evaluate(
             f"skip_s={skip_s}"
         )
     di = Calibration.uniform(cal.shape, di_contrast, 0.0, log_offset=offset)
-    bounds = np.searchsorted(t_ev, frames.t_us, side="left")  # first event at or after frame
+    bounds = frame_cuts(t_ev, frames.t_us)  # first event at or after each frame
     per_image: list[dict[str, Any]] = []
     for k, j in pairs:
         ev = rec.events[bounds[k]:bounds[j]]
@@ -306,9 +307,124 @@ def evaluate(
     )
 
 
+# ----------------------------------------------------------------------------------------
+# streaming evaluation (the live service's reconstructions)
+
+
+@dataclass(frozen=True)
+class Reconstruction:
+    """One reconstruction of a live stream: both integrations and the reference frame (DN,
+    float64 ``[H, W]``) with their PSNR (dB; ``inf`` for a perfect match)."""
+
+    t_start_us: int
+    t_end_us: int
+    n_events: int
+    calibrated: np.ndarray
+    di: np.ndarray
+    reference: np.ndarray
+    psnr_calibrated_db: float
+    psnr_di_db: float
+
+    @property
+    def psnr_gain_db(self) -> float:
+        return self.psnr_calibrated_db - self.psnr_di_db
+
+
+class StreamingEvaluator:
+    """:func:`evaluate` for a stream: reconstructions from frames as they arrive.
+
+    Feed it, in stream order, calibrations (:meth:`calibration`), event chunks
+    (:meth:`events`) and frames (:meth:`frame`). Once a calibration is known, at most every
+    ``period_us`` of sensor time a window opens at a frame; after ``window_frames`` more frames
+    the events of ``[t_start, t_end)`` are integrated from the opening frame with the latest
+    calibration and with DI (same offset) and both are scored against the closing frame:
+    :meth:`frame` returns the :class:`Reconstruction`. A window holding more than
+    ``max_events`` events is abandoned (bounded memory); :meth:`discard` abandons the open one
+    (the caller lost part of the stream).
+    """
+
+    def __init__(self, shape: tuple[int, int], *, period_us: int = 2_000_000,
+                 window_frames: int = 5, max_events: int = 5_000_000,
+                 di_contrast: float = DEFAULT_CONTRAST) -> None:
+        if window_frames < 1 or period_us < 0 or max_events < 1:
+            raise ValueError(f"window_frames={window_frames} must be >= 1, period_us="
+                             f"{period_us} >= 0, max_events={max_events} >= 1")
+        self.shape = (int(shape[0]), int(shape[1]))
+        self.period_us = int(period_us)
+        self.window_frames = int(window_frames)
+        self.max_events = int(max_events)
+        self.di_contrast = float(di_contrast)
+        self._cal: Calibration | None = None
+        self._start: np.ndarray | None = None  # log intensity of the opening frame
+        self._t0_us = 0
+        self._frames = 0
+        self._events: list[np.ndarray] = []
+        self._n = 0
+        self.last_t_us: int | None = None  # end of the latest reconstruction
+        self.abandoned = 0
+
+    def calibration(self, cal: Calibration) -> None:
+        if cal.shape != self.shape:
+            raise ValueError(f"calibration is {cal.shape}, the stream is {self.shape}")
+        self._cal = cal
+
+    def events(self, events: np.ndarray) -> None:
+        if self._start is None or events.size == 0:
+            return
+        if self._n + events.size > self.max_events:
+            self.discard()  # too busy for a bounded window: skip this one
+            return
+        self._events.append(events)
+        self._n += int(events.size)
+
+    def discard(self) -> None:
+        if self._start is not None:
+            self.abandoned += 1
+        self._start, self._events, self._n = None, [], 0
+
+    def frame(self, t_us: int, image: np.ndarray) -> Reconstruction | None:
+        cal = self._cal
+        if cal is None:
+            return None
+        if self._start is not None:
+            self._frames += 1
+            if self._frames >= self.window_frames:
+                return self._finish(int(t_us), image, cal)
+            return None
+        due = self.last_t_us is None or t_us - self.last_t_us >= self.period_us
+        if due:
+            self._start = log_intensity(np.asarray(image), cal.log_offset).reshape(self.shape)
+            self._t0_us = int(t_us)
+            self._frames = 0
+            self._events, self._n = [], 0
+        return None
+
+    def _finish(self, t_us: int, image: np.ndarray, cal: Calibration) -> Reconstruction:
+        assert self._start is not None
+        ev = np.concatenate(self._events) if self._events else empty_events()
+        ev = ev[(ev["t_us"] >= self._t0_us) & (ev["t_us"] < t_us)]
+        start, t0 = self._start, self._t0_us
+        self._start, self._events, self._n = None, [], 0
+        self.last_t_us = t_us
+        ref = np.asarray(image, np.float64)
+        if np.asarray(image).dtype.kind == "f" and ref.size and ref.max() <= 1.0:
+            ref = ref * FULL_SCALE_DN  # float frames in [0, 1]
+        sp, se = _sums(ev, *self.shape)
+        di = Calibration.uniform(self.shape, self.di_contrast, 0.0, log_offset=cal.log_offset)
+        out = {}
+        for name, c in (("calibrated", cal), ("di", di)):
+            L = start + c.contrast.astype(np.float64) * sp + c.bias.astype(np.float64) * se  # noqa: N806
+            out[name] = to_intensity(L, cal.log_offset)
+        return Reconstruction(t0, t_us, int(ev.size), out["calibrated"], out["di"], ref,
+                              psnr(out["calibrated"], ref, FULL_SCALE_DN),
+                              psnr(out["di"], ref, FULL_SCALE_DN))
+
+
 __all__ = [
     "EvaluationError",
     "EvaluationResult",
+    "Reconstruction",
+    "StreamingEvaluator",
     "evaluate",
     "integrate",
     "select_pairs",

@@ -8,10 +8,11 @@ from typing import Any
 
 import numpy as np
 
+from .errors import EvcalError, reraise_as
 from .events import EVENTS_DTYPE, EventError, SensorSize, empty_events, validate_events
 
 
-class RecordingError(ValueError):
+class RecordingError(EvcalError):
     """A recording whose parts do not fit together (frame sizes, time order, counts)."""
 
 
@@ -85,16 +86,17 @@ class Recording:
 
     sensor: SensorSize
     events: np.ndarray = field(default_factory=empty_events)
-    frames: Frames | None = None
+    frames: Frames = field(default_factory=lambda: Frames.empty(0, 0))
     metadata: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         try:
             validate_events(self.events, self.sensor, where="recording events")
         except EventError as exc:
-            raise RecordingError(str(exc)) from None
+            raise reraise_as(exc, RecordingError) from None
         frames = self.frames
-        if frames is None:
+        if frames is None or (len(frames) == 0 and frames.shape != self.sensor.shape):
+            # no frames: an empty Frames of the sensor's shape (``None`` is accepted as such)
             frames = Frames.empty(*self.sensor.shape)
             object.__setattr__(self, "frames", frames)
         if len(frames) and frames.shape != self.sensor.shape:
@@ -113,7 +115,6 @@ class Recording:
         ts = []
         if self.n_events:
             ts += [int(self.events["t_us"][0]), int(self.events["t_us"][-1])]
-        assert self.frames is not None
         if len(self.frames):
             ts += [int(self.frames.t_us[0]), int(self.frames.t_us[-1])]
         if not ts:

@@ -19,7 +19,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from ..lsq import CalibrationError, OffEIConfig, estimate_log_offset, offei
+from ..errors import CalibrationError
+from ..offline import OffEIConfig, estimate_log_offset, offei
 from ..recording import Frames, Recording
 from ..sim.effects import (
     Bandwidth,
@@ -104,7 +105,7 @@ def _shrink(cal, offset: float) -> tuple[np.ndarray, np.ndarray]:
 
 def fit_base(rec: Recording, log_offset: float = NOMINAL_LOG_OFFSET_DN) -> Model:
     """``c``, ``b`` by OffEI at ``log_offset`` (shrunk towards the population)."""
-    n_f = len(rec.frames) if rec.frames is not None else 0
+    n_f = len(rec.frames)
     cfg = OffEIConfig(window_frames=max(1, min(5, n_f // 4)), log_offset=float(log_offset))
     try:
         cal = offei(rec, cfg)

@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from ..jsonable import dumps, to_jsonable
 from .workflow import Evaluation, GapResult
 
 
@@ -33,25 +34,13 @@ def write_details(result: GapResult, out_dir: Path) -> Path:
         "settings": result.settings,
         "initial": where(result.initial),
         "final": where(result.final),
-        "steps": [{"effect": s.effect.name, "candidates": _clean(s.candidates),
+        "steps": [{"effect": s.effect.name, "candidates": to_jsonable(s.candidates),
                    "after": where(s.after)} for s in result.steps],
-        "rejected_candidates": _clean(result.rejected),
+        "rejected_candidates": to_jsonable(result.rejected),
     }
     path = out_dir / "details.json"
-    path.write_text(json.dumps(d, indent=2, default=_default) + "\n", encoding="utf-8")
+    path.write_text(dumps(d, indent=2, sort_keys=False) + "\n", encoding="utf-8")
     return path
-
-
-def _default(o: Any) -> Any:
-    if isinstance(o, (np.floating, np.integer)):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    return repr(o)
-
-
-def _clean(d: Any) -> Any:
-    return json.loads(json.dumps(d, default=_default))
 
 
 def _plot_stats(evals: list[tuple[str, Evaluation]], measured: dict[str, np.ndarray],

@@ -43,7 +43,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..errors import EvcalError
 from ..recording import Recording
+from ..solver import NormalEquations, SolveLimits, solve_pixels
 
 NOMINAL_LOG_OFFSET_DN = 1.0
 STATIC_DL = 0.05  # |dL| below this in a window and its neighbours: static
@@ -52,7 +54,7 @@ MIN_FIT_EVENTS = 10
 IEI_EDGES_LOG10 = np.array([0.0, 1.0, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0, 4.5, 5.0, 5.5, 7.0])
 
 
-class GapError(ValueError):
+class GapError(EvcalError):
     """A recording the gap workflow cannot use (no frames, no events, too short)."""
 
 
@@ -147,15 +149,17 @@ def fit_from_sums(spp: np.ndarray, spe: np.ndarray, see: np.ndarray, spy: np.nda
                   sey: np.ndarray, n_ev: np.ndarray
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`fit_pixels` from the per-pixel weighted sums of ``P P``, ``P E``, ``E E``,
-    ``P dL``, ``E dL`` and ``E``."""
-    det = spp * see - spe * spe
-    scale = spp * see
-    ok = (scale > 0) & (det > 1e-3 * np.maximum(scale, 1e-30)) & (n_ev >= MIN_FIT_EVENTS)
-    safe = np.where(ok, det, 1.0)
-    c = np.where(ok, (see * spy - spe * sey) / safe, np.nan)
-    b = np.where(ok, (spp * sey - spe * spy) / safe, np.nan)
-    with np.errstate(invalid="ignore"):
-        ok &= (c > 0.01) & (c < 2.0) & (np.abs(b) < 0.95 * c)
+    ``P dL``, ``E dL`` and ``E``: the estimators' solve (:func:`evcal.solver.solve_pixels`,
+    no residual correction, at least :data:`MIN_FIT_EVENTS` events), NaN where not trusted."""
+    n = int(np.size(spp))
+    ne = NormalEquations(n)
+    for name, v in (("pp", spp), ("pe", spe), ("ee", see), ("py", spy), ("ey", sey)):
+        getattr(ne, name)[:] = np.ravel(v)
+    sol = solve_pixels(ne, np.floor(np.ravel(n_ev)).astype(np.int64),
+                       limits=SolveLimits(min_events=MIN_FIT_EVENTS, min_equations=0.0))
+    ok = sol.valid.reshape(np.shape(spp))
+    c = np.where(ok, sol.contrast.reshape(ok.shape), np.nan)
+    b = np.where(ok, sol.bias.reshape(ok.shape), np.nan)
     return c, b, ok
 
 

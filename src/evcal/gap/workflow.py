@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from ..jsonable import to_jsonable
 from ..recording import Recording
 from ..sim.effects import EFFECT_NAMES, Effect
 from .model import (
@@ -117,7 +118,7 @@ class GapResult:
             "gap_final": float(self.final.gap),
             "steps": [{
                 "effect": s.effect.name,
-                "parameters": _jsonable(s.effect.parameters()),
+                "parameters": to_jsonable(s.effect.parameters()),
                 "gap_before": float(s.before.gap),
                 "gap_after": float(s.after.gap),
                 "moved_statistics": s.moved_statistics(),
@@ -128,15 +129,6 @@ class GapResult:
 
 def _list(a: np.ndarray) -> list[float]:
     return [float(x) for x in np.asarray(a, np.float64).ravel()]
-
-
-def _jsonable(d: dict[str, Any]) -> dict[str, Any]:
-    out = {}
-    for k, v in d.items():
-        if isinstance(v, (np.floating, np.integer)):
-            v = v.item()
-        out[k] = v
-    return out
 
 
 class _Runner:
@@ -227,7 +219,7 @@ def run_gap(rec: Recording, config: GapConfig | None = None, *,
         When the recording lacks frames or events between them.
     """
     cfg = config or GapConfig()
-    if rec.frames is None or len(rec.frames) < 4:
+    if len(rec.frames) < 4:
         raise GapError("the gap workflow needs a recording with at least 4 frames (APS or "
                        "images.txt): simulations are driven by the measured frames")
     tick = progress or (lambda _msg: None)

@@ -3,38 +3,19 @@
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from ..events import SensorSize
+from ..jsonable import dumps
 from ..recording import RecordingError
-
-
-def to_jsonable(value: Any) -> Any:
-    """``value`` with numpy scalars and arrays turned into plain Python (for JSON)."""
-    if isinstance(value, dict):
-        return {str(k): to_jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [to_jsonable(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return to_jsonable(value.tolist())
-    if isinstance(value, np.generic):
-        return to_jsonable(value.item())
-    if isinstance(value, Path):
-        return str(value)
-    if isinstance(value, SensorSize):
-        return str(value)
-    if isinstance(value, float) and not math.isfinite(value):
-        return str(value)  # JSON has no NaN / inf
-    return value
 
 
 def metadata_to_json(metadata: dict[str, Any]) -> str:
     """Serialise recording metadata; values JSON cannot hold become their ``repr``."""
-    return json.dumps(to_jsonable(metadata), default=repr, sort_keys=True)
+    return dumps(metadata)
 
 
 def metadata_from_json(text: str, where: str) -> dict[str, Any]:

@@ -12,35 +12,53 @@ The ``.npz`` holds exactly these arrays (maps are ``[H, W]``)::
 
 from __future__ import annotations
 
+import io
 import json
 import math
 import os
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from ..calibration import Calibration, Reason, Special
-from ._util import load_npz_arrays, to_jsonable
+from ..calibration import MAP_NAMES, MAP_SPECS, Calibration
+from ..errors import EvcalError
+from ..jsonable import dumps
+from ._util import load_npz_arrays
 
-MAP_DTYPES: dict[str, np.dtype] = {
-    "contrast": np.dtype(np.float32),
-    "bias": np.dtype(np.float32),
-    "valid": np.dtype(bool),
-    "reason": np.dtype(np.uint8),
-    "stderr_contrast": np.dtype(np.float32),
-    "stderr_bias": np.dtype(np.float32),
-    "special": np.dtype(np.uint8),
-    "n_events": np.dtype(np.int64),
-}
-CALIBRATION_KEYS = frozenset(MAP_DTYPES) | {"log_offset", "method", "params_json"}
-# dtype kinds accepted on load (cast to MAP_DTYPES): f float, b bool, u/i integers
-_KINDS = {"contrast": "f", "bias": "f", "stderr_contrast": "f", "stderr_bias": "f",
-          "valid": "b", "reason": "ui", "special": "ui", "n_events": "ui"}
+# the .npz holds the maps of the schema plus these scalars
+SCALAR_KEYS = frozenset({"log_offset", "method", "params_json"})
+CALIBRATION_KEYS = frozenset(MAP_NAMES) | SCALAR_KEYS
 
 
-class CalibrationFileError(ValueError):
+class CalibrationFileError(EvcalError):
     """A calibration file that is missing, damaged or does not hold a valid calibration."""
+
+
+def calibration_npz_arrays(cal: Calibration, names: Any = None, *,
+                           extra: Mapping[str, Any] | None = None) -> dict[str, np.ndarray]:
+    """The arrays of the calibration ``.npz`` layout (maps in their schema dtypes).
+
+    With ``names`` only those maps are included (such a file is not loadable by
+    :func:`load_calibration`); ``extra`` figures are merged into ``params_json`` (the service
+    adds the calibration's sensor time ``t_us``).
+    """
+    arrays: dict[str, np.ndarray] = {k: np.asarray(v, MAP_SPECS[k].dtype)
+                                     for k, v in cal.maps(names).items()}
+    arrays["log_offset"] = np.float64(cal.log_offset)  # type: ignore[assignment]
+    arrays["method"] = np.array(str(cal.method))
+    params = cal.diagnostics.to_dict() | dict(extra or {})
+    arrays["params_json"] = np.array(dumps(params))
+    return arrays
+
+
+def calibration_npz_bytes(cal: Calibration, names: Any = None, *,
+                          extra: Mapping[str, Any] | None = None) -> bytes:
+    """:func:`calibration_npz_arrays` as the bytes of a compressed ``.npz`` (in memory)."""
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **calibration_npz_arrays(cal, names, extra=extra))
+    return buf.getvalue()
 
 
 def save_calibration(cal: Calibration, path: str | os.PathLike[str]) -> Path:
@@ -49,21 +67,43 @@ def save_calibration(cal: Calibration, path: str | os.PathLike[str]) -> Path:
     The path is used as given (no ``.npz`` is appended). Returns the path.
     """
     path = Path(path)
-    arrays: dict[str, Any] = {k: np.asarray(getattr(cal, k), dt) for k, dt in MAP_DTYPES.items()}
-    arrays["log_offset"] = np.float64(cal.log_offset)
-    arrays["method"] = np.array(str(cal.method))
-    arrays["params_json"] = np.array(json.dumps(to_jsonable(cal.params), default=repr,
-                                                sort_keys=True))
     with open(path, "wb") as f:
-        np.savez_compressed(f, **arrays)
+        f.write(calibration_npz_bytes(cal))
     return path
 
 
-def _scalar_str(data: dict[str, np.ndarray], key: str, path: Path) -> str:
+def _scalar_str(data: Mapping[str, np.ndarray], key: str, where: str) -> str:
     a = data[key]
     if a.shape != () or a.dtype.kind != "U":
-        raise CalibrationFileError(f"{path}: {key} is {a.dtype} {a.shape}, expected a 0-d string")
+        raise CalibrationFileError(f"{where}: {key} is {a.dtype} {a.shape}, expected a 0-d "
+                                   "string")
     return str(a)
+
+
+def calibration_from_npz_arrays(data: Mapping[str, np.ndarray], where: str) -> Calibration:
+    """A calibration from the arrays of its ``.npz`` layout, every key, dtype, shape and code
+    checked (:class:`CalibrationFileError` naming ``where`` and the problem)."""
+    missing = sorted(CALIBRATION_KEYS - set(data))
+    if missing:
+        hint = " (this looks like a recording, not a calibration)" if "events" in data else ""
+        raise CalibrationFileError(f"{where}: missing array(s) {missing}{hint}")
+    lo = data["log_offset"]
+    if lo.shape != () or lo.dtype.kind not in "fiu" or not math.isfinite(float(lo)):
+        raise CalibrationFileError(f"{where}: log_offset is {lo.dtype} {lo.shape} = {lo!r}, "
+                                   "expected a finite 0-d float")
+    method = _scalar_str(data, "method", where)
+    try:
+        params = json.loads(_scalar_str(data, "params_json", where))
+    except ValueError as exc:
+        raise CalibrationFileError(f"{where}: params_json is not valid JSON ({exc})") from None
+    if not isinstance(params, dict):
+        raise CalibrationFileError(f"{where}: params_json is a {type(params).__name__}, "
+                                   "expected an object")
+    try:
+        return Calibration.from_maps({k: data[k] for k in MAP_NAMES}, log_offset=float(lo),
+                                     method=method, diagnostics=params)
+    except EvcalError as exc:
+        raise CalibrationFileError(f"{where}: {exc}", exc.reason) from None
 
 
 def load_calibration(path: str | os.PathLike[str]) -> Calibration:
@@ -75,43 +115,7 @@ def load_calibration(path: str | os.PathLike[str]) -> Calibration:
         Naming the missing key, the map of the wrong shape or dtype, or the bad value.
     """
     path = Path(path)
-    data = load_npz_arrays(path, CalibrationFileError)
-    missing = sorted(CALIBRATION_KEYS - set(data))
-    if missing:
-        hint = " (this looks like a recording, not a calibration)" if "events" in data else ""
-        raise CalibrationFileError(f"{path}: missing array(s) {missing}{hint}")
-    shape = data["contrast"].shape
-    if len(shape) != 2:
-        raise CalibrationFileError(f"{path}: contrast has shape {shape}, expected (H, W)")
-    maps: dict[str, np.ndarray] = {}
-    for key, dt in MAP_DTYPES.items():
-        a = data[key]
-        if a.shape != shape:
-            raise CalibrationFileError(f"{path}: {key} has shape {a.shape}, contrast has {shape}")
-        if a.dtype.kind not in _KINDS[key]:
-            raise CalibrationFileError(f"{path}: {key} has dtype {a.dtype}, expected {dt}")
-        maps[key] = a.astype(dt, copy=False)
-    for key, enum in (("reason", Reason), ("special", Special)):
-        top = max(int(v) for v in enum)
-        if maps[key].size and int(maps[key].max()) > top:
-            raise CalibrationFileError(f"{path}: {key} holds code {int(maps[key].max())}, "
-                                       f"the largest {enum.__name__} code is {top}")
-    lo = data["log_offset"]
-    if lo.shape != () or lo.dtype.kind not in "fiu" or not math.isfinite(float(lo)):
-        raise CalibrationFileError(f"{path}: log_offset is {lo.dtype} {lo.shape} = {lo!r}, "
-                                   "expected a finite 0-d float")
-    method = _scalar_str(data, "method", path)
-    try:
-        params = json.loads(_scalar_str(data, "params_json", path))
-    except ValueError as exc:
-        raise CalibrationFileError(f"{path}: params_json is not valid JSON ({exc})") from None
-    if not isinstance(params, dict):
-        raise CalibrationFileError(f"{path}: params_json is a {type(params).__name__}, "
-                                   "expected an object")
-    try:
-        return Calibration(log_offset=float(lo), method=method, params=params, **maps)
-    except ValueError as exc:
-        raise CalibrationFileError(f"{path}: {exc}") from None
+    return calibration_from_npz_arrays(load_npz_arrays(path, CalibrationFileError), str(path))
 
 
 def write_csv(cal: Calibration, folder: str | os.PathLike[str]) -> tuple[Path, Path]:
@@ -123,6 +127,6 @@ def write_csv(cal: Calibration, folder: str | os.PathLike[str]) -> tuple[Path, P
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     out = (folder / "scale.csv", folder / "bias.csv")
-    for file, values in zip(out, (cal.contrast, cal.bias)):
+    for file, values in zip(out, (cal.contrast, cal.bias), strict=True):
         np.savetxt(file, values, fmt="%.6f", delimiter=",")
     return out

@@ -475,7 +475,6 @@ def write_ecd(
         for chunk in recording.iter_events(chunk_events):
             f.write(format_events_txt(chunk))
     frames = recording.frames
-    assert frames is not None  # Recording fills in empty frames
     if len(frames):
         (folder / "images").mkdir(exist_ok=True)
         lines = []

@@ -75,6 +75,96 @@ def _log_time_ns(t_us: int) -> int:
     return max(int(t_us), 0) * 1000
 
 
+CALIBRATION_SCHEMA_NAME = "evcal.Calibration"
+CALIBRATION_SCHEMA: dict[str, Any] = {
+    "title": CALIBRATION_SCHEMA_NAME,
+    "description": "msgpack map, see docs/WIRE.md: header fields and 'maps' of raw "
+                   "little-endian [y, x] arrays",
+    "type": "object",
+}
+
+
+class McapWriter:
+    """evcal's MCAP layout, written message by message (a context manager).
+
+    ``add_events``/``add_frame``/``add_calibration`` take encoded wire messages (the
+    envelope's own ``seq`` is the caller's business; the MCAP ``sequence`` is the per-channel
+    counter). The ``evcal`` metadata record is written with the sensor once it is known
+    (:meth:`set_sensor`); :meth:`close` adds any extra metadata records and finishes the
+    file (summary and footer): until then the file is incomplete.
+    """
+
+    def __init__(self, path: str | os.PathLike[str], *, library: str = "evcal",
+                 calibration: bool = False) -> None:
+        from mcap.writer import CompressionType, Writer
+
+        self.path = Path(path)
+        self._f = open(self.path, "wb")
+        try:
+            self._w = Writer(self._f, compression=CompressionType.ZSTD)
+            self._w.start(profile="", library=library)
+            schemas = [("events", EVENTS_TOPIC, EVENTS_SCHEMA_NAME, EVENTS_SCHEMA),
+                       ("frames", FRAMES_TOPIC, FRAME_SCHEMA_NAME, FRAME_SCHEMA)]
+            if calibration:
+                schemas.append(("calibration", CALIBRATION_TOPIC, CALIBRATION_SCHEMA_NAME,
+                                CALIBRATION_SCHEMA))
+            self._channels: dict[str, int] = {}
+            for kind, topic, name, schema in schemas:
+                sid = self._w.register_schema(name, "jsonschema", json.dumps(schema).encode())
+                self._channels[kind] = self._w.register_channel(topic, "msgpack", sid)
+        except BaseException:
+            self._f.close()
+            raise
+        self.counts = {kind: 0 for kind in self._channels}
+        self.sensor: SensorSize | None = None
+        self._closed = False
+
+    def set_sensor(self, sensor: SensorSize, metadata: dict[str, Any] | None = None) -> None:
+        """Write the ``evcal`` metadata record (once)."""
+        if self.sensor is not None:
+            return
+        self.sensor = sensor
+        self._w.add_metadata(METADATA_NAME, {
+            "format_version": str(FORMAT_VERSION), "sensor": str(sensor),
+            "height": str(sensor.height), "width": str(sensor.width),
+            "metadata_json": metadata_to_json(metadata or {}),
+        })
+
+    def _add(self, kind: str, t_us: int, data: bytes) -> None:
+        n = self.counts[kind]
+        self._w.add_message(self._channels[kind], log_time=_log_time_ns(t_us),
+                            publish_time=_log_time_ns(t_us), sequence=n & 0xFFFFFFFF, data=data)
+        self.counts[kind] = n + 1
+
+    def add_events(self, t_us: int, data: bytes) -> None:
+        """One events message; ``t_us`` is its first event's time."""
+        self._add("events", t_us, data)
+
+    def add_frame(self, t_us: int, data: bytes) -> None:
+        self._add("frames", t_us, data)
+
+    def add_calibration(self, t_us: int, data: bytes) -> None:
+        self._add("calibration", t_us, data)
+
+    def close(self, metadata: dict[str, dict[str, str]] | None = None) -> None:
+        """Write extra metadata records (name -> string map) and finish the file."""
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            for name, record in (metadata or {}).items():
+                self._w.add_metadata(name, record)
+            self._w.finish()
+        finally:
+            self._f.close()
+
+    def __enter__(self) -> McapWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
 def write_mcap(
     recording: Recording,
     path: str | os.PathLike[str],
@@ -93,61 +183,38 @@ def write_mcap(
     RecordingError
         For ``chunk_events < 1`` or frames that cannot be encoded.
     """
-    from mcap.writer import CompressionType, Writer
-
     if chunk_events < 1:
         raise RecordingError(f"chunk_events={chunk_events} must be >= 1")
     path = Path(path)
     h, w = recording.sensor.shape
     frames = recording.frames
-    assert frames is not None  # Recording fills in empty frames
     images = frames.images
     if images.dtype.kind == "f" and images.dtype != np.float32:
         images = images.astype(np.float32)
-    with open(path, "wb") as f:
-        writer = Writer(f, compression=CompressionType.ZSTD)
-        writer.start(profile="", library="evcal")
-        ev_schema = writer.register_schema(EVENTS_SCHEMA_NAME, "jsonschema",
-                                           json.dumps(EVENTS_SCHEMA).encode())
-        fr_schema = writer.register_schema(FRAME_SCHEMA_NAME, "jsonschema",
-                                           json.dumps(FRAME_SCHEMA).encode())
-        ev_channel = writer.register_channel(EVENTS_TOPIC, "msgpack", ev_schema)
-        fr_channel = writer.register_channel(FRAMES_TOPIC, "msgpack", fr_schema)
-        writer.add_metadata(METADATA_NAME, {
-            "format_version": str(FORMAT_VERSION),
-            "sensor": str(recording.sensor),
-            "height": str(h),
-            "width": str(w),
-            "metadata_json": metadata_to_json(recording.metadata),
-        })
+
+    def add_frame(out: McapWriter, k: int) -> None:
+        t = int(frames.t_us[k])
+        try:
+            data = encode_frame(t, images[k], exposure_us=int(frames.exposure_us[k]), seq=k)
+        except WireError as exc:
+            raise RecordingError(f"frame {k}: {exc}", exc.reason) from None
+        out.add_frame(t, data)
+
+    with McapWriter(path) as out:
+        out.set_sensor(recording.sensor, recording.metadata)
         # Merge the two channels in time order: frame k goes before the first chunk that
         # starts after it. One iteration per message, not per event.
-        starts = [int(c["t_us"][0]) for c in recording.iter_events(chunk_events)]
         k = 0
-        seq_ev = 0
         for seq_ev, chunk in enumerate(recording.iter_events(chunk_events)):
-            while k < len(frames) and frames.t_us[k] <= starts[seq_ev]:
-                _add_frame(writer, fr_channel, frames, images, k)
-                k += 1
             t0 = int(chunk["t_us"][0])
-            writer.add_message(ev_channel, log_time=_log_time_ns(t0),
-                               publish_time=_log_time_ns(t0), sequence=seq_ev & 0xFFFFFFFF,
-                               data=encode_events(chunk, height=h, width=w, seq=seq_ev))
+            while k < len(frames) and frames.t_us[k] <= t0:
+                add_frame(out, k)
+                k += 1
+            out.add_events(t0, encode_events(chunk, height=h, width=w, seq=seq_ev))
         while k < len(frames):
-            _add_frame(writer, fr_channel, frames, images, k)
+            add_frame(out, k)
             k += 1
-        writer.finish()
     return path
-
-
-def _add_frame(writer: Any, channel: int, frames: Frames, images: np.ndarray, k: int) -> None:
-    t = int(frames.t_us[k])
-    try:
-        data = encode_frame(t, images[k], exposure_us=int(frames.exposure_us[k]), seq=k)
-    except WireError as exc:
-        raise RecordingError(f"frame {k}: {exc}") from None
-    writer.add_message(channel, log_time=_log_time_ns(t), publish_time=_log_time_ns(t),
-                       sequence=k & 0xFFFFFFFF, data=data)
 
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"

@@ -35,7 +35,6 @@ def write_npz(recording: Recording, path: str | os.PathLike[str], *,
     """
     path = Path(path)
     frames = recording.frames
-    assert frames is not None  # Recording fills in empty frames
     arrays: dict[str, Any] = {
         "events": recording.events,
         "frame_t_us": frames.t_us,

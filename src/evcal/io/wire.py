@@ -21,12 +21,17 @@ another exception type. The arrays are read with ``np.frombuffer``: no Python lo
 
 from __future__ import annotations
 
+import json
+import math
 from typing import Any
 
 import msgpack
 import numpy as np
 
+from ..calibration import CALIBRATION_MAPS, Calibration, check_map
+from ..errors import ErrorReason, EvcalError, reraise_as
 from ..events import EVENTS_DTYPE, EventError, SensorSize, validate_events
+from ..jsonable import dumps
 
 WIRE_VERSION = 1
 MAX_SIZE = 65535  # largest height or width accepted (uint16 coordinates)
@@ -42,8 +47,9 @@ _COLUMNS = (("t_us", np.dtype("<i8")), ("x", np.dtype("<u2")), ("y", np.dtype("<
 _INT64_MIN, _INT64_MAX = -(2**63), 2**63 - 1
 
 
-class WireError(ValueError):
-    """A message that is not a valid evcal envelope (or a value that cannot be encoded)."""
+class WireError(EvcalError):
+    """A message that is not a valid evcal envelope (or a value that cannot be encoded);
+    ``reason`` (:class:`~evcal.errors.ErrorReason`) says what kind of problem."""
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -51,16 +57,18 @@ class WireError(ValueError):
 
 def _unpack(buf: Any, what: str) -> dict[str, Any]:
     if not isinstance(buf, (bytes, bytearray, memoryview)):
-        raise WireError(f"{what}: expected bytes, got {type(buf).__name__}")
+        raise WireError(f"{what}: expected bytes, got {type(buf).__name__}", ErrorReason.MALFORMED)
     if len(buf) == 0:
-        raise WireError(f"{what}: empty message")
+        raise WireError(f"{what}: empty message", ErrorReason.NOT_MSGPACK)
     try:
         obj = msgpack.unpackb(buf, raw=False, strict_map_key=True, use_list=True)
     except Exception as exc:  # msgpack raises several types (ExtraData, FormatError, ...)
-        raise WireError(f"{what}: not a valid msgpack message ({exc or type(exc).__name__})") \
+        raise WireError(f"{what}: not a valid msgpack message ({exc or type(exc).__name__})",
+                        ErrorReason.NOT_MSGPACK) \
             from None
     if not isinstance(obj, dict):
-        raise WireError(f"{what}: expected a msgpack map, got {type(obj).__name__}")
+        raise WireError(f"{what}: expected a msgpack map, got {type(obj).__name__}",
+                        ErrorReason.NOT_MSGPACK)
     return obj
 
 
@@ -80,7 +88,8 @@ def _int(obj: dict[str, Any], key: str, what: str, lo: int, hi: int) -> int:
     if not isinstance(v, int) or isinstance(v, bool):
         raise WireError(f"{what}: field {key!r} must be an integer, got {type(v).__name__}")
     if not lo <= v <= hi:
-        raise WireError(f"{what}: field {key!r} = {v} is outside {lo}..{hi}")
+        raise WireError(f"{what}: field {key!r} = {v} is outside {lo}..{hi}",
+                        ErrorReason.OUT_OF_RANGE)
     return v
 
 
@@ -96,20 +105,35 @@ def _check_version(obj: dict[str, Any], what: str) -> None:
     v = obj["version"]
     if not isinstance(v, int) or isinstance(v, bool) or v != WIRE_VERSION:
         raise WireError(f"{what}: unsupported version {v!r}, this reader knows version "
-                        f"{WIRE_VERSION}")
+                        f"{WIRE_VERSION}", ErrorReason.VERSION)
+
+
+def _envelope(buf: Any, kind: str, expected: frozenset[str]
+              ) -> tuple[dict[str, Any], int, int, int, str]:
+    """The checked common header of every envelope: ``(obj, height, width, seq, what)``,
+    ``what`` naming the message in errors (``"frame message seq 12"``)."""
+    obj = _unpack(buf, kind)
+    _check_keys(obj, expected, kind)
+    _check_version(obj, kind)
+    h = _int(obj, "height", kind, 1, MAX_SIZE)
+    w = _int(obj, "width", kind, 1, MAX_SIZE)
+    seq = _int(obj, "seq", kind, 0, 2**64 - 1)
+    return obj, h, w, seq, f"{kind} seq {seq}"
 
 
 def _size_arg(value: int, name: str) -> int:
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
         raise WireError(f"cannot encode: {name} must be an integer, got {type(value).__name__}")
     if not 1 <= int(value) <= MAX_SIZE:
-        raise WireError(f"cannot encode: {name}={int(value)} is outside 1..{MAX_SIZE}")
+        raise WireError(f"cannot encode: {name}={int(value)} is outside 1..{MAX_SIZE}",
+                        ErrorReason.OUT_OF_RANGE)
     return int(value)
 
 
 def _seq_arg(seq: int) -> int:
     if isinstance(seq, bool) or not isinstance(seq, (int, np.integer)) or not 0 <= seq < 2**64:
-        raise WireError(f"cannot encode: seq={seq!r} must be an integer in 0..2**64-1")
+        raise WireError(f"cannot encode: seq={seq!r} must be an integer in 0..2**64-1",
+                        ErrorReason.OUT_OF_RANGE)
     return int(seq)
 
 
@@ -138,7 +162,7 @@ def encode_events(events: np.ndarray, *, height: int, width: int, seq: int) -> b
     try:
         validate_events(events, SensorSize(height=h, width=w), where="cannot encode events")
     except EventError as exc:
-        raise WireError(str(exc)) from None
+        raise reraise_as(exc, WireError) from None
     msg: dict[str, Any] = {"version": WIRE_VERSION, "height": h, "width": w, "seq": seq,
                            "n": int(events.shape[0])}
     for name, dt in _COLUMNS:
@@ -169,14 +193,7 @@ def decode_events(buf: bytes | bytearray | memoryview) -> tuple[np.ndarray, dict
     >>> bool((out == ev).all()), header["seq"], header["n"]
     (True, 7, 2)
     """
-    what = "events message"
-    obj = _unpack(buf, what)
-    _check_keys(obj, _EVENT_KEYS, what)
-    _check_version(obj, what)
-    h = _int(obj, "height", what, 1, MAX_SIZE)
-    w = _int(obj, "width", what, 1, MAX_SIZE)
-    seq = _int(obj, "seq", what, 0, 2**64 - 1)
-    what = f"events message seq {seq}"
+    obj, h, w, seq, what = _envelope(buf, "events message", _EVENT_KEYS)
     n = _int(obj, "n", what, 0, 2**62)
     columns = {}
     for name, dt in _COLUMNS:
@@ -186,8 +203,7 @@ def decode_events(buf: bytes | bytearray | memoryview) -> tuple[np.ndarray, dict
             state = "truncated" if len(raw) < expected else "too long"
             raise WireError(
                 f"{what}: field {name!r} is {state}: {len(raw)} bytes, expected {expected} "
-                f"({n} events x {dt.itemsize} bytes of {dt.str})"
-            )
+                f"({n} events x {dt.itemsize} bytes of {dt.str})", ErrorReason.TRUNCATED)
         columns[name] = np.frombuffer(raw, dtype=dt)
     events = np.empty(n, dtype=EVENTS_DTYPE)
     for name, col in columns.items():
@@ -195,7 +211,7 @@ def decode_events(buf: bytes | bytearray | memoryview) -> tuple[np.ndarray, dict
     try:
         validate_events(events, SensorSize(height=h, width=w), where=what)
     except EventError as exc:
-        raise WireError(str(exc)) from None
+        raise reraise_as(exc, WireError) from None
     header = {"version": WIRE_VERSION, "height": h, "width": w, "seq": seq, "n": n}
     return events, header
 
@@ -228,9 +244,11 @@ def encode_frame(t_us: int, image: np.ndarray, *, exposure_us: int, seq: int) ->
             raise WireError(f"cannot encode frame: {name} must be an integer, got "
                             f"{type(v).__name__}")
     if not _INT64_MIN <= int(t_us) <= _INT64_MAX:
-        raise WireError(f"cannot encode frame: t_us={int(t_us)} does not fit int64")
+        raise WireError(f"cannot encode frame: t_us={int(t_us)} does not fit int64",
+                        ErrorReason.OUT_OF_RANGE)
     if not 0 <= int(exposure_us) <= _INT64_MAX:
-        raise WireError(f"cannot encode frame: exposure_us={int(exposure_us)} must be >= 0")
+        raise WireError(f"cannot encode frame: exposure_us={int(exposure_us)} must be >= 0",
+                        ErrorReason.OUT_OF_RANGE)
     image = np.asarray(image)
     if image.ndim != 2:
         raise WireError(f"cannot encode frame: image has shape {image.shape}, expected (H, W)")
@@ -242,7 +260,8 @@ def encode_frame(t_us: int, image: np.ndarray, *, exposure_us: int, seq: int) ->
     if dt not in names:
         raise WireError(f"cannot encode frame: dtype {image.dtype} is not uint8 or float32")
     if image.dtype.kind == "f" and not np.isfinite(image).all():
-        raise WireError("cannot encode frame: image contains NaN or infinite values")
+        raise WireError("cannot encode frame: image contains NaN or infinite values",
+                        ErrorReason.BAD_VALUES)
     msg = {
         "version": WIRE_VERSION, "height": h, "width": w, "seq": seq, "t_us": int(t_us),
         "exposure_us": int(exposure_us), "dtype": names[dt],
@@ -270,14 +289,7 @@ def decode_frame(
     WireError
         With a message naming the first problem found.
     """
-    what = "frame message"
-    obj = _unpack(buf, what)
-    _check_keys(obj, _FRAME_KEYS, what)
-    _check_version(obj, what)
-    h = _int(obj, "height", what, 1, MAX_SIZE)
-    w = _int(obj, "width", what, 1, MAX_SIZE)
-    seq = _int(obj, "seq", what, 0, 2**64 - 1)
-    what = f"frame message seq {seq}"
+    obj, h, w, seq, what = _envelope(buf, "frame message", _FRAME_KEYS)
     t_us = _int(obj, "t_us", what, _INT64_MIN, _INT64_MAX)
     exposure_us = _int(obj, "exposure_us", what, 0, _INT64_MAX)
     name = obj["dtype"]
@@ -289,14 +301,14 @@ def decode_frame(
     if len(data) != expected:
         state = "truncated" if len(data) < expected else "too long"
         raise WireError(f"{what}: field 'data' is {state}: {len(data)} bytes, expected "
-                        f"{expected} ({h}x{w} {name})")
+                        f"{expected} ({h}x{w} {name})", ErrorReason.TRUNCATED)
     image = np.frombuffer(data, dtype=dt).reshape(h, w)
     if dt.kind == "f":
         bad = ~np.isfinite(image)
         if bad.any():
             y, x = (int(v) for v in np.argwhere(bad)[0])
             raise WireError(f"{what}: float32 image has {int(bad.sum())} NaN or infinite "
-                            f"values, the first at (x={x}, y={y})")
+                            f"values, the first at (x={x}, y={y})", ErrorReason.BAD_VALUES)
     header = {"version": WIRE_VERSION, "height": h, "width": w, "seq": seq, "dtype": name}
     return t_us, exposure_us, image, header
 
@@ -312,21 +324,13 @@ def decode_frame(
 # ``maps`` holds any subset of CALIBRATION_MAP_DTYPES (a query may ask for some fields only);
 # each map's dtype is fixed by its name. A full message converts to a Calibration.
 
-CALIBRATION_MAP_DTYPES: dict[str, np.dtype] = {
-    "contrast": np.dtype("<f4"),
-    "bias": np.dtype("<f4"),
-    "valid": np.dtype("u1"),  # 0 / 1
-    "reason": np.dtype("u1"),
-    "stderr_contrast": np.dtype("<f4"),
-    "stderr_bias": np.dtype("<f4"),
-    "special": np.dtype("u1"),
-    "n_events": np.dtype("<i8"),
-}
+# the wire dtypes of the calibration schema (evcal.calibration.CALIBRATION_MAPS)
+CALIBRATION_MAP_DTYPES: dict[str, np.dtype[Any]] = {s.name: s.wire for s in CALIBRATION_MAPS}
 _CALIBRATION_KEYS = frozenset({"version", "height", "width", "seq", "t_us", "n_events_used",
                                "method", "log_offset", "params_json", "maps"})
 
 
-def encode_calibration(cal: Any, *, t_us: int, seq: int,
+def encode_calibration(cal: Calibration, *, t_us: int, seq: int,
                        fields: Any = None) -> bytes:
     """Pack a :class:`~evcal.calibration.Calibration` (or the ``fields`` subset of its maps).
 
@@ -338,34 +342,26 @@ def encode_calibration(cal: Any, *, t_us: int, seq: int,
     WireError
         For an unknown field name or a value that cannot be encoded.
     """
-    import json
-    import math
-
-    from ._util import to_jsonable
-
     seq = _seq_arg(seq)
-    names = list(CALIBRATION_MAP_DTYPES) if fields is None else list(fields)
-    unknown = sorted(set(names) - set(CALIBRATION_MAP_DTYPES))
-    if unknown:
-        raise WireError(f"cannot encode calibration: unknown field(s) {unknown}; known: "
-                        f"{sorted(CALIBRATION_MAP_DTYPES)}")
+    try:
+        maps_in = cal.maps(fields)
+    except EvcalError as exc:
+        raise WireError(f"cannot encode calibration: {exc}", exc.reason) from None
     h, w = cal.shape
     _size_arg(h, "height")
     _size_arg(w, "width")
     if isinstance(t_us, bool) or not isinstance(t_us, (int, np.integer)):
         raise WireError(f"cannot encode calibration: t_us must be an integer, got {t_us!r}")
-    log_offset = float(cal.log_offset)
-    if not math.isfinite(log_offset):
-        raise WireError(f"cannot encode calibration: log_offset={log_offset} is not finite")
+    log_offset = float(cal.log_offset)  # finite: Calibration checks it
     # memoryviews: msgpack copies each map once into the message (no intermediate bytes)
-    maps = {name: memoryview(np.ascontiguousarray(getattr(cal, name),
-                                                  dtype=CALIBRATION_MAP_DTYPES[name]).reshape(-1))
-            for name in names}
+    maps = {name: memoryview(np.ascontiguousarray(a, dtype=CALIBRATION_MAP_DTYPES[name]
+                                                  ).reshape(-1))
+            for name, a in maps_in.items()}
     msg = {
         "version": WIRE_VERSION, "height": int(h), "width": int(w), "seq": seq,
         "t_us": int(t_us), "n_events_used": int(np.asarray(cal.n_events).sum()),
         "method": str(cal.method), "log_offset": log_offset,
-        "params_json": json.dumps(to_jsonable(cal.params), default=repr, sort_keys=True),
+        "params_json": dumps(cal.diagnostics.to_dict()),
         "maps": maps,
     }
     return msgpack.packb(msg, use_bin_type=True)
@@ -386,17 +382,7 @@ def decode_calibration_maps(
     WireError
         Naming the first problem found.
     """
-    import json
-    import math
-
-    what = "calibration message"
-    obj = _unpack(buf, what)
-    _check_keys(obj, _CALIBRATION_KEYS, what)
-    _check_version(obj, what)
-    h = _int(obj, "height", what, 1, MAX_SIZE)
-    w = _int(obj, "width", what, 1, MAX_SIZE)
-    seq = _int(obj, "seq", what, 0, 2**64 - 1)
-    what = f"calibration message seq {seq}"
+    obj, h, w, seq, what = _envelope(buf, "calibration message", _CALIBRATION_KEYS)
     t_us = _int(obj, "t_us", what, _INT64_MIN, _INT64_MAX)
     n_used = _int(obj, "n_events_used", what, 0, _INT64_MAX)
     method = obj["method"]
@@ -426,19 +412,18 @@ def decode_calibration_maps(
         if len(raw) != expected:
             state = "truncated" if len(raw) < expected else "too long"
             raise WireError(f"{what}: map {name!r} is {state}: {len(raw)} bytes, expected "
-                            f"{expected} ({w}x{h} {dt.str})")
-        a = np.frombuffer(raw, dtype=dt).reshape(h, w)
-        maps[name] = a.astype(bool) if name == "valid" else a.copy()
-    for name in ("contrast", "bias"):
-        if name in maps and not np.isfinite(maps[name]).all():
-            raise WireError(f"{what}: map {name!r} contains NaN or infinite values")
+                            f"{expected} ({w}x{h} {dt.str})", ErrorReason.TRUNCATED)
+        try:
+            maps[name] = check_map(name, np.frombuffer(raw, dtype=dt).reshape(h, w)).copy()
+        except EvcalError as exc:
+            raise WireError(f"{what}: {exc}", exc.reason) from None
     header = {"version": WIRE_VERSION, "height": h, "width": w, "seq": seq, "t_us": t_us,
               "n_events_used": n_used, "method": method, "log_offset": float(lo),
               "params": params}
     return maps, header
 
 
-def decode_calibration(buf: bytes | bytearray | memoryview) -> tuple[Any, dict[str, Any]]:
+def decode_calibration(buf: bytes | bytearray | memoryview) -> tuple[Calibration, dict[str, Any]]:
     """Unpack a full calibration message into ``(Calibration, header)``.
 
     Raises
@@ -446,16 +431,14 @@ def decode_calibration(buf: bytes | bytearray | memoryview) -> tuple[Any, dict[s
     WireError
         If the message is malformed or does not carry every map.
     """
-    from ..calibration import Calibration
-
     maps, header = decode_calibration_maps(buf)
     missing = sorted(set(CALIBRATION_MAP_DTYPES) - set(maps))
     if missing:
         raise WireError(f"calibration message seq {header['seq']}: map(s) {missing} missing "
                         "(a partial message: query without fields= to get all maps)")
     try:
-        cal = Calibration(log_offset=header["log_offset"], method=header["method"],
-                          params=header["params"], **maps)
-    except ValueError as exc:
-        raise WireError(f"calibration message seq {header['seq']}: {exc}") from None
+        cal = Calibration.from_maps(maps, log_offset=header["log_offset"],
+                                    method=header["method"], diagnostics=header["params"])
+    except EvcalError as exc:
+        raise WireError(f"calibration message seq {header['seq']}: {exc}", exc.reason) from None
     return cal, header

@@ -49,8 +49,10 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from ..errors import ConfigError
 
-class EffectError(ValueError):
+
+class EffectError(ConfigError):
     """An effect with out-of-range parameters or an unknown name."""
 
 

@@ -142,7 +142,6 @@ class FrameInterpolator:
         from ..io import read_ecd  # noqa: PLC0415
 
         rec = read_ecd(Path(path))
-        assert rec.frames is not None
         return cls(rec.frames, shape, **kw)
 
     @property

@@ -24,6 +24,7 @@ from evcal.io.wire import encode_events, encode_frame
 from evcal.recording import Recording
 from evcal.service import keys
 from evcal.service.transport import Transport, TransportError, options_from_args
+from evcal.stream import frame_cuts
 
 from .common import base_parser, camera_arg, fail
 
@@ -46,11 +47,10 @@ def schedule(rec: Recording, *, chunk_events: int = 50_000, chunk_us: int = 10_0
     """``(kind, t_send_us, i0, i1)`` in send order: ``kind`` "frame" (index ``i0``) or
     "events" (``rec.events[i0:i1]``). Events with ``t_us`` equal to a frame's time go after it.
     """
-    assert rec.frames is not None
     t_ev = rec.events["t_us"]
     n = rec.n_events
     f_t = rec.frames.t_us
-    bounds = np.searchsorted(t_ev, f_t, side="left")
+    bounds = frame_cuts(t_ev, f_t)
     starts = np.concatenate([[0], bounds])
     ends = np.concatenate([bounds, [n]])
     for seg in range(len(f_t) + 1):
@@ -81,7 +81,6 @@ def replay(t: Transport, rec: Recording, camera: str, *, prefix: str = "evcal",
         if time.monotonic() > deadline or stop.is_set():
             break
         time.sleep(0.02)
-    assert rec.frames is not None
     images = rec.frames.images
     if images.dtype.kind == "f" and images.dtype != np.float32:
         images = images.astype(np.float32)

@@ -28,7 +28,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -37,7 +37,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from ..calibration import SPECIAL_LEGEND, Calibration, Special
-from ..lsq import log_intensity
+from ..reconstruct import Reconstruction, StreamingEvaluator
 
 log = logging.getLogger("evcal.service.recording")
 
@@ -95,34 +95,12 @@ def make_blueprint(cameras: list[str]) -> Any:
                          collapse_panels=False)
 
 
-def _psnr(a: np.ndarray, b: np.ndarray) -> float:
-    try:
-        from ..metrics import psnr
-    except ImportError:  # pragma: no cover - metrics is part of the core
-        mse = float(np.mean((a - b) ** 2))
-        return float("inf") if mse == 0 else 10 * np.log10(255.0**2 / mse)
-    return psnr(a, b, 255.0)
-
-
-def _reconstruct(log_start: np.ndarray, events: np.ndarray, cal: Calibration) -> np.ndarray:
-    from ..reconstruct import integrate, to_intensity
-
-    return to_intensity(integrate(log_start, events, cal), cal.log_offset)
-
-
 @dataclass
 class _CameraLog:
     shape: tuple[int, int]
+    evaluator: StreamingEvaluator
     last_map_t_us: int | None = None
-    last_recon_t_us: int | None = None
     last_scalar_t_us: int | None = None
-    cal: Calibration | None = None
-    # an open reconstruction window
-    recon_start: np.ndarray | None = None
-    recon_t0_us: int = 0
-    recon_frames: int = 0
-    recon_events: list[np.ndarray] = field(default_factory=list)
-    recon_n: int = 0
 
 
 class RrdLogger:
@@ -174,7 +152,9 @@ class RrdLogger:
         cl = self._cams.get(camera)
         if cl is None:
             with self._lock:
-                cl = self._cams[camera] = _CameraLog(shape)
+                cl = self._cams[camera] = _CameraLog(shape, StreamingEvaluator(
+                    shape, period_us=self.recon_period_us, window_frames=self.recon_frames,
+                    max_events=self.max_recon_events))
                 names = sorted(self._cams)
             self._log_static(camera)
             self.rec.send_blueprint(make_blueprint(names), make_active=True, make_default=True)
@@ -191,59 +171,36 @@ class RrdLogger:
 
     def events(self, camera: str, events: np.ndarray) -> None:
         cl = self._cams.get(camera)
-        if cl is None or cl.recon_start is None:
-            return
-        if cl.recon_n + events.size > self.max_recon_events:
-            cl.recon_start, cl.recon_events, cl.recon_n = None, [], 0  # too busy: skip
-            return
-        cl.recon_events.append(events)
-        cl.recon_n += int(events.size)
+        if cl is not None:
+            cl.evaluator.events(events)
 
     def frame(self, camera: str, t_us: int, image: np.ndarray) -> None:
         cl = self._cams.get(camera)
-        if cl is None or cl.cal is None:
+        if cl is None:
             return
-        if cl.recon_start is not None:
-            cl.recon_frames += 1
-            if cl.recon_frames >= self.recon_frames:
-                self._finish_recon(camera, cl, t_us, image)
-            return
-        due = cl.last_recon_t_us is None or t_us - cl.last_recon_t_us >= self.recon_period_us
-        if due and not self._images_stopped:
-            cl.recon_start = log_intensity(np.asarray(image).ravel(), cl.cal.log_offset
-                                           ).reshape(cl.shape)
-            cl.recon_t0_us = t_us
-            cl.recon_frames = 0
-            cl.recon_events, cl.recon_n = [], 0
+        if self._images_stopped:
+            cl.evaluator.discard()
+        result = cl.evaluator.frame(t_us, image)
+        if result is not None:
+            self._log_reconstruction(camera, result)
 
-    def _finish_recon(self, camera: str, cl: _CameraLog, t_us: int, image: np.ndarray) -> None:
-        assert cl.recon_start is not None and cl.cal is not None
-        ev = (np.concatenate(cl.recon_events) if cl.recon_events
-              else np.zeros(0, dtype=[("t_us", "<i8"), ("x", "<u2"), ("y", "<u2"), ("p", "i1")]))
-        ev = ev[(ev["t_us"] >= cl.recon_t0_us) & (ev["t_us"] < t_us)]
-        start = cl.recon_start
-        cl.recon_start, cl.recon_events, cl.recon_n = None, [], 0
-        cl.last_recon_t_us = t_us
-        ref = np.asarray(image, np.float64)
-        if image.dtype.kind == "f" and ref.max() <= 1.0:
-            ref = ref * 255.0
-        ours = _reconstruct(start, ev, cl.cal)
-        di = _reconstruct(start, ev, Calibration.uniform(cl.shape, log_offset=cl.cal.log_offset))
-        p_ours, p_di = _psnr(ours, ref), _psnr(di, ref)
-        self._set_time(t_us)
-        if self._image_budget(3 * ref.size, camera):
-            for name, img in (("calibrated", ours), ("di", di), ("frame", ref)):
+    def _log_reconstruction(self, camera: str, r: Reconstruction) -> None:
+        """Log what the core's :class:`~evcal.reconstruct.StreamingEvaluator` computed."""
+        self._set_time(r.t_end_us)
+        if self._image_budget(3 * r.reference.size, camera):
+            for name, img in (("calibrated", r.calibrated), ("di", r.di),
+                              ("frame", r.reference)):
                 self.rec.log(entity(camera, "recon", name),
                              rr.Image(np.clip(np.rint(img), 0, 255).astype(np.uint8)))
-        for name, v in (("psnr_calibrated_db", p_ours), ("psnr_di_db", p_di),
-                        ("psnr_gain_db", p_ours - p_di)):
+        for name, v in (("psnr_calibrated_db", r.psnr_calibrated_db),
+                        ("psnr_di_db", r.psnr_di_db), ("psnr_gain_db", r.psnr_gain_db)):
             if np.isfinite(v):
                 self.rec.log(entity(camera, "series", name), rr.Scalars([float(v)]))
 
     def updated(self, camera: str, cal: Calibration, t_us: int, status: dict[str, Any]
                 ) -> None:
         cl = self._camera(camera, cal.shape)
-        cl.cal = cal
+        cl.evaluator.calibration(cal)
         self._set_time(t_us)
         if cl.last_scalar_t_us is None or t_us - cl.last_scalar_t_us >= self.scalar_period_us:
             cl.last_scalar_t_us = t_us
@@ -287,7 +244,7 @@ class RrdLogger:
         open reconstruction window misses events, so it is abandoned."""
         cl = self._cams.get(camera)
         if cl is not None:
-            cl.recon_start, cl.recon_events, cl.recon_n = None, [], 0
+            cl.evaluator.discard()
         self.note(camera, f"the recorder fell behind: {dropped} call(s) dropped (maps, "
                           "frames or events); the open reconstruction was abandoned")
 

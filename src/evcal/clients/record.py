@@ -22,19 +22,9 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from evcal.io.mcap_rec import (
-    CALIBRATION_TOPIC,
-    EVENTS_SCHEMA,
-    EVENTS_SCHEMA_NAME,
-    EVENTS_TOPIC,
-    FORMAT_VERSION,
-    FRAME_SCHEMA,
-    FRAME_SCHEMA_NAME,
-    FRAMES_TOPIC,
-    METADATA_NAME,
-)
+from evcal.errors import EvcalError
+from evcal.io.mcap_rec import McapWriter
 from evcal.io.wire import (
-    WireError,
     decode_calibration_maps,
     decode_events,
     decode_frame,
@@ -43,115 +33,69 @@ from evcal.io.wire import (
 )
 from evcal.service import keys
 from evcal.service.transport import Transport, TransportError, options_from_args
+from evcal.stream import StreamGuard
 
 from .common import base_parser, fail
 
-CALIBRATION_SCHEMA_NAME = "evcal.Calibration"
-CALIBRATION_SCHEMA: dict[str, Any] = {
-    "title": CALIBRATION_SCHEMA_NAME,
-    "description": "msgpack map, see docs/WIRE.md: header fields and 'maps' of raw "
-                   "little-endian [y, x] arrays",
-    "type": "object",
-}
-
-
-def _ns(t_us: int) -> int:
-    return max(int(t_us), 0) * 1000
-
 
 class CameraWriter:
-    """One camera's MCAP file (opened at the first valid message)."""
+    """One camera's MCAP file (:class:`~evcal.io.mcap_rec.McapWriter`), fed through the
+    stream's :class:`~evcal.stream.StreamGuard`: a message for another sensor size, events
+    going back in time or a frame not after the previous one are refused and counted, like the
+    service does; gaps in the publisher's sequence numbers are counted as ``lost``."""
 
-    def __init__(self, path: Path, camera: str):
-        from mcap.writer import CompressionType, Writer
-
+    def __init__(self, path: Path, camera: str) -> None:
         self.path = path
         self.camera = camera
         path.parent.mkdir(parents=True, exist_ok=True)
-        self._f = open(path, "wb")
-        self.w = Writer(self._f, compression=CompressionType.ZSTD)
-        self.w.start(profile="", library="evcal record")
-        ev_s = self.w.register_schema(EVENTS_SCHEMA_NAME, "jsonschema",
-                                      json.dumps(EVENTS_SCHEMA).encode())
-        fr_s = self.w.register_schema(FRAME_SCHEMA_NAME, "jsonschema",
-                                      json.dumps(FRAME_SCHEMA).encode())
-        ca_s = self.w.register_schema(CALIBRATION_SCHEMA_NAME, "jsonschema",
-                                      json.dumps(CALIBRATION_SCHEMA).encode())
-        self.ch = {"events": self.w.register_channel(EVENTS_TOPIC, "msgpack", ev_s),
-                   "frames": self.w.register_channel(FRAMES_TOPIC, "msgpack", fr_s),
-                   "calibration": self.w.register_channel(CALIBRATION_TOPIC, "msgpack", ca_s)}
-        self.seq = {"events": 0, "frames": 0, "calibration": 0}
-        self.src_next: dict[str, int | None] = {"events": None, "frames": None}
-        self.sensor: tuple[int, int] | None = None
-        self.last_t = {"events": None, "frames": None}
+        self.out = McapWriter(path, library="evcal record", calibration=True)
+        self.guard = StreamGuard()
         self.counts = {"messages": 0, "events": 0, "frames": 0, "calibrations": 0,
                        "lost": 0, "rejected": 0}
         self.errors: list[str] = []
 
-    def _sensor(self, h: int, w: int) -> None:
-        if self.sensor is None:
-            self.sensor = (h, w)
-            self.w.add_metadata(METADATA_NAME, {
-                "format_version": str(FORMAT_VERSION), "sensor": f"{w}x{h}", "height": str(h),
-                "width": str(w),
-                "metadata_json": json.dumps({"source": "evcal record", "camera": self.camera}),
-            })
-        elif self.sensor != (h, w):
-            raise WireError(f"a {w}x{h} message, but the camera is {self.sensor[1]}x"
-                            f"{self.sensor[0]}")
-
-    def _gap(self, kind: str, seq: int) -> None:
-        nxt = self.src_next[kind]
-        if nxt is not None and seq > nxt:
-            self.counts["lost"] += seq - nxt
-        self.src_next[kind] = seq + 1
+    def _sensor(self, header: dict[str, Any], what: str) -> None:
+        sensor = self.guard.check_sensor(header["height"], header["width"], what)
+        self.out.set_sensor(sensor, {"source": "evcal record", "camera": self.camera})
 
     def add(self, kind: str, payload: bytes) -> None:
         try:
             if kind == "events":
                 ev, hd = decode_events(payload)
-                self._sensor(hd["height"], hd["width"])
+                what = f"events message seq {hd['seq']}"
+                self._sensor(hd, what)
                 if ev.size == 0:
                     return
-                last = self.last_t["events"]
-                if last is not None and int(ev["t_us"][0]) < last:
-                    raise WireError("time goes backwards")
-                self._gap(kind, hd["seq"])
-                self.last_t["events"] = int(ev["t_us"][-1])
+                self.counts["lost"] += self.guard.accept_events(ev, what=what, seq=hd["seq"],
+                                                                validated=True).lost
                 t = int(ev["t_us"][0])
-                data = encode_events(ev, height=hd["height"], width=hd["width"],
-                                     seq=self.seq[kind])
+                self.out.add_events(t, encode_events(ev, height=hd["height"],
+                                                     width=hd["width"],
+                                                     seq=self.out.counts["events"]))
                 self.counts["events"] += int(ev.size)
             elif kind == "frames":
                 t, exp, img, hd = decode_frame(payload)
-                self._sensor(hd["height"], hd["width"])
-                last = self.last_t["frames"]
-                if last is not None and t <= last:
-                    raise WireError("frame time goes backwards")
-                self._gap(kind, hd["seq"])
-                self.last_t["frames"] = t
-                data = encode_frame(t, img, exposure_us=exp, seq=self.seq[kind])
+                what = f"frame message seq {hd['seq']}"
+                self._sensor(hd, what)
+                self.counts["lost"] += self.guard.accept_frame(t, what=what, seq=hd["seq"]).lost
+                self.out.add_frame(t, encode_frame(t, img, exposure_us=exp,
+                                                   seq=self.out.counts["frames"]))
                 self.counts["frames"] += 1
             else:
                 _, hd = decode_calibration_maps(payload)
-                t, data = hd["t_us"], payload
+                self.out.add_calibration(hd["t_us"], payload)
                 self.counts["calibrations"] += 1
-        except WireError as exc:
+        except EvcalError as exc:
             self.counts["rejected"] += 1
             if len(self.errors) < 20:
-                self.errors.append(f"{kind}: {exc}")
+                self.errors.append(f"{kind}: {exc.reason}: {exc}")
             return
-        self.w.add_message(self.ch[kind], log_time=_ns(t), publish_time=_ns(t),
-                           sequence=self.seq[kind] & 0xFFFFFFFF, data=data)
-        self.seq[kind] += 1
         self.counts["messages"] += 1
 
     def close(self) -> None:
-        self.w.add_metadata("evcal.record", {
-            "camera": self.camera, "counts_json": json.dumps(self.counts),
-            "errors_json": json.dumps(self.errors)})
-        self.w.finish()
-        self._f.close()
+        self.out.close({"evcal.record": {"camera": self.camera,
+                                         "counts_json": json.dumps(self.counts),
+                                         "errors_json": json.dumps(self.errors)}})
 
 
 class Recorder:

@@ -14,16 +14,18 @@ import threading
 from collections.abc import Callable
 from pathlib import Path
 
+from ..errors import EvcalError
 from . import keys
-from .core import Rejected, Service, ServiceConfig
+from .core import Service, ServiceConfig
+from .outputs import error_reply
 from .state import StateStore
 from .transport import Request, Transport, ZenohOptions, intersects
 
 log = logging.getLogger("evcal.service")
 
 
-def _reply_error(req: Request, exc: Rejected) -> None:
-    req.reply_err(json.dumps({"reason": exc.reason, "message": str(exc)}))
+def _reply_error(req: Request, exc: EvcalError) -> None:
+    req.reply_err(error_reply(exc))
 
 
 def run(
@@ -59,7 +61,7 @@ def run(
             def on_calibration(req: Request) -> None:
                 try:
                     replies = service.query_calibration(req.key, req.parameters)
-                except Rejected as exc:
+                except EvcalError as exc:
                     _reply_error(req, exc)
                     return
                 for key, payload, enc in replies:

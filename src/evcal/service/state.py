@@ -22,6 +22,7 @@ from urllib.parse import quote, unquote
 
 import numpy as np
 
+from ..errors import StateError
 from ..io._util import load_npz_arrays
 
 log = logging.getLogger("evcal.service.state")
@@ -29,10 +30,6 @@ log = logging.getLogger("evcal.service.state")
 SUFFIX = ".npz"
 TMP_MAX_AGE_S = 30.0
 _counter = itertools.count()
-
-
-class StateError(ValueError):
-    """A snapshot that cannot be read."""
 
 
 def _fsync_dir(path: Path) -> None:

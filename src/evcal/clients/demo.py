@@ -76,15 +76,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     t_start = time.monotonic()
     from evcal.events import SensorSize
-    from evcal.lsq import OffEIConfig, offei
+    from evcal.offline import OffEIConfig, offei
     from evcal.online import OnEIConfig
     from evcal.reconstruct import evaluate
-    from evcal.sim.ideal import SimConfig, simulate_ideal
     from evcal.service.cli import setup_logging
     from evcal.service.core import ServiceConfig
     from evcal.service.server import run
-    from evcal.service.testing import endpoint, free_port, wait_for
     from evcal.service.transport import Transport, ZenohOptions
+    from evcal.sim.ideal import SimConfig, simulate_ideal
+    from evcal.testing import endpoint, free_port, wait_for
 
     from .query import fetch_calibration, fetch_json
     from .replay import replay
@@ -102,7 +102,6 @@ def main(argv: Sequence[str] | None = None) -> int:
          f"{cfg.scene!r})")
     sim = simulate_ideal(cfg)
     rec, truth = sim.recording, sim.truth
-    assert rec.frames is not None
     _say(f"{rec.n_events} events, {len(rec.frames)} frames")
 
     ep = endpoint(free_port())

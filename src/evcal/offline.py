@@ -1,0 +1,254 @@
+"""OffEI: offline per-pixel least squares of event sums against frame log-intensity changes.
+
+Between frames ``j`` and ``k`` a pixel obeys (Wang et al.'s model)::
+
+    L_k - L_j = c * SP + b * SE + (r_k - r_j)
+
+with ``SP`` the net polarity and ``SE`` the event count in between, ``L = log(I + offset)``
+and ``r`` the sub-threshold residual (log intensity minus the pixel's reference level) at each
+frame. A plain fit treats ``r_k - r_j`` as noise, but it is not: just after an ON event the
+residual is positive (the intensity was rising), just after an OFF event negative, so it
+correlates with the window's polarity and the plain slope over-estimates ``c`` by a few percent.
+
+Residual correction (default ``"auto"``): if the most recent event before frame ``k`` had
+polarity ``q_k`` (0 if none yet), the residual holds on average ``E[r_k] = lam (q_k c + |q_k| b)``
+for some ``lam`` in [0, 1/2] (1/2 would be a residual uniform over the cell just crossed; in
+textured motion the intensity tends to settle after a burst of events, so it is smaller).
+Moving that expected part into the regressors gives::
+
+    L_k - L_j = c * (SP + lam (q_k - q_j)) + b * (SE + lam (|q_k| - |q_j|)) + noise
+
+``lam`` is estimated from the data: a plain fit first, then the part of its residuals still
+explained by ``q_k - q_j`` (one step, :meth:`NormalEquations.residual_lambda`). All cross
+products are accumulated in one pass, so this costs no second pass over the events.
+
+Windows overlap (every pair ``(k - d, k)``), as in the paper; the standard errors account
+for the overlap by counting ``n / d`` independent equations.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .accumulate import Snapshot, frame_snapshots
+from .calibration import Calibration, OffEIDiagnostics, Reason
+from .errors import CalibrationError
+from .recording import Recording, RecordingError
+from .solver import (
+    NormalEquations,
+    SolveLimits,
+    correction_lambda,
+    log_intensity,
+    solve_normal_equations,
+    usable,
+)
+
+# ----------------------------------------------------------------------------------------
+# OffEI
+
+
+@dataclass(frozen=True, kw_only=True)
+class OffEIConfig:
+    """OffEI parameters.
+
+    ``window_frames`` is ``d``: each equation spans ``d`` frame intervals (the paper used 40
+    at 25 Hz). ``log_offset`` is a number or ``"auto"``.
+    """
+
+    window_frames: int = 5
+    log_offset: float | str = "auto"
+    residual_correction: str | float = "auto"
+    saturation_dn: tuple[float, float] = (0.0, 255.0)
+    limits: SolveLimits = field(default_factory=SolveLimits)
+    offset_grid: tuple[float, float, int] = (1.0, 400.0, 21)
+    offset_pixels: int = 10000
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if int(self.window_frames) < 1:
+            raise ValueError(f"window_frames={self.window_frames} must be >= 1")
+        rc = self.residual_correction
+        if not (rc in ("auto", "off") or (isinstance(rc, (int, float)) and 0 <= rc <= 1)):
+            raise ValueError(f"residual_correction={rc!r} must be 'auto', 'off' or in [0, 1]")
+        if not (self.log_offset == "auto" or (isinstance(self.log_offset, (int, float))
+                                              and self.log_offset >= 0)):
+            raise ValueError(f"log_offset={self.log_offset!r} must be 'auto' or a number >= 0")
+
+
+def _window_terms(s_j: Snapshot, s_k: Snapshot):
+    """``(P, E, Q, A)`` of the window between two snapshots (float64 flat maps)."""
+    on = (s_k.on - s_j.on).astype(np.float64)
+    off = (s_k.off - s_j.off).astype(np.float64)
+    qk = s_k.last_p.astype(np.float64)
+    qj = s_j.last_p.astype(np.float64)
+    return on - off, on + off, qk - qj, np.abs(qk) - np.abs(qj)
+
+
+def _check_frames(rec: Recording, d: int) -> None:
+    n = len(rec.frames)
+    if n < d + 1:
+        raise CalibrationError(
+            f"the recording has {n} frames, fewer than one window of {d} frame intervals needs "
+            f"({d + 1}); use a smaller --window-frames"
+        )
+    if rec.n_events == 0:
+        raise CalibrationError("the recording has no events")
+
+
+def _frame_flags(rec: Recording, saturation_dn: tuple[float, float]) -> np.ndarray:
+    """SATURATED where a pixel is clipped in most frames, CONSTANT where it never changes."""
+    imgs = rec.frames.images
+    n = imgs.shape[0]
+    flags = np.zeros(imgs.shape[1] * imgs.shape[2], np.uint8)
+    clipped = np.zeros(flags.size, np.int32)
+    lo = np.full(flags.size, np.inf)
+    hi = np.full(flags.size, -np.inf)
+    for k in range(n):  # loop over frames, vectorised over pixels
+        f = imgs[k].ravel()
+        clipped += ~usable(f, saturation_dn)
+        lo = np.minimum(lo, f)
+        hi = np.maximum(hi, f)
+    flags[hi == lo] = Reason.CONSTANT
+    flags[clipped > n // 2] = Reason.SATURATED
+    return flags
+
+
+def offei(rec: Recording, config: OffEIConfig | None = None) -> Calibration:
+    """Offline events + intensity calibration (OffEI) of every pixel of ``rec``."""
+    cfg = config or OffEIConfig()
+    d = int(cfg.window_frames)
+    _check_frames(rec, d)
+    if cfg.log_offset == "auto":
+        offset, offset_info = estimate_log_offset(rec, cfg)
+    else:
+        offset, offset_info = float(cfg.log_offset), {"method": "given"}
+    ne = NormalEquations(rec.sensor.n_pixels)
+    ring: deque[tuple[Snapshot, np.ndarray, np.ndarray]] = deque(maxlen=d + 1)
+    last: Snapshot | None = None
+    for snap in frame_snapshots(rec):
+        img = snap.image.ravel()
+        ring.append((snap, log_intensity(img, offset), usable(img, cfg.saturation_dn)))
+        last = snap
+        if len(ring) == d + 1:
+            s_j, l_j, u_j = ring[0]
+            s_k, l_k, u_k = ring[-1]
+            p, e, q, a = _window_terms(s_j, s_k)
+            ne.add(p, e, q, a, l_k - l_j, (u_j & u_k).astype(np.float64))
+    assert last is not None
+    # Events used: those between the first and the last frame.
+    first_t, last_t = int(rec.frames.t_us[0]), int(rec.frames.t_us[-1])
+    n_events = _events_per_pixel(rec, first_t, last_t)
+    lam = correction_lambda(ne, cfg.residual_correction, cfg.limits, n_events)
+    diagnostics = OffEIDiagnostics(
+        residual_lambda=lam, window_frames=d, residual_correction=cfg.residual_correction,
+        log_offset_estimation=offset_info, n_frames=len(rec.frames))
+    return solve_normal_equations(
+        ne, n_events, rec.sensor.shape, limits=cfg.limits, overlap=float(d), log_offset=offset,
+        method="offei", diagnostics=diagnostics, extra_reason=_frame_flags(rec, cfg.saturation_dn),
+        residual_lambda=lam,
+    )
+
+
+def _events_per_pixel(rec: Recording, t0_us: int, t1_us: int) -> np.ndarray:
+    ev = rec.events_between(t0_us, t1_us)
+    idx = ev["y"].astype(np.int64) * rec.sensor.width + ev["x"]
+    return np.bincount(idx, minlength=rec.sensor.n_pixels)
+
+
+# ----------------------------------------------------------------------------------------
+# log offset
+
+
+def _unexplained_fraction(sp: np.ndarray, se: np.ndarray, dl: np.ndarray, w: np.ndarray,
+                          dq: np.ndarray) -> float:
+    """Mean over pixels of RSS / TSS of the per-pixel fit ``dL ~ P + E + Q``.
+
+    Columns are pixels. ``Q`` (change of last polarity) takes up the sub-threshold residual
+    so that it does not pull the offset.
+    """
+    x = np.stack([sp, se, dq], axis=-1)  # windows, pixels, 3
+    xw = x * w[..., None]
+    ata = np.einsum("wpi,wpj->pij", xw, x)
+    aty = np.einsum("wpi,wp->pi", xw, dl)
+    yy = (w * dl * dl).sum(0)
+    ata += np.eye(3) * 1e-9 * np.trace(ata, axis1=1, axis2=2)[:, None, None]
+    ok = (np.linalg.cond(ata) < 1e8) & (yy > 0)
+    sol = np.linalg.solve(np.where(ok[:, None, None], ata, np.eye(3)),
+                          np.where(ok[:, None], aty, 0.0)[..., None])[..., 0]
+    rss = yy - (sol * aty).sum(-1)
+    frac = np.where(ok, np.maximum(rss, 0.0) / np.where(ok, yy, 1.0), np.nan)
+    return float(np.nanmean(frac))
+
+
+def estimate_log_offset(rec: Recording, cfg: OffEIConfig) -> tuple[float, dict]:
+    """The offset ``o`` for which ``log(I + o)`` is best explained by the events.
+
+    For each candidate on a log-spaced grid the per-pixel OffEI fit is solved on a sample of
+    the busiest pixels; the criterion is the mean unexplained fraction ``RSS / sum(dL^2)``,
+    which does not depend on the overall scale of ``dL`` (a larger offset shrinks every
+    ``dL``). The grid minimum is refined by a parabola through its neighbours in ``log o``.
+    """
+    d = int(cfg.window_frames)
+    _check_frames(rec, d)
+    n_all = _events_per_pixel(rec, int(rec.frames.t_us[0]), int(rec.frames.t_us[-1]))
+    busy = np.flatnonzero(n_all >= cfg.limits.min_events)
+    if busy.size == 0:
+        raise CalibrationError("no pixel has enough events to estimate the log offset")
+    rng = np.random.default_rng(cfg.seed)
+    pix = np.sort(rng.choice(busy, size=min(cfg.offset_pixels, busy.size), replace=False))
+    sps, ses, dqs, f_j, f_k, ws = [], [], [], [], [], []
+    ring: deque[Snapshot] = deque(maxlen=d + 1)
+    for snap in frame_snapshots(rec):
+        ring.append(snap)
+        if len(ring) == d + 1:
+            s_j, s_k = ring[0], ring[-1]
+            sp, se, dq, _ = _window_terms(s_j, s_k)
+            dqs.append(dq[pix])
+            ij = s_j.image.ravel()[pix]
+            ik = s_k.image.ravel()[pix]
+            sps.append(sp[pix])
+            ses.append(se[pix])
+            f_j.append(ij)
+            f_k.append(ik)
+            ws.append(usable(ij, cfg.saturation_dn) & usable(ik, cfg.saturation_dn))
+    sp_a, se_a, dq_a = np.asarray(sps), np.asarray(ses), np.asarray(dqs)
+    fj = np.asarray(f_j, np.float64)
+    fk = np.asarray(f_k, np.float64)
+    w = np.asarray(ws, np.float64)
+    lo, hi, n = cfg.offset_grid
+    grid = np.geomspace(lo, hi, int(n))
+
+    def crit(o: float) -> float:
+        dl = np.log(np.maximum(fk, 0) + o) - np.log(np.maximum(fj, 0) + o)
+        return _unexplained_fraction(sp_a, se_a, dl, w, dq_a)
+
+    vals = np.array([crit(o) for o in grid])
+    i = int(np.nanargmin(vals))
+    best = float(grid[i])
+    if 0 < i < len(grid) - 1:
+        x = np.log(grid[i - 1 : i + 2])
+        y = vals[i - 1 : i + 2]
+        denom = (x[0] - x[1]) * (x[0] - x[2]) * (x[1] - x[2])
+        a = (x[2] * (y[1] - y[0]) + x[1] * (y[0] - y[2]) + x[0] * (y[2] - y[1])) / denom
+        bq = (x[2] ** 2 * (y[0] - y[1]) + x[1] ** 2 * (y[2] - y[0])
+              + x[0] ** 2 * (y[1] - y[2])) / denom
+        if a > 0:
+            xv = -bq / (2 * a)
+            if x[0] <= xv <= x[2]:
+                best = float(np.exp(xv))
+    at_edge = i in (0, len(grid) - 1)
+    info = {
+        "method": "auto",
+        "criterion": "mean unexplained fraction of per-pixel OffEI fits",
+        "pixels": int(pix.size),
+        "windows": int(sp_a.shape[0]),
+        "grid": grid.round(3).tolist(),
+        "criterion_values": np.round(vals, 6).tolist(),
+        "at_grid_edge": bool(at_edge),
+    }
+    if sp_a.shape[0] == 0:
+        raise RecordingError("no windows to estimate the log offset from")
+    return best, info

@@ -1,0 +1,347 @@
+"""One camera as a pure state machine: decoded messages in, output records out.
+
+:class:`CameraState` holds everything the service knows of one camera — its
+:class:`~evcal.stream.StreamGuard` (sensor, sequence numbers, time order), its
+:class:`~evcal.online.OnlineCalibrator`, its counters and its latest calibration — and nothing
+else: no threads, no locks, no network, no reference to the service. The ingest layer
+(:mod:`evcal.service.ingest`) calls :meth:`CameraState.on_events` and
+:meth:`CameraState.on_frame` from one thread per camera and hands the returned records
+(:class:`CalibrationUpdate`, :class:`Rejection`, :class:`Observed`) to the outputs layer
+(:mod:`evcal.service.outputs`), which encodes and publishes them. Wall-clock times come in as
+arguments, so every rule here is tested without threads or sleeps.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from collections import deque
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+
+from ..calibration import Calibration
+from ..errors import ErrorReason, EvcalError, StateError
+from ..events import SensorSize
+from ..io.wire import encode_calibration
+from ..online import OnEIConfig, OnlineCalibrator
+from ..stream import StreamGuard
+
+log = logging.getLogger("evcal.service")
+
+STATE_FORMAT = "evcal.service.camera.v1"
+# the steps of status.latency_ms.parts_median, in order
+LATENCY_PARTS = ("queue", "estimator", "calibration", "encode", "publish")
+
+DecodedEvents = tuple[np.ndarray, dict[str, Any]]
+DecodedFrame = tuple[int, int, np.ndarray, dict[str, Any]]
+
+
+class Rejected(EvcalError):
+    """An input message refused with a reason code (counted, published on ``errors``)."""
+
+    default_reason = ErrorReason.REJECTED
+
+
+# ----------------------------------------------------------------------------- output records
+
+
+@dataclass(frozen=True)
+class CalibrationUpdate:
+    """A new calibration to publish (the message is encoded once, here)."""
+
+    camera: str
+    t_us: int  # sensor time of the frame that triggered it
+    seq: int  # calibration stream counter
+    calibration: Calibration
+    message: bytes
+    t_recv_s: float  # monotonic arrival of the frame
+    t_start_s: float  # monotonic start of its processing
+    t_fed_s: float  # OnEI done
+    t_cal_s: float  # maps built
+    t_enc_s: float  # encoded
+
+
+@dataclass(frozen=True)
+class Rejection:
+    """A refused input (already counted in the camera's counters)."""
+
+    camera: str
+    stream: str  # "events" | "frames"
+    reason: str
+    message: str
+
+
+@dataclass(frozen=True)
+class Observed:
+    """A call for the recorder (``events``, ``frame`` or ``updated``), in stream order."""
+
+    method: str
+    args: tuple[Any, ...]
+
+
+Output = CalibrationUpdate | Rejection | Observed
+
+
+# ----------------------------------------------------------------------------- counters
+
+
+class RateWindow:
+    """Events per second of wall time over the last ``window_s``."""
+
+    def __init__(self, window_s: float = 2.0) -> None:
+        self.window_s = window_s
+        self._items: deque[tuple[float, int]] = deque()
+        self._sum = 0
+
+    def add(self, t: float, n: int) -> None:
+        self._items.append((t, n))
+        self._sum += n
+        self._prune(t)
+
+    def _prune(self, now: float) -> None:
+        while self._items and self._items[0][0] < now - self.window_s:
+            self._sum -= self._items.popleft()[1]
+
+    def rate(self, now: float) -> float:
+        self._prune(now)
+        return self._sum / self.window_s
+
+
+def _per_stream() -> dict[str, int]:
+    return {"events": 0, "frames": 0}
+
+
+@dataclass
+class Counters:
+    """Everything counted per camera (published in ``status``, kept in snapshots).
+
+    ``events`` counts events and ``event_messages`` messages; ``dropped`` counts messages the
+    service's own queue refused, ``lost`` messages missing in the publisher's sequence numbers.
+    """
+
+    events: int = 0
+    event_messages: int = 0
+    frames: int = 0
+    updates: int = 0
+    bytes_in: int = 0
+    dropped: dict[str, int] = field(default_factory=_per_stream)
+    lost: dict[str, int] = field(default_factory=_per_stream)
+    seq_restarts: dict[str, int] = field(default_factory=_per_stream)
+    errors: dict[str, int] = field(default_factory=dict)
+    errors_published: int = 0
+    errors_suppressed: int = 0
+
+    @property
+    def errors_total(self) -> int:
+        return int(sum(self.errors.values()))
+
+
+# ----------------------------------------------------------------------------- the camera
+
+
+class CameraState:
+    """One camera's stream checks, OnEI state, counters and latest calibration."""
+
+    def __init__(self, camera_id: str, *, onei: OnEIConfig | None = None,
+                 max_pixels: int | None = None, observe: bool = False) -> None:
+        self.id = camera_id
+        self.onei = onei or OnEIConfig()
+        self.guard = StreamGuard(max_pixels=max_pixels)
+        self.calibrator: OnlineCalibrator | None = None
+        self.counters = Counters()
+        self.calibration_seq = 0  # the next calibration message's seq
+        self.calibration_msg: bytes | None = None  # last published, all fields
+        self.calibration_t_us: int | None = None
+        self.calibration: Calibration | None = None
+        self.last_update_wall: float | None = None
+        self.latency_ms: deque[float] = deque(maxlen=200)
+        self.latency_parts_ms: deque[tuple[float, ...]] = deque(maxlen=200)
+        self.rate = RateWindow()
+        self.dirty = False  # changed since the last snapshot
+        self.observe = observe  # emit Observed records for a recorder
+
+    @property
+    def sensor(self) -> SensorSize | None:
+        return self.guard.sensor
+
+    # -- inputs --------------------------------------------------------------------------------
+
+    def _sensor(self, header: dict[str, Any], what: str) -> OnlineCalibrator:
+        try:
+            sensor = self.guard.check_sensor(header["height"], header["width"], what)
+        except EvcalError as exc:
+            raise Rejected(f"{exc}; restart the service (or use another camera id) for a new "
+                           "sensor" if exc.reason == ErrorReason.SENSOR_CHANGED else str(exc),
+                           exc.reason) from None
+        if self.calibrator is None:
+            self.calibrator = OnlineCalibrator(sensor, self.onei)
+            log.info("camera %s: %s sensor", self.id, sensor)
+        return self.calibrator
+
+    def _seq(self, kind: str, seq: int, calibrator: OnlineCalibrator) -> None:
+        check = self.guard.check_seq(kind, seq)
+        if check.lost:
+            self.counters.lost[kind] += check.lost
+        if check.restart:
+            self.counters.seq_restarts[kind] += 1
+        if check.gap and kind == "events":
+            # events went missing (or the publisher restarted): no OnEI equation may span
+            # this interval, its counts are incomplete
+            calibrator.mark_gap()
+
+    def _accept(self, kind: str, header: dict[str, Any], payload: Any) -> OnlineCalibrator:
+        """The stream checks of one message (sensor, order, sequence number), in that order;
+        ``payload`` is the events (``kind="events"``) or the frame's ``t_us``."""
+        what = f"{'events' if kind == 'events' else 'frame'} message seq {header['seq']}"
+        cal = self._sensor(header, what)
+        try:
+            if kind == "events":
+                self.guard.check_event_order(payload, what)
+            else:
+                self.guard.check_frame_order(payload, what)
+        except EvcalError as exc:
+            raise Rejected(str(exc), exc.reason) from None
+        self._seq(kind, header["seq"], cal)
+        return cal
+
+    def on_events(self, decoded: DecodedEvents, nbytes: int, *, now_s: float
+                  ) -> list[Output]:
+        """A decoded events message (the decoder validated the chunk against its header's
+        size); raises :class:`Rejected`."""
+        ev, header = decoded
+        cal = self._accept("events", header, ev)
+        self.guard.note_events(ev)
+        cal.feed_events(ev, checked=True)
+        c = self.counters
+        c.events += int(ev.size)
+        c.event_messages += 1
+        c.bytes_in += nbytes
+        self.rate.add(now_s, int(ev.size))
+        self.dirty = True
+        if self.observe and ev.size:
+            return [Observed("events", (self.id, ev))]
+        return []
+
+    def on_frame(self, decoded: DecodedFrame, nbytes: int, *, t_recv_s: float,
+                 t_start_s: float) -> list[Output]:
+        """A decoded frame message; raises :class:`Rejected`."""
+        t_us, exposure_us, image, header = decoded
+        what = f"frame message seq {header['seq']}"
+        cal = self._accept("frames", header, t_us)
+        try:
+            updated = cal.feed_frame(t_us, image, exposure_us)
+        except EvcalError as exc:
+            raise Rejected(f"{what}: {exc}", ErrorReason.REJECTED) from None
+        self.guard.note_frame(t_us)
+        out: list[Output] = []
+        if updated:
+            out.append(self._update(cal, t_us, t_recv_s, t_start_s))
+        self.counters.frames += 1
+        self.counters.bytes_in += nbytes
+        self.dirty = True
+        if self.observe:
+            out.append(Observed("frame", (self.id, t_us, image)))
+        return out
+
+    def _update(self, cal_state: OnlineCalibrator, t_us: int, t_recv_s: float,
+                t_start_s: float) -> CalibrationUpdate:
+        """The calibration of the update a frame triggered, built and encoded once: the
+        published message, the query cache and the recorder share it."""
+        t_fed = time.monotonic()
+        cal = cal_state.calibration()
+        t_cal = time.monotonic()
+        msg = encode_calibration(cal, t_us=t_us, seq=self.calibration_seq)
+        t_enc = time.monotonic()
+        upd = CalibrationUpdate(self.id, t_us, self.calibration_seq, cal, msg, t_recv_s,
+                                t_start_s, t_fed, t_cal, t_enc)
+        self.calibration_seq += 1
+        self.calibration = cal
+        self.calibration_msg = msg
+        self.calibration_t_us = t_us
+        self.last_update_wall = time.time()
+        self.counters.updates += 1
+        return upd
+
+    def published(self, upd: CalibrationUpdate, t_pub_s: float) -> None:
+        """Record the latency of a published update (the outputs layer calls this)."""
+        self.latency_ms.append((t_pub_s - upd.t_recv_s) * 1e3)
+        # where the time went: queue wait, OnEI (fold + re-solve), maps, encode, publish
+        self.latency_parts_ms.append((upd.t_start_s - upd.t_recv_s, upd.t_fed_s - upd.t_start_s,
+                                      upd.t_cal_s - upd.t_fed_s, upd.t_enc_s - upd.t_cal_s,
+                                      t_pub_s - upd.t_enc_s))
+
+    def reject(self, stream: str, exc: EvcalError) -> Rejection:
+        """Count a refused input; the record says what to publish."""
+        reason = str(exc.reason)
+        self.counters.errors[reason] = self.counters.errors.get(reason, 0) + 1
+        return Rejection(self.id, stream, reason, str(exc))
+
+    # -- read-outs -----------------------------------------------------------------------------
+
+    def latency_parts(self) -> dict[str, float] | None:
+        """Median ms of each step between a frame's arrival and its calibration's publication
+        (over the last 200 updates)."""
+        if not self.latency_parts_ms:
+            return None
+        med = np.median(np.asarray(self.latency_parts_ms, np.float64), axis=0) * 1e3
+        return {name: float(v) for name, v in zip(LATENCY_PARTS, med, strict=True)}
+
+    def current_calibration(self) -> Calibration | None:
+        """The latest calibration (rebuilt from the stored message after a restore)."""
+        if self.calibration is None and self.calibration_msg is not None:
+            from ..io.wire import decode_calibration  # noqa: PLC0415
+
+            self.calibration, _ = decode_calibration(self.calibration_msg)
+        return self.calibration
+
+    # -- snapshots -----------------------------------------------------------------------------
+
+    def state_arrays(self) -> dict[str, np.ndarray] | None:
+        """Everything to resume this camera (None before its first message)."""
+        if self.calibrator is None:
+            return None
+        meta = {
+            "format": STATE_FORMAT, "camera": self.id, "sensor": str(self.sensor),
+            "next_seq": self.guard.next_seq, "guard": self.guard.state(),
+            "calibration_seq": self.calibration_seq,
+            "calibration_t_us": self.calibration_t_us, "counters": asdict(self.counters),
+            "saved_wall": time.time(),
+        }
+        arrays = {f"est__{k}": v for k, v in self.calibrator.state_dict().items()}
+        arrays["service_json"] = np.array(json.dumps(meta))
+        arrays["calibration_msg"] = np.frombuffer(self.calibration_msg or b"", np.uint8)
+        return arrays
+
+    def restore(self, arrays: dict[str, np.ndarray]) -> None:
+        """Resume from :meth:`state_arrays` (:class:`~evcal.errors.StateError` if it is not a
+        snapshot of this version)."""
+        try:
+            meta = json.loads(str(arrays["service_json"]))
+            if meta.get("format") != STATE_FORMAT:
+                raise StateError(f"unknown snapshot format {meta.get('format')!r}")
+            est = {k[5:]: v for k, v in arrays.items() if k.startswith("est__")}
+            calibrator = OnlineCalibrator.from_state(est)
+            if "guard" in meta:
+                guard = StreamGuard.from_state(meta["guard"], max_pixels=self.guard.max_pixels)
+            else:  # snapshots written before the guard was saved
+                guard = StreamGuard(calibrator.sensor, max_pixels=self.guard.max_pixels)
+                guard.next_seq = {k: meta["next_seq"].get(k) for k in ("events", "frames")}
+                guard.last_event_t_us = calibrator.last_event_t_us
+                guard.last_frame_t_us = calibrator.last_frame_t_us
+            guard.sensor = calibrator.sensor
+            counters = Counters(**{k: meta["counters"][k] for k in Counters.__dataclass_fields__
+                                   if k in meta["counters"]})
+            calibration_seq = int(meta["calibration_seq"])
+            calibration_t_us = meta["calibration_t_us"]
+            msg = arrays["calibration_msg"].tobytes()
+        except (KeyError, TypeError, AttributeError, ValueError) as exc:
+            if isinstance(exc, StateError):
+                raise
+            raise StateError(f"not a camera snapshot: {type(exc).__name__}: {exc}") from None
+        self.calibrator, self.guard, self.counters = calibrator, guard, counters
+        self.calibration_seq, self.calibration_t_us = calibration_seq, calibration_t_us
+        self.calibration_msg = msg or None
+        self.calibration = None

@@ -1,0 +1,226 @@
+"""What the service says: status documents, query replies, error messages, the recorder.
+
+Every calibration leaves through the one calibration codec: :func:`evcal.io.wire.
+encode_calibration` for msgpack messages (published and queried), :func:`evcal.io.calibfile.
+calibration_npz_bytes` for ``format=npz`` replies (the layout of ``evcal calibrate --out``).
+The functions here read a camera's state (under its lock) and build payloads; they never
+change the state. The recorder runs in a thread of its own (:class:`ObserverThread`), after
+publication and never holding it.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import numpy as np
+
+from ..calibration import check_map_names
+from ..errors import ErrorReason, EvcalError
+from ..io.calibfile import calibration_npz_bytes
+from ..io.wire import encode_calibration
+from . import keys
+from .camera import CameraState, Rejected, Rejection
+from .ingest import BoundedQueue, Camera
+
+log = logging.getLogger("evcal.service")
+
+QUERY_FORMATS = ("msgpack", "npz")
+
+
+# ----------------------------------------------------------------------------- status
+
+
+def camera_status(cam: Camera, *, now_s: float | None = None) -> dict[str, Any]:
+    """The ``status`` document of one camera (call with ``cam.lock`` held)."""
+    st: CameraState = cam.state
+    cam.fold_dropped()
+    c = st.counters
+    lat = np.asarray(st.latency_ms, np.float64)
+    cal = st.calibrator
+    now = time.monotonic() if now_s is None else now_s
+    return {
+        "camera": st.id,
+        "sensor": str(st.sensor) if st.sensor else None,
+        "events": c.events,
+        "event_messages": c.event_messages,
+        "frames": c.frames,
+        "updates": c.updates,
+        "bytes_in": c.bytes_in,
+        "event_rate_hz": st.rate.rate(now),
+        "dropped": dict(c.dropped),
+        "lost": dict(c.lost),
+        "seq_restarts": dict(c.seq_restarts),
+        "errors": dict(c.errors),
+        "errors_total": c.errors_total,
+        "errors_suppressed": c.errors_suppressed,
+        "queue_bytes": cam.queue.nbytes,
+        "queue_messages": len(cam.queue),
+        "calibration_seq": st.calibration_seq - 1 if st.calibration_msg else None,
+        "last_update_t_us": st.calibration_t_us,
+        "last_update_wall": st.last_update_wall,
+        "latency_ms": {
+            "last": float(lat[-1]) if lat.size else None,
+            "median": float(np.median(lat)) if lat.size else None,
+            "mean": float(lat.mean()) if lat.size else None,
+            "p95": float(np.percentile(lat, 95)) if lat.size else None,
+            "max": float(lat.max()) if lat.size else None,
+            "parts_median": st.latency_parts(),
+        },
+        "valid_fraction": (st.calibration.valid_fraction
+                           if st.calibration is not None else None),
+        "estimator": cal.status() if cal is not None else None,
+    }
+
+
+# ----------------------------------------------------------------------------- queries
+
+
+def parse_query(params: Mapping[str, str]) -> tuple[str, list[str] | None]:
+    """``(format, fields)`` of a calibration query (:class:`Rejected` ``bad_query``)."""
+    fmt = params.get("format", "msgpack")
+    if fmt not in QUERY_FORMATS:
+        raise Rejected(f"format={fmt!r}: expected one of {', '.join(QUERY_FORMATS)}",
+                       ErrorReason.BAD_QUERY)
+    fields = None
+    if params.get("fields"):
+        try:
+            fields = check_map_names(f for f in params["fields"].split(",") if f)
+        except EvcalError as exc:
+            raise Rejected(str(exc), ErrorReason.BAD_QUERY) from None
+    return fmt, fields
+
+
+def calibration_reply(st: CameraState, fmt: str, fields: list[str] | None
+                      ) -> tuple[bytes, str]:
+    """The camera's current calibration as ``(payload, encoding)`` (call with its lock held).
+
+    Raises :class:`Rejected` ``no_calibration`` before the first update.
+    """
+    msg = st.calibration_msg
+    if msg is None:
+        raise Rejected(f"camera {st.id!r} has no calibration yet ({st.counters.frames} frames, "
+                       f"{st.counters.events} events received)", ErrorReason.NO_CALIBRATION)
+    if fmt == "msgpack" and fields is None:
+        return msg, keys.ENC_CALIBRATION
+    cal = st.current_calibration()
+    assert cal is not None  # msg is not None
+    t_us = int(st.calibration_t_us or 0)
+    if fmt == "msgpack":
+        return (encode_calibration(cal, t_us=t_us, seq=st.calibration_seq - 1, fields=fields),
+                keys.ENC_CALIBRATION)
+    return (calibration_npz_bytes(cal, fields, extra={"t_us": t_us}),
+            keys.ENC_CALIBRATION_NPZ)
+
+
+def error_reply(exc: EvcalError) -> str:
+    """The JSON body of an error reply to a query."""
+    return json.dumps({"reason": str(exc.reason), "message": str(exc)})
+
+
+# ----------------------------------------------------------------------------- errors
+
+
+class ErrorLimiter:
+    """A token bucket: at most ``rate_hz`` error publications per second (per camera)."""
+
+    def __init__(self, rate_hz: float) -> None:
+        self.rate_hz = float(rate_hz)
+        self._tokens = self.rate_hz
+        self._last = time.monotonic()
+
+    def allow(self, now_s: float | None = None) -> bool:
+        now = time.monotonic() if now_s is None else now_s
+        self._tokens = min(self.rate_hz, self._tokens + (now - self._last) * self.rate_hz)
+        self._last = now
+        if self._tokens < 1.0:
+            return False
+        self._tokens -= 1.0
+        return True
+
+
+def error_body(rec: Rejection, st: CameraState | None) -> bytes:
+    """The JSON published on ``<prefix>/<camera>/errors`` for one rejected input."""
+    body: dict[str, Any] = {"camera": rec.camera, "stream": rec.stream, "reason": rec.reason,
+                            "message": rec.message, "wall_time": time.time()}
+    if st is not None:
+        body["errors_total"] = st.counters.errors_total
+        body["suppressed"] = st.counters.errors_suppressed
+    return json.dumps(body).encode()
+
+
+# ----------------------------------------------------------------------------- the recorder
+
+
+class ObserverThread:
+    """Runs the recorder's calls in a thread of its own, off the cameras' publication path.
+
+    A camera worker only appends ``(method, args, nbytes)`` to a queue bounded by
+    ``max_bytes`` of referenced arrays (the events, frames and maps are not copied: the worker
+    never modifies them after the call); when the recorder falls behind, calls are dropped and
+    counted (``dropped``), never waited for, and the recorder is told with
+    ``discard(camera, n)``.
+    """
+
+    def __init__(self, call: Callable[..., None], *, max_bytes: int = 256 << 20) -> None:
+        self._call = call
+        self._queue = BoundedQueue(max_bytes, lambda item: item[2])
+        self.dropped = 0
+        self._dropped_by_camera: dict[str, int] = {}
+        self._lock = threading.Lock()  # one submitter at a time: discards stay in order
+        self.thread = threading.Thread(target=self._run, name="evcal-recorder", daemon=True)
+        self.thread.start()
+
+    @property
+    def nbytes(self) -> int:
+        return self._queue.used
+
+    @property
+    def max_bytes(self) -> int:
+        return self._queue.limit
+
+    @max_bytes.setter
+    def max_bytes(self, value: int) -> None:
+        self._queue.limit = int(value)
+
+    def submit(self, method: str, args: tuple[Any, ...]) -> bool:
+        """Queue one call; False (and counted) when the recorder is too far behind."""
+        camera = str(args[0])
+        nbytes = sum(int(a.nbytes) for a in args if isinstance(a, np.ndarray))
+        if method == "updated":
+            nbytes += sum(int(a.nbytes) for a in args[1].maps().values())
+        with self._lock:
+            if self._queue.closed:
+                return False
+            lost = self._dropped_by_camera.get(camera, 0)
+            if lost and self._queue.put(("discard", (camera, lost), 0), block=False):
+                del self._dropped_by_camera[camera]
+            if self._queue.put((method, args, nbytes), block=False):
+                return True
+            if not self._queue.closed:
+                self.dropped += 1
+                self._dropped_by_camera[camera] = self._dropped_by_camera.get(camera, 0) + 1
+            return False
+
+    def _run(self) -> None:
+        while True:
+            item = self._queue.get(0.5)
+            if item is None:
+                if self._queue.closed:
+                    return  # closed and drained
+                continue
+            method, args, _ = item
+            self._call(method, *args)
+
+    def close(self, timeout_s: float = 30.0) -> None:
+        """Process what is queued, then stop the thread."""
+        self._queue.close()
+        self.thread.join(timeout_s)
+
+
+__all__ = ["ErrorLimiter", "ObserverThread", "calibration_reply", "camera_status",
+           "error_body", "error_reply", "parse_query"]

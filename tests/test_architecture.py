@@ -1,0 +1,138 @@
+"""The layering contract (ARCHITECTURE.md), checked on the source and in a fresh interpreter.
+
+- the core (everything but ``service``, ``clients`` and the two display modules) never imports
+  zenoh, rerun or matplotlib, at module level or inside a function;
+- ``evcal.service.transport`` is the only module importing zenoh;
+- rerun is imported by exactly one module for the service (``service/recording.py``) and
+  one for the gap workflow (``gap/rrd.py``); matplotlib only by ``gap/report.py``;
+- importing ``evcal`` and running its core loads none of them;
+- the version is declared once (pyproject) and the package reports it.
+"""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+import evcal
+
+SRC = Path(evcal.__file__).resolve().parent
+HEAVY = ("zenoh", "rerun", "matplotlib")
+ALLOWED = {
+    "zenoh": {"service/transport.py"},
+    "rerun": {"service/recording.py", "gap/rrd.py"},
+    "matplotlib": {"gap/report.py"},
+}
+
+
+def _imports(path: Path) -> set[str]:
+    """Top-level package names a module imports anywhere in its body."""
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    out: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            out.update(a.name.split(".")[0] for a in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            out.add(node.module.split(".")[0])
+    return out
+
+
+def _modules() -> list[tuple[str, Path]]:
+    return sorted((p.relative_to(SRC).as_posix(), p) for p in SRC.rglob("*.py"))
+
+
+def test_the_source_tree_is_where_the_contract_expects_it():
+    names = {rel for rel, _ in _modules()}
+    assert {"service/transport.py", "service/recording.py", "gap/rrd.py",
+            "gap/report.py", "service/camera.py", "service/ingest.py",
+            "service/outputs.py", "stream.py", "solver.py", "offline.py"} <= names
+
+
+@pytest.mark.parametrize("package", HEAVY)
+def test_heavy_imports_live_in_their_one_module(package):
+    users = {rel for rel, path in _modules() if package in _imports(path)}
+    assert users == ALLOWED[package], f"{package} is imported by {sorted(users)}"
+
+
+def test_the_core_never_imports_the_service_layers():
+    core = [(rel, p) for rel, p in _modules()
+            if not rel.startswith(("service/", "clients/")) and rel != "cli.py"]
+    assert len(core) > 20
+    for rel, path in core:
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom):
+                mod = node.module or ""
+                target = mod if node.level == 0 else "." * node.level + mod
+                parts = target.split(".")
+                assert "service" not in parts, f"{rel} imports {target}"
+                assert "clients" not in parts, f"{rel} imports {target}"
+
+
+def test_core_runs_without_the_service_extras():
+    # a fresh interpreter where zenoh, rerun and matplotlib cannot be imported at all: the
+    # core imports, simulates, calibrates, evaluates and writes files
+    code = """
+import sys
+class Block:
+    def find_spec(self, name, path=None, target=None):
+        if name.split('.')[0] in ('zenoh', 'rerun', 'matplotlib'):
+            raise ImportError(f'{name} is blocked in this test')
+sys.meta_path.insert(0, Block())
+import tempfile, pathlib
+import evcal
+from evcal.sim.ideal import SimConfig, simulate_ideal
+rec = simulate_ideal(SimConfig(height=16, width=20, duration_s=0.4, seed=3)).recording
+cal = evcal.calibrate(rec, 'offei', window_frames=2)
+res = evcal.evaluate(rec, cal, frames_per_image=2)
+d = pathlib.Path(tempfile.mkdtemp())
+evcal.save_calibration(cal, d / 'c.npz'); evcal.write_recording(rec, d / 'r.mcap')
+assert evcal.load_calibration(d / 'c.npz').shape == (16, 20)
+assert evcal.open_recording(d / 'r.mcap').n_events == rec.n_events
+loaded = sorted(m for m in sys.modules if m.split('.')[0] in ('zenoh', 'rerun', 'matplotlib'))
+assert not loaded, loaded
+print('ok', res.n_images)
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.startswith("ok ")
+
+
+def test_version_is_declared_once():
+    root = SRC.parents[1]
+    pyproject = root / "pyproject.toml"
+    if not pyproject.is_file():
+        pytest.skip("not running from a source checkout")
+    text = pyproject.read_text(encoding="utf-8")
+    declared = next(line.split("=")[1].strip().strip('"') for line in text.splitlines()
+                    if line.startswith("version ="))
+    assert evcal.__version__ == declared
+    for rel, path in _modules():
+        src = path.read_text(encoding="utf-8")
+        assert f'"{declared}"' not in src, rel
+        assert f"'{declared}'" not in src, rel
+
+
+def test_public_api_is_at_package_level():
+    for name in ("offei", "onei", "OnlineCalibrator", "offe", "brandli", "calibrate",
+                 "open_recording", "load_calibration", "save_calibration", "evaluate",
+                 "simulate", "run_gap", "EvcalError", "StreamGuard", "frame_intervals"):
+        assert name in evcal.__all__, name
+        assert hasattr(evcal, name), name
+    # one error base: every error class the package defines derives from it
+    for rel, path in _modules():
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ClassDef) and node.name.endswith("Error"):
+                mod = "evcal." + rel[:-3].replace("/", ".")
+                cls = getattr(__import__(mod, fromlist=["x"]), node.name, None)
+                if cls is None or not issubclass(cls, Exception):
+                    continue
+                if rel.startswith(("service/transport", "clients/", "cli")):
+                    continue  # network and command-line failures, not input errors
+                assert issubclass(cls, evcal.EvcalError), f"{mod}.{node.name}"
