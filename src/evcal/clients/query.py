@@ -39,6 +39,20 @@ def _errors(replies: list[Reply]) -> str:
     return "; ".join(msgs)
 
 
+def _nobody(t: Transport, prefix: str, camera: str, key: str, timeout_s: float) -> str:
+    """Why nothing answered: no service reachable, or services that do not know the camera."""
+    try:
+        alive = t.alive(keys.service_token_key(prefix), timeout_s=min(timeout_s, 2.0))
+    except Exception:  # noqa: BLE001 - a diagnosis only
+        alive = []
+    if not alive:
+        return (f"no service answered on {key} within {timeout_s:g} s and none is reachable "
+                f"under {prefix!r} (is `evcal serve` running, with the same --prefix?)")
+    names = ", ".join(sorted(a.rsplit("/", 1)[-1] for a in alive))
+    return (f"{len(alive)} service instance(s) are running ({names}) but none has camera "
+            f"{camera!r} (see `evcal query --list`)")
+
+
 def fetch_calibration_npz(t: Transport, camera: str, *, prefix: str = "evcal",
                           timeout_s: float = 5.0) -> tuple[bytes, dict[str, Any]]:
     """The newest ``.npz`` bytes of ``camera``'s calibration and its params."""
@@ -58,9 +72,7 @@ def fetch_calibration_npz(t: Transport, camera: str, *, prefix: str = "evcal",
         if best is None or t_us > best[0]:
             best = (t_us, r.payload, params)
     if best is None:
-        why = _errors(replies) or (f"no service answered on {key} within {timeout_s:g} s "
-                                   "(is `evcal serve` running and reachable?)")
-        raise QueryError(why)
+        raise QueryError(_errors(replies) or _nobody(t, prefix, camera, key, timeout_s))
     return best[1], best[2]
 
 

@@ -162,6 +162,7 @@ class CameraState:
         self.rate = RateWindow()
         self.dirty = False  # changed since the last snapshot
         self.observe = observe  # emit Observed records for a recorder
+        self.frame_dtype: np.dtype[Any] | None = None  # fixed by the first frame
 
     @property
     def sensor(self) -> SensorSize | None:
@@ -181,10 +182,12 @@ class CameraState:
             log.info("camera %s: %s sensor", self.id, sensor)
         return self.calibrator
 
-    def _seq(self, kind: str, seq: int, calibrator: OnlineCalibrator) -> None:
+    def _seq(self, kind: str, seq: int, calibrator: OnlineCalibrator, drops_before: int
+             ) -> None:
         check = self.guard.check_seq(kind, seq)
         if check.lost:
-            self.counters.lost[kind] += check.lost
+            # the gap minus the messages this service's own queue dropped: upstream loss
+            self.counters.lost[kind] += max(0, check.lost - drops_before)
         if check.restart:
             self.counters.seq_restarts[kind] += 1
         if check.gap and kind == "events":
@@ -192,7 +195,8 @@ class CameraState:
             # this interval, its counts are incomplete
             calibrator.mark_gap()
 
-    def _accept(self, kind: str, header: dict[str, Any], payload: Any) -> OnlineCalibrator:
+    def _accept(self, kind: str, header: dict[str, Any], payload: Any, drops_before: int
+                ) -> OnlineCalibrator:
         """The stream checks of one message (sensor, order, sequence number), in that order;
         ``payload`` is the events (``kind="events"``) or the frame's ``t_us``."""
         what = f"{'events' if kind == 'events' else 'frame'} message seq {header['seq']}"
@@ -204,15 +208,15 @@ class CameraState:
                 self.guard.check_frame_order(payload, what)
         except EvcalError as exc:
             raise Rejected(str(exc), exc.reason) from None
-        self._seq(kind, header["seq"], cal)
+        self._seq(kind, header["seq"], cal, drops_before)
         return cal
 
-    def on_events(self, decoded: DecodedEvents, nbytes: int, *, now_s: float
-                  ) -> list[Output]:
+    def on_events(self, decoded: DecodedEvents, nbytes: int, *, now_s: float,
+                  drops_before: int = 0) -> list[Output]:
         """A decoded events message (the decoder validated the chunk against its header's
         size); raises :class:`Rejected`."""
         ev, header = decoded
-        cal = self._accept("events", header, ev)
+        cal = self._accept("events", header, ev, drops_before)
         self.guard.note_events(ev)
         cal.feed_events(ev, checked=True)
         c = self.counters
@@ -226,11 +230,15 @@ class CameraState:
         return []
 
     def on_frame(self, decoded: DecodedFrame, nbytes: int, *, t_recv_s: float,
-                 t_start_s: float) -> list[Output]:
+                 t_start_s: float, drops_before: int = 0) -> list[Output]:
         """A decoded frame message; raises :class:`Rejected`."""
         t_us, exposure_us, image, header = decoded
         what = f"frame message seq {header['seq']}"
-        cal = self._accept("frames", header, t_us)
+        if self.frame_dtype is not None and image.dtype != self.frame_dtype:
+            raise Rejected(f"{what}: a {image.dtype} frame, but this camera's frames are "
+                           f"{self.frame_dtype}", ErrorReason.MALFORMED)
+        cal = self._accept("frames", header, t_us, drops_before)
+        self.frame_dtype = image.dtype
         try:
             updated = cal.feed_frame(t_us, image, exposure_us)
         except EvcalError as exc:
@@ -320,9 +328,18 @@ class CameraState:
         snapshot of this version)."""
         try:
             meta = json.loads(str(arrays["service_json"]))
-            if meta.get("format") != STATE_FORMAT:
-                raise StateError(f"unknown snapshot format {meta.get('format')!r}")
+            if not isinstance(meta, dict) or meta.get("format") != STATE_FORMAT:
+                raise StateError(f"unknown snapshot format "
+                                 f"{meta.get('format') if isinstance(meta, dict) else meta!r}")
             est = {k[5:]: v for k, v in arrays.items() if k.startswith("est__")}
+            # the sensor is checked against the limits before anything is allocated for it
+            scalars = json.loads(str(est["scalars"]))
+            h, w = int(scalars["height"]), int(scalars["width"])
+            limit = self.guard.max_pixels
+            if not (0 < h <= 65535 and 0 < w <= 65535) or (limit is not None
+                                                            and h * w > limit):
+                raise StateError(f"the snapshot's {w}x{h} sensor exceeds the limit of "
+                                 f"{limit} pixels (--max-pixels) or 65535x65535")
             calibrator = OnlineCalibrator.from_state(est)
             if "guard" in meta:
                 guard = StreamGuard.from_state(meta["guard"], max_pixels=self.guard.max_pixels)
@@ -337,9 +354,9 @@ class CameraState:
             calibration_seq = int(meta["calibration_seq"])
             calibration_t_us = meta["calibration_t_us"]
             msg = arrays["calibration_msg"].tobytes()
-        except (KeyError, TypeError, AttributeError, ValueError) as exc:
-            if isinstance(exc, StateError):
-                raise
+        except StateError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - whatever is wrong, it is not a snapshot
             raise StateError(f"not a camera snapshot: {type(exc).__name__}: {exc}") from None
         self.calibrator, self.guard, self.counters = calibrator, guard, counters
         self.calibration_seq, self.calibration_t_us = calibration_seq, calibration_t_us

@@ -33,6 +33,7 @@ rejected with an error.
 
 from __future__ import annotations
 
+import json
 import logging
 import threading
 import time
@@ -57,7 +58,7 @@ from .outputs import (
     error_body,
     parse_query,
 )
-from .state import StateStore
+from .state import Snapshot, StateStore
 
 log = logging.getLogger("evcal.service")
 
@@ -85,6 +86,12 @@ class ServiceConfig:
     status_period_s: float = 1.0
     snapshot_period_s: float = 30.0
     error_rate_hz: float = 20.0
+    # a camera idle this long is snapshotted and dropped from memory (0: never); it comes
+    # back from its snapshot with its next message
+    idle_evict_s: float = 3600.0
+    # a camera none of whose messages was ever accepted is dropped after this long idle, and
+    # at once when a new camera needs its slot (junk ids cannot lock real cameras out)
+    probation_s: float = 10.0
     onei: OnEIConfig = field(default_factory=OnEIConfig)
 
     def __post_init__(self) -> None:
@@ -99,6 +106,9 @@ class ServiceConfig:
             raise ConfigError(f"max_message_bytes={self.max_message_bytes} exceeds "
                              f"queue_bytes={self.queue_bytes}: such a message could never be "
                              "queued")
+        for name in ("idle_evict_s", "probation_s"):
+            if getattr(self, name) < 0:
+                raise ConfigError(f"{name}={getattr(self, name)} must be >= 0")
         for name in ("status_period_s", "snapshot_period_s", "error_rate_hz"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"{name}={getattr(self, name)} must be > 0")
@@ -137,11 +147,15 @@ class Service:
         self.store = store
         self.instance = instance or config.instance or "evcal"
         self.cameras: dict[str, Camera] = {}
-        self._limiters: dict[str, ErrorLimiter] = {}
+        self._limiter = ErrorLimiter(config.error_rate_hz)  # refusals not of one camera
         self._lock = threading.Lock()
         self.rejected_cameras = 0
+        self.invalid_camera_ids = 0
+        self.evicted_cameras = 0
+        self.forgotten_cameras = 0
         self.publish_errors = 0
         self.observer_errors = 0
+        self.tick_errors = 0
         self._observer_thread = (ObserverThread(self._observe_now) if observer is not None
                                  else None)
         self._closed = False
@@ -195,10 +209,8 @@ class Service:
 
     def _publish_error(self, rec: Rejection, st: CameraState | None) -> None:
         """Publish a rejected input, at most ``error_rate_hz`` per second per camera."""
-        limiter = self._limiters.get(rec.camera)
-        if limiter is None:
-            limiter = self._limiters.setdefault(rec.camera,
-                                                ErrorLimiter(self.config.error_rate_hz))
+        cam = self.cameras.get(rec.camera) if st is not None else None
+        limiter = cam.limiter if cam is not None else self._limiter
         if not limiter.allow():
             if st is not None:
                 st.counters.errors_suppressed += 1
@@ -216,8 +228,41 @@ class Service:
         cfg = self.config
         state = CameraState(camera_id, onei=cfg.onei, max_pixels=cfg.max_pixels,
                             observe=observe)
-        return Camera(state, emit=self._emit, queue_bytes=cfg.queue_bytes,
-                      max_message_bytes=cfg.max_message_bytes, block=cfg.on_full == "block")
+        cam = Camera(state, emit=self._emit, queue_bytes=cfg.queue_bytes,
+                     max_message_bytes=cfg.max_message_bytes, block=cfg.on_full == "block")
+        cam.limiter = ErrorLimiter(cfg.error_rate_hz)
+        return cam
+
+    def _restore_into(self, cam: Camera, snap: Snapshot) -> bool:
+        """Resume ``cam`` from ``snap``; a snapshot that cannot be used is moved aside."""
+        try:
+            cam.state.restore(snap.arrays)
+        except EvcalError as exc:
+            if self.store is not None:
+                self.store.quarantine(snap.path, str(exc))
+            return False
+        return True
+
+    def _make_room(self) -> bool:
+        """Drop the least recently active junk camera (never accepted a message) to make room
+        for a new one; False if there is none."""
+        now = time.monotonic()
+        # judged junk: nothing in flight, never an accepted message, and either every message
+        # so far refused or quiet since its probation ran out
+        junk = [c for c in self.cameras.values()
+                if c.state.sensor is None and c.in_flight == 0
+                and (c.state.counters.errors_total > 0
+                     or now - c.last_input_s > self.config.probation_s)]
+        if not junk:
+            return False
+        victim = min(junk, key=lambda c: c.last_input_s)
+        del self.cameras[victim.id]
+        self.evicted_cameras += 1
+        threading.Thread(target=victim.stop, kwargs={"timeout_s": 1.0, "drain": False},
+                         name="evcal-evict", daemon=True).start()
+        log.info("camera %s (no valid message in %.0f s) dropped to make room", victim.id,
+                 now - victim.started_s)
+        return True
 
     def camera(self, camera_id: str, *, create: bool = True) -> Camera | None:
         cam = self.cameras.get(camera_id)
@@ -228,13 +273,17 @@ class Service:
             if cam is None:
                 if self._closed:
                     return None
-                if len(self.cameras) >= self.config.max_cameras:
+                if len(self.cameras) >= self.config.max_cameras and not self._make_room():
                     self.rejected_cameras += 1
                     return None
                 cam = self._new_camera(camera_id, observe=self.observer is not None)
+                snap = self.store.load(camera_id) if self.store is not None else None
+                if snap is not None and self._restore_into(cam, snap):
+                    log.info("camera %s back from its snapshot", camera_id)
+                else:
+                    log.info("camera %s discovered", camera_id)
                 self.cameras[camera_id] = cam
                 cam.start()
-                log.info("camera %s discovered", camera_id)
         return cam
 
     # -- entry points ----------------------------------------------------------------------
@@ -248,7 +297,10 @@ class Service:
         camera_id, kind = parsed
         try:
             keys.check_camera_id(camera_id)
-        except ValueError:
+        except ValueError as exc:
+            self.invalid_camera_ids += 1
+            if self._limiter.allow():
+                log.warning("refused a %s message: %s", kind, exc)
             return
         cam = self.camera(camera_id)
         if cam is None:
@@ -287,8 +339,6 @@ class Service:
             return camera_status(cam)
 
     def query_status(self, query_key: str) -> list[tuple[str, bytes, str]]:
-        import json  # noqa: PLC0415
-
         return [(self.key(cam.id, "status"), json.dumps(self.status(cam)).encode(),
                  keys.ENC_STATUS)
                 for cam in list(self.cameras.values())
@@ -300,6 +350,11 @@ class Service:
             "prefix": self.config.prefix,
             "claims": self.config.cameras,
             "rejected_cameras": self.rejected_cameras,
+            "invalid_camera_ids": self.invalid_camera_ids,
+            "evicted_cameras": self.evicted_cameras,
+            "forgotten_cameras": self.forgotten_cameras,
+            "bad_snapshots": self.store.bad if self.store is not None else 0,
+            "tick_errors": self.tick_errors,
             "publish_errors": self.publish_errors,
             "recorder_errors": self.observer_errors,
             "recorder_dropped": self.observer_dropped,
@@ -310,16 +365,84 @@ class Service:
         }
 
     def tick(self, *, force: bool = False) -> None:
-        """Periodic work (call about every 0.1-1 s): status publication, snapshots."""
+        """Periodic work (call about every 0.1-1 s): status publication, snapshots, idle
+        eviction. Never raises: a failure is logged and counted (``tick_errors``)."""
         now = time.monotonic()
+        steps: list[Callable[[], Any]] = []
         if force or now - self._last_status >= self.config.status_period_s:
             self._last_status = now
-            for key, payload, enc in self.query_status("**"):
-                self.publish(key, payload, enc)
+            steps.append(self._publish_status)
         if self.store is not None and (force or now - self._last_snapshot
                                        >= self.config.snapshot_period_s):
             self._last_snapshot = now
-            self.snapshot()
+            steps.append(self.snapshot)
+        if not force:
+            steps.append(self.evict_idle)
+        for step in steps:
+            try:
+                step()
+            except Exception:
+                self.tick_errors += 1
+                log.exception("periodic %s failed (counted in tick_errors)", step.__name__)
+
+    def _publish_status(self) -> None:
+        for cam in list(self.cameras.values()):
+            try:
+                payload = json.dumps(self.status(cam)).encode()
+            except Exception:
+                self.tick_errors += 1
+                log.exception("camera %s: status failed", cam.id)
+                continue
+            self.publish(self.key(cam.id, "status"), payload, keys.ENC_STATUS)
+
+    def evict_idle(self, now_s: float | None = None) -> list[str]:
+        """Drop cameras idle beyond ``probation_s`` (never accepted a message) or
+        ``idle_evict_s`` (snapshotted first, back from it with their next message)."""
+        now = time.monotonic() if now_s is None else now_s
+        cfg = self.config
+        out = []
+        for cam in list(self.cameras.values()):
+            idle = now - cam.last_input_s
+            if cam.in_flight:
+                continue
+            established = cam.state.sensor is not None
+            if (not established and idle > cfg.probation_s) or (
+                    established and cfg.idle_evict_s > 0 and idle > cfg.idle_evict_s):
+                self._drop(cam, save=established)
+                self.evicted_cameras += 1
+                out.append(cam.id)
+                log.info("camera %s idle for %.0f s: evicted%s", cam.id, idle,
+                         " (state kept on disk)" if established and self.store else "")
+        return out
+
+    def _drop(self, cam: Camera, *, save: bool) -> None:
+        """Stop a camera, snapshot it (``save``), then remove it: a message arriving meanwhile
+        is dropped and counted, and one arriving after finds the snapshot."""
+        cam.stop(timeout_s=2.0)
+        if save and self.store is not None:
+            with cam.lock:
+                cam.fold_dropped()
+                arrays = cam.state.state_arrays()
+            if arrays is not None:
+                try:
+                    self.store.save(cam.id, arrays)
+                except OSError as exc:
+                    log.error("camera %s: cannot write the snapshot: %s", cam.id, exc)
+        with self._lock:
+            if self.cameras.get(cam.id) is cam:
+                del self.cameras[cam.id]
+
+    def forget(self, camera_id: str) -> bool:
+        """Drop a camera's state, in memory and on disk; True if there was any."""
+        cam = self.cameras.get(camera_id)
+        if cam is not None:
+            self._drop(cam, save=False)
+        removed = self.store.remove(camera_id) if self.store is not None else False
+        if cam is not None or removed:
+            self.forgotten_cameras += 1
+            log.info("camera %s forgotten", camera_id)
+            return True
+        return False
 
     def snapshot(self) -> int:
         """Write every changed camera's state; returns how many were written."""
@@ -348,14 +471,17 @@ class Service:
         if self.store is None:
             return []
         done = []
-        for camera_id, arrays in self.store.load_all().items():
-            if not self.claims(camera_id):
+        for snap in self.store.snapshots():
+            camera_id = snap.camera
+            try:
+                keys.check_camera_id(camera_id)
+            except ValueError as exc:
+                self.store.quarantine(snap.path, str(exc))
+                continue
+            if not self.claims(camera_id) or len(self.cameras) >= self.config.max_cameras:
                 continue
             cam = self._new_camera(camera_id, observe=self.observer is not None)
-            try:
-                cam.state.restore(arrays)
-            except EvcalError as exc:
-                log.error("camera %s: cannot restore the snapshot: %s", camera_id, exc)
+            if not self._restore_into(cam, snap):
                 continue
             with self._lock:
                 self.cameras[camera_id] = cam

@@ -87,7 +87,8 @@ def _payload_bytes(item: tuple[str, Any, float]) -> int:
 
 
 class CameraQueue(BoundedQueue):
-    """A camera's input: ``(kind, payload, t_recv)`` bounded in payload bytes.
+    """A camera's input: ``(kind, payload, t_recv, drops_before)`` bounded in payload bytes
+    (``drops_before``: messages of that kind this queue refused just before this one).
 
     A payload may also be an :class:`~evcal.errors.EvcalError` (a message refused on arrival,
     0 bytes): it goes through the queue so that the worker counts it in stream order.
@@ -117,9 +118,13 @@ class Camera:
         self.in_flight = 0  # messages queued, being decoded or processed
         # messages the queue refused (written by receive threads only, under _flight_lock)
         self.dropped = {"events": 0, "frames": 0}
+        self._drops_since = {"events": 0, "frames": 0}
         self._flight_lock = threading.Lock()
         self.lock = threading.Lock()  # the state machine: worker, snapshots, status
         self.started_wall = time.time()
+        self.started_s = time.monotonic()
+        self.last_input_s = self.started_s  # monotonic time of the latest message
+        self.limiter: Any = None  # the outputs' error limiter of this camera
         self._stop = threading.Event()
         self.decoder = threading.Thread(target=self._decode_loop,
                                         name=f"evcal-dec-{self.id}", daemon=True)
@@ -143,6 +148,7 @@ class Camera:
 
     def enqueue(self, kind: str, payload: bytes, t_recv: float) -> None:
         """Queue one message (any receive thread; never touches the state)."""
+        self.last_input_s = t_recv
         item: Any = payload
         if len(payload) > self.max_message_bytes:
             item = Rejected(f"{kind} message of {len(payload)} bytes exceeds the limit of "
@@ -150,10 +156,14 @@ class Camera:
                             ErrorReason.TOO_LARGE)
         with self._flight_lock:  # counted before the put: the worker may finish it at once
             self.in_flight += 1
-        if not self.queue.put((kind, item, t_recv), block=self.block):
+            drops_before = self._drops_since[kind]
+            self._drops_since[kind] = 0
+        if not self.queue.put((kind, item, t_recv, drops_before), block=self.block):
             with self._flight_lock:
                 self.in_flight -= 1
                 self.dropped[kind] += 1
+                # the next accepted message's sequence gap includes this one: not upstream loss
+                self._drops_since[kind] += drops_before + 1
 
     def fold_dropped(self) -> None:
         """Move the receive threads' drop counts into the state's counters (call with
@@ -195,7 +205,7 @@ class Camera:
             item = self.queue.get(0.2)
             if item is None:
                 continue
-            kind, payload, t_recv = item
+            kind, payload, t_recv, drops_before = item
             decoded: Any
             try:
                 if isinstance(payload, EvcalError):
@@ -210,7 +220,8 @@ class Camera:
                 log.exception("camera %s: unexpected error decoding a %s message", self.id,
                               kind)
                 decoded = Rejected(f"{type(exc).__name__}: {exc}", ErrorReason.INTERNAL)
-            if not self.handoff.put((kind, decoded, _payload_bytes(item), t_recv)):
+            if not self.handoff.put((kind, decoded, _payload_bytes(item), t_recv,
+                                     drops_before)):
                 self._done()
                 return
 
@@ -222,7 +233,7 @@ class Camera:
                 if self.handoff.closed:
                     return
                 continue
-            kind, decoded, nbytes, t_recv = item
+            kind, decoded, nbytes, t_recv, drops_before = item
             # the outputs go out under the lock: a status that counts a frame comes after the
             # publication of the calibration that frame triggered
             with self.lock:
@@ -231,10 +242,12 @@ class Camera:
                     if isinstance(decoded, EvcalError):
                         raise decoded
                     if kind == "events":
-                        out = self.state.on_events(decoded, nbytes, now_s=time.monotonic())
+                        out = self.state.on_events(decoded, nbytes, now_s=time.monotonic(),
+                                                   drops_before=drops_before)
                     else:
                         out = self.state.on_frame(decoded, nbytes, t_recv_s=t_recv,
-                                                  t_start_s=time.monotonic())
+                                                  t_start_s=time.monotonic(),
+                                                  drops_before=drops_before)
                 except EvcalError as exc:
                     out = [self.state.reject(kind, exc)]
                 except Exception as exc:  # a bug must not kill the camera's worker

@@ -57,15 +57,23 @@ def split_camera_key(prefix: str, key: str) -> tuple[str, str] | None:
     return camera, kind
 
 
+MAX_CAMERA_ID = 200  # characters
+
+
 def check_camera_id(camera: str) -> str:
-    """A camera id: non-empty chunks of printable characters, no wildcards, no ``@`` chunk."""
+    """A camera id: at most :data:`MAX_CAMERA_ID` characters in non-empty ``/``-separated
+    chunks of printable characters, no wildcards, no ``@`` chunk, no ``.`` or ``..`` chunk."""
+    if len(camera) > MAX_CAMERA_ID:
+        raise ValueError(f"camera id of {len(camera)} characters is longer than "
+                         f"{MAX_CAMERA_ID}: {camera[:40]!r}...")
     chunks = camera.split("/")
     bad = (not camera or any(not c for c in chunks) or any(c.startswith("@") for c in chunks)
-           or any(ch in camera for ch in "*$?#") or not camera.isprintable())
+           or any(c in (".", "..") for c in chunks)
+           or any(ch in camera for ch in "*$?#\\") or not camera.isprintable())
     if bad:
         raise ValueError(f"camera id {camera!r} is not valid: expected '/'-separated non-empty "
-                         "chunks without '*', '$', '?', '#' or a leading '@', e.g. "
-                         "'lab/rig1/cam0'")
+                         "chunks of printable characters without '*', '$', '?', '#', '\\', "
+                         "a leading '@' or a '.'/'..' chunk, e.g. 'lab/rig1/cam0'")
     return camera
 
 

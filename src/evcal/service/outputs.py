@@ -52,6 +52,10 @@ def camera_status(cam: Camera, *, now_s: float | None = None) -> dict[str, Any]:
         "updates": c.updates,
         "bytes_in": c.bytes_in,
         "event_rate_hz": st.rate.rate(now),
+        # messages this service's queue refused, and messages missing upstream (sequence
+        # gaps, less the service's own drops); "dropped"/"lost" are the older names
+        "dropped_messages": dict(c.dropped),
+        "lost_messages": dict(c.lost),
         "dropped": dict(c.dropped),
         "lost": dict(c.lost),
         "seq_restarts": dict(c.seq_restarts),

@@ -75,8 +75,20 @@ def run(
                 req.reply(keys.cameras_key(prefix), json.dumps(service.cameras_info()).encode(),
                           keys.ENC_CAMERAS)
 
+            def on_forget(req: Request) -> None:
+                parsed = keys.split_camera_key(prefix, req.key)
+                if parsed is None or parsed[1] != "forget":
+                    req.reply_err(json.dumps({"reason": "bad_query", "message":
+                                              "forget one camera: <prefix>/<camera>/forget"}))
+                    return
+                found = service.forget(parsed[0])
+                req.reply(req.key, json.dumps({"camera": parsed[0], "forgotten": found,
+                                               "instance": service.instance}).encode(),
+                          keys.ENC_STATUS)
+
             t.queryable(f"{claim}/calibration", on_calibration)
             t.queryable(f"{claim}/status", on_status)
+            t.queryable(f"{claim}/forget", on_forget)
             t.queryable(keys.cameras_key(prefix), on_cameras)
             for kind in keys.INPUT_KINDS:
                 t.subscribe(f"{claim}/{kind}", service.on_sample)

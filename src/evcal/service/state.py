@@ -1,7 +1,10 @@
 """Atomic per-camera snapshots in a state directory (``--state-dir``).
 
-One file per camera, ``<quoted camera id>.npz`` (``lab/rig1/cam0`` -> ``lab%2Frig1%2Fcam0.npz``),
-an uncompressed ``.npz`` of plain arrays (``allow_pickle=False`` on load).
+One file per camera, ``<quoted camera id>.npz`` (``lab/rig1/cam0`` -> ``lab%2Frig1%2Fcam0.npz``);
+a quoted id longer than ``MAX_STEM`` characters is cut and given a hash suffix
+(``<first 80 characters>~<16 hex digits of its SHA-256>.npz``), so any id has a valid, bounded
+and distinct file name. The id itself is stored inside (``_camera_id``), an uncompressed
+``.npz`` of plain arrays (``allow_pickle=False`` on load).
 
 Atomicity: a snapshot is written to ``<name>.tmp-<pid>-<n>`` in the same directory, flushed
 and ``fsync``-ed, then renamed over the final name with :func:`os.replace` (atomic on POSIX),
@@ -13,10 +16,12 @@ loss). Temporary files left by a killed writer are ignored and, once older than
 
 from __future__ import annotations
 
+import hashlib
 import itertools
 import logging
 import os
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from urllib.parse import quote, unquote
 
@@ -29,6 +34,8 @@ log = logging.getLogger("evcal.service.state")
 
 SUFFIX = ".npz"
 TMP_MAX_AGE_S = 30.0
+MAX_STEM = 100  # characters of a snapshot's file name before ".npz" (file systems allow 255)
+ID_KEY = "_camera_id"
 _counter = itertools.count()
 
 
@@ -66,22 +73,86 @@ def load_npz(path: Path) -> dict[str, np.ndarray]:
     return load_npz_arrays(path, StateError, "the snapshot")
 
 
+def snapshot_name(camera: str) -> str:
+    """The file name of ``camera``'s snapshot: its quoted id, or a cut one with a hash."""
+    stem = quote(camera, safe="")
+    if len(stem) > MAX_STEM:
+        digest = hashlib.sha256(camera.encode()).hexdigest()[:16]
+        stem = f"{stem[:80]}~{digest}"
+    return stem + SUFFIX
+
+
+@dataclass(frozen=True)
+class Snapshot:
+    """One readable snapshot: the camera id it holds, its file, its arrays."""
+
+    camera: str
+    path: Path
+    arrays: dict[str, np.ndarray]
+
+
 class StateStore:
-    """The snapshots of one service instance (or of several, behind a shared volume)."""
+    """The snapshots of one service instance (or of several, behind a shared volume).
+
+    Every failure to read one snapshot moves that file aside (``.bad``) with the reason
+    logged and counted in ``bad``: a damaged file never stops a start.
+    """
 
     def __init__(self, directory: str | os.PathLike[str]):
         self.dir = Path(directory)
         self.dir.mkdir(parents=True, exist_ok=True)
+        self.bad = 0
 
     def path(self, camera: str) -> Path:
-        return self.dir / (quote(camera, safe="") + SUFFIX)
+        return self.dir / snapshot_name(camera)
 
     def save(self, camera: str, arrays: dict[str, np.ndarray]) -> Path:
-        return atomic_savez(self.path(camera), arrays)
+        return atomic_savez(self.path(camera), {**arrays, ID_KEY: np.array(camera)})
 
-    def load_all(self) -> dict[str, dict[str, np.ndarray]]:
-        """Every readable snapshot by camera id; removes temp files, renames unreadable ones."""
-        out: dict[str, dict[str, np.ndarray]] = {}
+    def remove(self, camera: str) -> bool:
+        """Delete ``camera``'s snapshot; True if there was one."""
+        try:
+            self.path(camera).unlink()
+            return True
+        except FileNotFoundError:
+            return False
+
+    def quarantine(self, path: Path, reason: str) -> None:
+        """Move an unusable snapshot aside as ``<name>.bad`` (never deleted: evidence)."""
+        self.bad += 1
+        log.error("snapshot %s cannot be used (%s); moved aside to %s.bad", path.name, reason,
+                  path.name)
+        try:
+            os.replace(path, path.with_name(path.name + ".bad"))
+        except OSError as exc:
+            log.error("cannot move %s aside: %s", path, exc)
+
+    def load(self, camera: str) -> Snapshot | None:
+        """``camera``'s snapshot, or None (none, or unreadable: moved aside)."""
+        p = self.path(camera)
+        if not p.is_file():
+            return None
+        snap = self._read(p)
+        return snap if snap is not None and snap.camera == camera else None
+
+    def _read(self, p: Path) -> Snapshot | None:
+        try:
+            arrays = load_npz(p)
+            ident = arrays.pop(ID_KEY, None)
+            if ident is None:  # written before ids were stored inside
+                camera = unquote(p.name[: -len(SUFFIX)])
+            elif ident.shape != () or ident.dtype.kind != "U":
+                raise StateError(f"{ID_KEY} is {ident.dtype} {ident.shape}, expected a string")
+            else:
+                camera = str(ident)
+        except Exception as exc:  # noqa: BLE001 - any damage: aside, never fatal
+            self.quarantine(p, f"{type(exc).__name__}: {exc}")
+            return None
+        return Snapshot(camera, p, arrays)
+
+    def snapshots(self) -> list[Snapshot]:
+        """Every readable snapshot; removes stale temp files, moves unreadable ones aside."""
+        out: list[Snapshot] = []
         for p in sorted(self.dir.iterdir()):
             if ".tmp-" in p.name:
                 # a writer died before the rename; a young one may belong to a live
@@ -94,10 +165,11 @@ class StateStore:
                 continue
             if not p.name.endswith(SUFFIX):
                 continue
-            camera = unquote(p.name[: -len(SUFFIX)])
-            try:
-                out[camera] = load_npz(p)
-            except StateError as exc:
-                log.error("%s; moved aside to %s.bad", exc, p.name)
-                os.replace(p, p.with_name(p.name + ".bad"))
+            snap = self._read(p)
+            if snap is not None:
+                out.append(snap)
         return out
+
+    def load_all(self) -> dict[str, dict[str, np.ndarray]]:
+        """Every readable snapshot's arrays by camera id."""
+        return {s.camera: s.arrays for s in self.snapshots()}

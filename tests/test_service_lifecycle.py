@@ -1,0 +1,252 @@
+"""Service reliability as an operator meets it: junk cameras, bad snapshots, idle cameras,
+its own drops, a failing periodic step (each of these failed before the fix)."""
+
+from __future__ import annotations
+
+import json
+import time
+import zipfile
+
+import numpy as np
+import pytest
+from test_service_core import Collector, feed, make_service, settle, stream
+
+from evcal.errors import EvcalError
+from evcal.io.wire import encode_frame
+from evcal.online import OnEIConfig
+from evcal.service import keys
+from evcal.service.core import Service, ServiceConfig
+from evcal.service.state import MAX_STEM, StateStore, snapshot_name
+
+
+def _cfg(**kw) -> ServiceConfig:
+    return ServiceConfig(onei=OnEIConfig(n_small=50, n_large=10_000), error_rate_hz=1000, **kw)
+
+
+def test_junk_camera_ids_cannot_lock_real_cameras_out():
+    svc, pub = make_service(max_cameras=4, probation_s=60.0)
+    try:
+        for i in range(50):  # junk: every message refused
+            svc.on_sample(f"evcal/junk{i}/events", b"not msgpack")
+        settle(svc)
+        assert len(svc.cameras) <= 4
+        feed(svc, "real/cam0", stream())
+        settle(svc)
+        assert "real/cam0" in svc.cameras
+        assert svc.cameras["real/cam0"].counters.updates >= 1
+        assert svc.evicted_cameras >= 1
+    finally:
+        svc.close()
+
+
+def test_invalid_camera_ids_are_counted():
+    svc, _ = make_service()
+    try:
+        for cam in ("x" * (keys.MAX_CAMERA_ID + 1), "a/../b", "a/./b"):
+            svc.on_sample(f"evcal/{cam}/events", b"x")
+        assert svc.invalid_camera_ids == 3
+        assert svc.cameras == {}
+        assert svc.cameras_info()["invalid_camera_ids"] == 3
+    finally:
+        svc.close()
+
+
+def test_long_camera_ids_snapshot_under_a_bounded_name(tmp_path):
+    long_id = "/".join(["rig" + "x" * 60] * 3)  # 191 characters, quoted much longer
+    assert len(long_id) <= keys.MAX_CAMERA_ID
+    name = snapshot_name(long_id)
+    assert len(name) <= MAX_STEM + len(".npz")
+    assert name != snapshot_name(long_id + "y")
+    store = StateStore(tmp_path)
+    svc = Service(_cfg(), Collector(), store=store)
+    feed(svc, long_id, stream())
+    settle(svc)
+    svc.close()
+    assert [s.camera for s in store.snapshots()] == [long_id]
+    svc2 = Service(_cfg(), Collector(), store=store)
+    try:
+        assert svc2.restore() == [long_id]
+    finally:
+        svc2.close()
+
+
+def _snapshot(tmp_path):
+    store = StateStore(tmp_path / "state")
+    svc = Service(_cfg(), Collector(), store=store)
+    feed(svc, "cam0", stream())
+    settle(svc)
+    svc.close()
+    path = store.path("cam0")
+    with np.load(path, allow_pickle=False) as z:
+        return store, path, {k: z[k] for k in z.files}
+
+
+def _corruptions(arrays, raw: bytes):
+    meta = json.loads(str(arrays["service_json"]))
+    scal = json.loads(str(arrays["est__scalars"]))
+    yield "truncated", raw[: len(raw) // 3], None
+    flipped = bytearray(raw)
+    for i in range(200, len(flipped), 997):
+        flipped[i] ^= 0x5A
+    yield "bit flips", bytes(flipped), None
+    yield "service_json null", None, {**arrays, "service_json": np.array("null")}
+    yield "service_json not json", None, {**arrays, "service_json": np.array("{")}
+    huge = dict(scal, height=65535, width=65535)
+    yield "a 65535x65535 sensor", None, {**arrays, "est__scalars": np.array(json.dumps(huge))}
+    yield "fields missing", None, {k: v for k, v in arrays.items() if k != "est__c"}
+    yield "wrong shapes", None, {**arrays, "est__c": np.zeros(3)}
+    yield "counters not a dict", None, {**arrays, "service_json": np.array(json.dumps(
+        dict(meta, counters=5)))}
+
+
+def test_corrupt_snapshots_never_prevent_the_start(tmp_path):
+    store, path, arrays = _snapshot(tmp_path)
+    raw = path.read_bytes()
+    for what, data, arr in _corruptions(arrays, raw):
+        for p in store.dir.iterdir():
+            p.unlink()
+        if data is not None:
+            path.write_bytes(data)
+        else:
+            with open(path, "wb") as f:
+                np.savez(f, **arr)
+        svc = Service(_cfg(max_pixels=1000), Collector(), store=store)
+        try:
+            assert svc.restore() == [], what
+            assert list(store.dir.glob("*.bad")), f"{what}: not moved aside"
+            assert svc.cameras_info()["bad_snapshots"] >= 1, what
+            # and the camera starts afresh on its next message
+            feed(svc, "cam0", stream())
+            settle(svc)
+            assert svc.cameras["cam0"].counters.updates >= 1, what
+        finally:
+            svc.close()
+
+
+def test_a_valid_zip_that_is_not_an_npz_is_moved_aside(tmp_path):
+    store = StateStore(tmp_path)
+    with zipfile.ZipFile(store.path("cam9"), "w") as z:
+        z.writestr("hello.txt", "not numpy")
+    svc = Service(_cfg(), Collector(), store=store)
+    try:
+        assert svc.restore() == []
+        assert (tmp_path / (snapshot_name("cam9") + ".bad")).exists()
+    finally:
+        svc.close()
+
+
+def test_idle_cameras_are_evicted_and_come_back_from_their_snapshot(tmp_path):
+    store = StateStore(tmp_path)
+    svc = Service(_cfg(idle_evict_s=5.0), Collector(), store=store)
+    try:
+        msgs = stream(n_frames=20)
+        feed(svc, "cam0", msgs[:24])
+        settle(svc)
+        before = svc.cameras["cam0"].counters.updates
+        assert before >= 1
+        assert svc.evict_idle(now_s=time.monotonic() + 1.0) == []
+        assert svc.evict_idle(now_s=time.monotonic() + 10.0) == ["cam0"]
+        assert "cam0" not in svc.cameras
+        assert store.load("cam0") is not None
+        feed(svc, "cam0", msgs[24:])  # the same stream goes on: state from the snapshot
+        settle(svc)
+        cam = svc.cameras["cam0"]
+        assert cam.counters.updates > before
+        assert cam.counters.errors == {}
+    finally:
+        svc.close()
+
+
+def test_forget_drops_memory_and_disk(tmp_path):
+    store = StateStore(tmp_path)
+    svc = Service(_cfg(), Collector(), store=store)
+    try:
+        feed(svc, "cam0", stream())
+        settle(svc)
+        svc.snapshot()
+        assert store.load("cam0") is not None
+        assert svc.forget("cam0")
+        assert "cam0" not in svc.cameras
+        assert store.load("cam0") is None
+        assert not svc.forget("cam0")
+        assert svc.cameras_info()["forgotten_cameras"] == 1
+    finally:
+        svc.close()
+
+
+def test_own_drops_are_not_counted_as_upstream_loss():
+    svc, _ = make_service(queue_bytes=20_000, max_message_bytes=20_000)
+    try:
+        cam = svc.camera("slow")
+        assert cam is not None
+        with cam.lock:  # hold the worker: the queue overflows
+            feed(svc, "slow", stream(n_frames=40))
+        settle(svc)
+        st = svc.status(cam)
+        assert sum(st["dropped_messages"].values()) > 0
+        assert st["lost_messages"] == {"events": 0, "frames": 0}, st
+        # a real upstream gap is still seen
+        msgs = stream(n_frames=60)[80:]
+        feed(svc, "slow", msgs[2:])  # seq 40 skipped by the publisher
+        settle(svc)
+        assert svc.status(cam)["lost_messages"] == {"events": 1, "frames": 1}
+    finally:
+        svc.close()
+
+
+def test_frame_dtype_cannot_change_mid_stream():
+    svc, _ = make_service()
+    try:
+        feed(svc, "cam0", stream(n_frames=2))
+        svc.on_sample("evcal/cam0/frames", encode_frame(
+            30_000, np.full((6, 8), 0.5, np.float32), exposure_us=0, seq=2))
+        settle(svc)
+        assert svc.cameras["cam0"].counters.errors == {"malformed": 1}
+    finally:
+        svc.close()
+
+
+def test_a_failing_periodic_step_is_counted_never_raised(monkeypatch):
+    svc, _ = make_service()
+    try:
+        feed(svc, "cam0", stream(n_frames=2))
+        settle(svc)
+
+        def boom(cam):
+            raise RuntimeError("deque mutated during iteration")
+
+        monkeypatch.setattr(svc, "status", boom)
+        svc.tick(force=True)  # must not raise
+        assert svc.tick_errors >= 1
+    finally:
+        monkeypatch.undo()
+        svc.close()
+
+
+@pytest.mark.parametrize("n_cameras", [3])
+def test_status_and_snapshots_while_cameras_run_at_full_rate(tmp_path, n_cameras):
+    """The crash of issue 8: status() walked OnEI's buffer while a worker changed it. Status,
+    queries and snapshots now read under the camera's lock; hammer them while cameras run."""
+    store = StateStore(tmp_path)
+    svc = Service(_cfg(snapshot_period_s=0.05, status_period_s=0.0 + 1e-3), Collector(),
+                  store=store)
+    errors_before = svc.tick_errors
+    try:
+        msgs = stream(n_frames=150)
+        deadline = time.monotonic() + 8.0
+        rounds = 0
+        while time.monotonic() < deadline:
+            for c in range(n_cameras):
+                feed(svc, f"cam{c}", msgs[(rounds * 20) % 280:(rounds * 20) % 280 + 20])
+            for _ in range(5):
+                svc.tick()
+                try:
+                    svc.query_calibration("evcal/**", {"format": "npz"})
+                except EvcalError:
+                    pass  # no calibration yet
+            rounds += 1
+        settle(svc)
+        assert svc.tick_errors == errors_before
+        assert len(svc.cameras) == n_cameras
+    finally:
+        svc.close()
