@@ -62,10 +62,11 @@ def test_record_replay_roundtrip_with_calibrations(tmp_path):
         cals = [decode_calibration(m.data)[0] for _, _, m in
                 make_reader(f).iter_messages(topics=["/calibration"])]
     assert cals and cals[-1].shape == (36, 48)
-    # and the file replays
+    # the file replays, but the service is gone: replay says so and sends nothing
     res = run_client("replay", [str(out), "--camera", "x", "--no-multicast-scouting",
-                                "--connect", ep, "--max-rate", "--wait-subscriber", "0"])
-    assert res.returncode == 0, res.stderr
+                                "--connect", ep, "--max-rate", "--wait-subscriber", "0.5"])
+    assert res.returncode == 3, res.stderr
+    assert "nobody subscribes" in res.stderr and "nothing was sent" in res.stderr
 
 
 def test_record_cli_needs_a_template_for_several_cameras(tmp_path):
@@ -74,5 +75,22 @@ def test_record_cli_needs_a_template_for_several_cameras(tmp_path):
     assert res.returncode == 2 and "{camera}" in res.stderr
     res = run_client("record", ["--out", str(tmp_path / "x-{camera}.mcap"), "--camera",
                                 "lab/**", "--no-multicast-scouting", "--duration", "0.5"])
-    assert res.returncode == 0, res.stderr
+    assert res.returncode == 3, res.stderr  # nothing heard is a failure, not a success
     assert "nothing received" in res.stderr
+
+
+def test_record_file_names_are_safe_and_distinct(tmp_path):
+    rec = Recorder(str(tmp_path / "r-{camera}.mcap"), ["**"], max_cameras=2)
+    names = {c: rec.path_for(c) for c in ("lab/good", "lab_good", "a/b%2Fc")}
+    assert len(set(names.values())) == 3
+    for p in names.values():
+        assert p.parent == tmp_path  # never a separator or '..' out of the folder
+    long_id = "/".join(["x" * 60] * 3)
+    assert len(rec.path_for(long_id).name) < 120
+    # ids that are not camera ids are refused, and at most max_cameras files are open
+    rec.on_sample("evcal/../events", b"", "")
+    for cam in ("c1", "c2", "c3"):
+        rec.on_sample(f"evcal/{cam}/events", b"junk", "")
+    assert sorted(rec.writers) == ["c1", "c2"]
+    assert rec.refused == {"..": 1, "c3": 1}
+    rec.close()

@@ -162,7 +162,10 @@ def bad_messages():
     out["unsorted"] = msgpack.packb(m)
     out["not_msgpack"] = b"\xc1\x00garbage"
     out["malformed"] = msgpack.packb({"version": 1})
-    out["sensor_changed"] = encode_events(ev, height=7, width=8, seq=1)
+    # continuing the stream (next seq, later time) with another size; a publisher restart
+    # (seq and time back) may change the sensor: tests/test_service_lifecycle.py
+    later = make_events([10**6, 10**6 + 1, 10**6 + 2], [1, 2, 3], [1, 1, 1], [1, 0, 1])
+    out["sensor_changed"] = encode_events(later, height=7, width=8, seq=2)
     out["too_large"] = b"\x00" * 5000
     return out
 

@@ -7,12 +7,14 @@ import json
 import time
 import zipfile
 
+import msgpack
 import numpy as np
 import pytest
 from test_service_core import Collector, feed, make_service, settle, stream
 
 from evcal.errors import EvcalError
-from evcal.io.wire import encode_frame
+from evcal.events import make_events
+from evcal.io.wire import encode_events, encode_frame
 from evcal.online import OnEIConfig
 from evcal.service import keys
 from evcal.service.core import Service, ServiceConfig
@@ -248,5 +250,85 @@ def test_status_and_snapshots_while_cameras_run_at_full_rate(tmp_path, n_cameras
         settle(svc)
         assert svc.tick_errors == errors_before
         assert len(svc.cameras) == n_cameras
+    finally:
+        svc.close()
+
+
+# ----------------------------------------------------------------------------- stream sessions
+
+
+def test_a_publisher_restart_starts_a_new_session_instead_of_a_lock_out():
+    # a replay run twice: sequence numbers and time start again from 0
+    svc, _ = make_service()
+    try:
+        msgs = stream(n_frames=20)
+        feed(svc, "cam0", msgs)
+        settle(svc)
+        cam = svc.cameras["cam0"]
+        updates = cam.counters.updates
+        feed(svc, "cam0", msgs)  # the same recording again
+        settle(svc)
+        assert cam.counters.errors == {}, cam.counters.errors
+        assert cam.counters.restarts == {"events": 0, "frames": 1}
+        assert cam.counters.frames == 40
+        assert cam.counters.updates > updates
+        assert cam.state.calibrator.status()["sessions"] == 1
+    finally:
+        svc.close()
+
+
+def test_one_absurd_timestamp_is_refused_without_poisoning_later_input():
+    svc, _ = make_service()
+    try:
+        msgs = stream(n_frames=20)
+        feed(svc, "cam0", msgs[:20])
+        glitch = make_events([2**62], [1], [1], [1])
+        svc.on_sample("evcal/cam0/events", encode_events(glitch, height=6, width=8, seq=10))
+        feed(svc, "cam0", [(k, p) for k, p in msgs[20:]])
+        settle(svc)
+        cam = svc.cameras["cam0"]
+        assert cam.counters.errors == {"time_jump": 1}
+        assert cam.counters.frames == 20
+        assert cam.counters.restarts == {"events": 0, "frames": 0}
+    finally:
+        svc.close()
+
+
+def test_a_confirmed_new_time_base_starts_a_session():
+    # the clock jumps back by an hour with sequence numbers continuing (a camera whose clock
+    # was reset): refused until three messages agree, then a new session
+    svc, _ = make_service()
+    try:
+        first = stream(n_frames=10, t0=3_600_000_000)
+        feed(svc, "cam0", first)
+        second = [(k, p) for k, p in stream(n_frames=10, t0=0)]
+        # renumber: the publisher's sequence goes on from 10
+        renum = []
+        for i, (kind, payload) in enumerate(second):
+            obj = msgpack.unpackb(payload)
+            obj["seq"] = 10 + i // 2
+            renum.append((kind, msgpack.packb(obj)))
+        feed(svc, "cam0", renum)
+        settle(svc)
+        cam = svc.cameras["cam0"]
+        assert cam.counters.errors.get("time_jump", 0) == 4  # 2 per stream before confirmed
+        assert cam.counters.restarts["events"] + cam.counters.restarts["frames"] >= 1
+        assert cam.counters.frames > 10
+    finally:
+        svc.close()
+
+
+def test_a_sensor_change_is_accepted_with_a_publisher_restart():
+    svc, _ = make_service()
+    try:
+        feed(svc, "cam0", stream(n_frames=12))
+        settle(svc)
+        feed(svc, "cam0", stream(h=7, w=9, n_frames=12))  # seq and time from 0, new size
+        settle(svc)
+        cam = svc.cameras["cam0"]
+        assert cam.counters.errors == {}
+        assert str(cam.sensor) == "9x7"
+        assert cam.state.calibration is not None
+        assert cam.state.calibration.shape == (7, 9)
     finally:
         svc.close()

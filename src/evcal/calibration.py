@@ -223,6 +223,7 @@ class OnEIDiagnostics(Diagnostics):
     folded_late_events: int = 0
     late_events: int = 0
     gaps: int = 0
+    sessions: int = 0  # discontinuities of the stream's time base (buffers emptied)
     residual_lambda: float = 0.0
     n_small: int = 0
     n_large: int = 0

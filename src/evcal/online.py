@@ -62,6 +62,7 @@ from .events import EVENTS_DTYPE, SensorSize
 from .recording import Recording
 from .solver import (
     NormalEquations,
+    PixelSolution,
     SolveLimits,
     correction_lambda,
     log_intensity,
@@ -72,6 +73,20 @@ from .special import classify
 from .stream import StreamError, StreamGuard, frame_intervals
 
 STATE_FORMAT = "evcal.onei.v2"
+# state_dict's scalars: JSON key -> attribute (besides sensor, config and the stream's times)
+def _opt_int(v: Any) -> int | None:
+    return None if v is None else int(v)
+
+
+_SCALARS: dict[str, tuple[str, Any]] = {
+    "lam": ("lam", float), "n_updates": ("n_updates", int), "n_events": ("n_events", int),
+    "n_frames": ("n_frames", int), "n_equations": ("n_equations", int),
+    "n_gaps": ("n_gaps", int), "gap": ("_gap", bool), "n_folded_late": ("n_folded_late", int),
+    "n_late_events": ("n_late_events", int), "n_sessions": ("n_sessions", int),
+    "base": ("_base", int), "next_open": ("_next_open", int),
+    "cum_events": ("_cum_events", int), "removals": ("_removals", int),
+    "since_resolve": ("_since_resolve", int), "frame_cap": ("_frame_cap", _opt_int)}
+_OPTIONAL_SCALARS = frozenset({"n_sessions"})  # absent from states of earlier versions
 _VALID = int(Reason.VALID)
 
 
@@ -118,6 +133,57 @@ def _low_pass(c_new, b_new, se_c_new, se_b_new, ok, reason_new, smoothing, c, b,
             se_b[i] = np.float64(np.float32(se_b_new[i]))
             seen[i] = True
         reason[i] = _VALID if seen[i] else reason_new[i]
+
+
+class LowPassEstimate:
+    """OnEI's smoothed per-pixel estimate (flat maps) and its low-pass update.
+
+    ``est <- (1 - a) est + a new`` on pixels whose new solution is valid, with
+    ``a = max(smoothing, 1 / n)`` for a pixel's ``n``-th valid solution (the start-up
+    correction: the first ``1 / smoothing`` solutions are averaged with equal weights).
+    """
+
+    ARRAYS = ("c", "b", "se_c", "se_b", "seen", "n_solved", "reason")
+
+    def __init__(self, n_pixels: int) -> None:
+        self.c = np.full(n_pixels, DEFAULT_CONTRAST)
+        self.b = np.full(n_pixels, DEFAULT_BIAS)
+        self.se_c = np.full(n_pixels, np.inf)
+        self.se_b = np.full(n_pixels, np.inf)
+        self.seen = np.zeros(n_pixels, bool)  # a valid solution was folded in
+        self.n_solved = np.zeros(n_pixels, np.int64)  # valid solutions of each pixel so far
+        self.reason = np.full(n_pixels, Reason.NO_EVENTS, np.uint8)
+
+    def fold(self, new: PixelSolution, smoothing: float) -> None:
+        _low_pass(new.contrast, new.bias, new.stderr_contrast, new.stderr_bias, new.valid,
+                  new.reason, float(smoothing), self.c, self.b, self.se_c, self.se_b,
+                  self.seen, self.n_solved, self.reason)
+
+    def maps(self, shape: tuple[int, int]) -> dict[str, np.ndarray]:
+        """The calibration maps of the estimate (copies; defaults where never solved)."""
+        valid = self.seen.copy()
+        special = classify(self.c, self.b, self.se_c, self.se_b, valid)
+        special[~valid] = Special.UNOBSERVED
+        return {"contrast": self.c.reshape(shape),  # float32 copies (Calibration casts)
+                "bias": self.b.reshape(shape), "valid": valid.reshape(shape),
+                "reason": self.reason.reshape(shape).copy(),
+                "stderr_contrast": np.where(valid, self.se_c, np.inf).reshape(shape),
+                "stderr_bias": np.where(valid, self.se_b, np.inf).reshape(shape),
+                "special": special.reshape(shape)}
+
+    def state(self) -> dict[str, np.ndarray]:
+        return {name: getattr(self, name) for name in self.ARRAYS}
+
+    def load(self, state: dict[str, np.ndarray]) -> None:
+        """Copy a :meth:`state` in (shapes checked; :class:`StateError` otherwise)."""
+        for name in self.ARRAYS:
+            _load_into(getattr(self, name), state[name], name)
+
+
+def _load_into(dst: np.ndarray, src: np.ndarray, name: str) -> None:
+    if np.shape(src) != dst.shape:
+        raise StateError(f"state {name} has shape {np.shape(src)}, expected {dst.shape}")
+    dst[:] = src
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -208,7 +274,24 @@ class OnlineCalibrator:
         self.config = config or OnEIConfig()
         self.n_small, self.n_large = self.config.sizes(sensor)
         n = sensor.n_pixels
-        self._acc = Accumulator(sensor)  # counts of the interval since the latest frame
+        self._scratch = np.zeros((2, n), np.float64)  # zero between uses
+        self._frame_cap: int | None = None
+        self._reset_buffer()
+        self.estimate = LowPassEstimate(n)  # what calibration() reports
+        self.lam = 0.0
+        self.n_updates = 0
+        self.n_events = 0
+        self.n_frames = 0
+        self.n_gaps = 0
+        self.n_folded_late = 0  # events folded without their frame (pending overflow)
+        self.n_late_events = 0  # events that arrived after the frame that ends their interval
+        self.n_sessions = 0  # discontinuities of the stream's time base (new_session)
+        self._guard = StreamGuard(sensor)  # time order of this calibrator's input
+
+    def _reset_buffer(self) -> None:
+        """Empty the large buffer, the pending events and the normal equations."""
+        n = self.sensor.n_pixels
+        self._acc = Accumulator(self.sensor)  # counts of the interval since the latest frame
         self._ne = NormalEquations(n)
         self._counts = np.zeros(n, np.int64)  # events per pixel inside the large buffer
         self._frames: deque[_Frame] = deque()
@@ -218,27 +301,26 @@ class OnlineCalibrator:
         self._gap = False
         self._removals = 0
         self._since_resolve = 0
-        self._frame_cap: int | None = None
         self._pending: deque[np.ndarray] = deque()
         self._n_pending = 0
-        self._scratch = np.zeros((2, n), np.float64)  # zero between uses
-        # smoothed estimate
-        self._c = np.full(n, DEFAULT_CONTRAST)
-        self._b = np.full(n, DEFAULT_BIAS)
-        self._se_c = np.full(n, np.inf)
-        self._se_b = np.full(n, np.inf)
-        self._seen = np.zeros(n, bool)
-        self._n_solved = np.zeros(n, np.int64)  # valid solutions of each pixel so far
-        self._reason = np.full(n, Reason.NO_EVENTS, np.uint8)
-        self.lam = 0.0
-        self.n_updates = 0
-        self.n_events = 0
-        self.n_frames = 0
         self.n_equations = 0  # small buffers in the normal equations now
-        self.n_gaps = 0
-        self.n_folded_late = 0  # events folded without their frame (pending overflow)
-        self.n_late_events = 0  # events that arrived after the frame that ends their interval
-        self._guard = StreamGuard(sensor)  # time order of this calibrator's input
+
+    def _start_session_keeping_guard(self) -> None:
+        guard = self._guard
+        self.new_session()
+        self._guard = guard  # it already accepted the message that started the session
+
+    def new_session(self) -> None:
+        """The stream's time base changed (a camera restarted, a recording replayed again).
+
+        The rule: no equation may span the discontinuity, so the large buffer, the pending
+        events and the normal equations are emptied; the smoothed estimate (and so the
+        published calibration) is kept and goes on being refined by the new session. A
+        change of sensor needs a new calibrator instead.
+        """
+        self._reset_buffer()
+        self._guard = StreamGuard(self.sensor)
+        self.n_sessions += 1
 
     @property
     def last_event_t_us(self) -> int | None:
@@ -261,8 +343,8 @@ class OnlineCalibrator:
         """
         if checked:
             self._guard.note_events(events)
-        else:
-            self._guard.accept_events(events, what="events")
+        elif self._guard.accept_events(events, what="events").new_session:
+            self._start_session_keeping_guard()
         if events.size == 0:
             return
         self.n_events += int(events.size)
@@ -296,7 +378,8 @@ class OnlineCalibrator:
         if img.dtype.kind == "f" and not np.isfinite(img).all():
             raise StreamError(f"frame at t_us={t_us} contains NaN or infinite values",
                               ErrorReason.BAD_VALUES)
-        self._guard.accept_frame(t_us, what=f"frame at t_us={t_us}")
+        if self._guard.accept_frame(t_us, what=f"frame at t_us={t_us}").new_session:
+            self._start_session_keeping_guard()
         self._fold_pending_before(t_us)
         self.n_frames += 1
         if self._frame_cap is None:
@@ -445,9 +528,7 @@ class OnlineCalibrator:
                            residual_lambda=self.lam)
         # low-pass with a start-up correction: a pixel's first 1/smoothing solutions are
         # averaged with equal weights (the first one is not trusted more than the later ones)
-        _low_pass(new.contrast, new.bias, new.stderr_contrast, new.stderr_bias, new.valid,
-                  new.reason, float(cfg.smoothing), self._c, self._b, self._se_c, self._se_b,
-                  self._seen, self._n_solved, self._reason)
+        self.estimate.fold(new, cfg.smoothing)
         self.n_updates += 1
 
     # -- output ------------------------------------------------------------------------------
@@ -464,17 +545,8 @@ class OnlineCalibrator:
         The maps are copies: the result does not change when the calibrator goes on.
         """
         shape = self.sensor.shape
-        valid = self._seen.copy()
-        special = classify(self._c, self._b, self._se_c, self._se_b, valid)
-        special[~valid] = Special.UNOBSERVED
         return Calibration(
-            contrast=self._c.reshape(shape),  # float32 copies (Calibration casts)
-            bias=self._b.reshape(shape),
-            valid=valid.reshape(shape),
-            reason=self._reason.reshape(shape).copy(),
-            stderr_contrast=np.where(valid, self._se_c, np.inf).reshape(shape),
-            stderr_bias=np.where(valid, self._se_b, np.inf).reshape(shape),
-            special=special.reshape(shape),
+            **self.estimate.maps(shape),
             log_offset=self.config.log_offset,
             method="onei",
             n_events=self._counts.reshape(shape).copy(),
@@ -498,6 +570,7 @@ class OnlineCalibrator:
             "folded_late_events": self.n_folded_late,
             "late_events": self.n_late_events,
             "gaps": self.n_gaps,
+            "sessions": self.n_sessions,
             "residual_lambda": self.lam,
             "n_small": self.n_small,
             "n_large": self.n_large,
@@ -524,26 +597,17 @@ class OnlineCalibrator:
 
         pending = (np.concatenate(list(self._pending)) if self._pending
                    else np.zeros(0, EVENTS_DTYPE))
-        scalars = {
-            "height": self.sensor.height, "width": self.sensor.width,
-            "config": self.config.to_json(), "lam": self.lam, "n_updates": self.n_updates,
-            "n_events": self.n_events, "n_frames": self.n_frames,
-            "n_equations": self.n_equations, "n_gaps": self.n_gaps, "gap": self._gap,
-            "n_folded_late": self.n_folded_late, "n_late_events": self.n_late_events,
-            "last_event_t_us": self.last_event_t_us,
-            "last_frame_t_us": self.last_frame_t_us, "base": self._base,
-            "next_open": self._next_open, "cum_events": self._cum_events,
-            "removals": self._removals, "since_resolve": self._since_resolve,
-            "frame_cap": self._frame_cap,
-        }
+        scalars = {"height": self.sensor.height, "width": self.sensor.width,
+                   "config": self.config.to_json(),
+                   "last_event_t_us": self.last_event_t_us,
+                   "last_frame_t_us": self.last_frame_t_us}
+        scalars.update({key: getattr(self, attr) for key, (attr, _) in _SCALARS.items()})
         img_dtype = frames[0].image.dtype if frames else np.dtype(np.uint8)
         out: dict[str, np.ndarray] = {
             "format": np.array(STATE_FORMAT),
             "scalars": np.array(json.dumps(scalars)),
             "acc_on": self._acc.on, "acc_off": self._acc.off, "acc_last_p": self._acc.last_p,
-            "counts": self._counts,
-            "c": self._c, "b": self._b, "se_c": self._se_c, "se_b": self._se_b,
-            "seen": self._seen, "n_solved": self._n_solved, "reason": self._reason,
+            "counts": self._counts, **self.estimate.state(),
             "pending": pending, "fr_images": (np.stack([f.image for f in frames]) if frames
                           else np.zeros((0, n), img_dtype)),
             "fr_last_p": (np.stack([f.last_p for f in frames]) if frames
@@ -571,22 +635,11 @@ class OnlineCalibrator:
             sensor = SensorSize(int(s["height"]), int(s["width"]))
             self = cls(sensor, OnEIConfig.from_json(s["config"]))
             n = sensor.n_pixels
-            for name in ("acc_on", "acc_off", "acc_last_p", "counts", "c", "b", "se_c", "se_b",
-                         "seen", "n_solved", "reason"):
-                if state[name].shape != (n,):
-                    raise StateError(f"state {name} has shape {state[name].shape}, "
-                                     f"expected ({n},)")
-            self._acc.on[:] = state["acc_on"]
-            self._acc.off[:] = state["acc_off"]
-            self._acc.last_p[:] = state["acc_last_p"]
-            self._counts[:] = state["counts"]
-            self._c[:] = state["c"]
-            self._b[:] = state["b"]
-            self._se_c[:] = state["se_c"]
-            self._se_b[:] = state["se_b"]
-            self._seen[:] = state["seen"]
-            self._n_solved[:] = state["n_solved"]
-            self._reason[:] = state["reason"]
+            _load_into(self._acc.on, state["acc_on"], "acc_on")
+            _load_into(self._acc.off, state["acc_off"], "acc_off")
+            _load_into(self._acc.last_p, state["acc_last_p"], "acc_last_p")
+            _load_into(self._counts, state["counts"], "counts")
+            self.estimate.load(state)
             pending = np.asarray(state["pending"])
             if pending.dtype != EVENTS_DTYPE:
                 raise StateError("state pending events have the wrong dtype")
@@ -610,23 +663,11 @@ class OnlineCalibrator:
                     np.array(state["fr_idx"][sl], np.int32), np.array(state["fr_on"][sl],
                                                                        np.int32),
                     np.array(state["fr_off"][sl], np.int32), bool(opens), int(closes_at)))
-            self.lam = float(s["lam"])
-            self.n_updates = int(s["n_updates"])
-            self.n_events = int(s["n_events"])
-            self.n_frames = int(s["n_frames"])
-            self.n_equations = int(s["n_equations"])
-            self.n_gaps = int(s["n_gaps"])
-            self._gap = bool(s["gap"])
-            self.n_folded_late = int(s["n_folded_late"])
-            self.n_late_events = int(s["n_late_events"])
+            for key, (attr, conv) in _SCALARS.items():
+                if key in s or key not in _OPTIONAL_SCALARS:
+                    setattr(self, attr, conv(s[key]))
             self._guard.last_event_t_us = s["last_event_t_us"]
             self._guard.last_frame_t_us = s["last_frame_t_us"]
-            self._base = int(s["base"])
-            self._next_open = int(s["next_open"])
-            self._cum_events = int(s["cum_events"])
-            self._removals = int(s["removals"])
-            self._since_resolve = int(s["since_resolve"])
-            self._frame_cap = s["frame_cap"]
         except KeyError as exc:
             raise StateError(f"OnEI state lacks {exc.args[0]!r}") from None
         return self

@@ -76,66 +76,135 @@ def frame_intervals(events: np.ndarray, frame_t_us: np.ndarray
 # the checks of a live stream
 
 
+@dataclass(frozen=True, kw_only=True)
+class StreamPolicy:
+    """When a discontinuity of a stream's time starts a new *session* instead of being refused.
+
+    Time going back by at most ``jump_us`` is an error of the publisher (``time_backwards``,
+    refused). A larger jump back, or a jump forward of more than ``max_forward_us``, is either
+    a glitch (one absurd timestamp, e.g. ``2**62``) or a new time base (a camera power-cycled,
+    a recording replayed again): such a message is refused (``time_jump``) until
+    ``confirm_messages`` consecutive messages agree on the new time base, and the last of them
+    starts a new session. A sequence number going back together with time going back is a
+    publisher restart: a new session at once. A new session may change the sensor size.
+    """
+
+    jump_us: int = 10_000_000
+    max_forward_us: int = 3_600_000_000
+    confirm_messages: int = 3
+
+    def __post_init__(self) -> None:
+        if self.jump_us < 0 or self.max_forward_us < 1 or self.confirm_messages < 1:
+            raise ValueError(f"{self}: jump_us >= 0, max_forward_us >= 1 and "
+                             "confirm_messages >= 1 expected")
+
+
 @dataclass(frozen=True)
 class SeqCheck:
-    """What a message's sequence number says: ``lost`` messages before it (a gap), or a
-    ``restart`` (a number at or below one already seen: the publisher started again)."""
+    """What a message says about its stream: ``lost`` messages before it (a sequence gap),
+    a sequence ``restart`` (a number below the expected one), and whether it starts a
+    ``new_session`` (the stream's time base changed; ``new_sensor``: with another size)."""
 
     lost: int = 0
     restart: bool = False
+    new_session: bool = False
+    new_sensor: bool = False
 
     @property
     def gap(self) -> bool:
-        """The stream is not contiguous here (loss or restart)."""
-        return self.lost > 0 or self.restart
+        """The stream is not contiguous here (loss, restart or a new session)."""
+        return self.lost > 0 or self.restart or self.new_session
 
 
 class StreamGuard:
     """The history-dependent checks of one camera's event and frame streams.
 
     Single-threaded: one guard per camera, used by the thread that consumes that camera.
-    Every ``accept_*`` method either raises :class:`StreamError` (the message is refused and
-    the guard unchanged, but for the sensor, fixed by the first message whatever follows) or
-    accepts the message and advances the stream's state.
+    :meth:`accept` either raises :class:`StreamError` (the message is refused and the guard
+    unchanged, but for a pending time-base candidate) or accepts the message and advances the
+    stream's state. The sensor is fixed by the first message; it may change only with a new
+    session (:class:`StreamPolicy`).
     """
 
-    def __init__(self, sensor: SensorSize | None = None, *, max_pixels: int | None = None
-                 ) -> None:
+    def __init__(self, sensor: SensorSize | None = None, *, max_pixels: int | None = None,
+                 policy: StreamPolicy | None = None) -> None:
         self.sensor = sensor
         self.max_pixels = max_pixels
+        self.policy = policy or StreamPolicy()
         self.next_seq: dict[str, int | None] = {k: None for k in STREAM_KINDS}
         self.last_event_t_us: int | None = None
         self.last_frame_t_us: int | None = None
+        self.sessions = 0  # new sessions started after the first
+        # per stream: (last t_us, messages) of a time base that differs from the accepted one
+        self._candidate: dict[str, tuple[int, int] | None] = {k: None for k in STREAM_KINDS}
+
+    def _last(self, kind: str) -> int | None:
+        return self.last_event_t_us if kind == "events" else self.last_frame_t_us
+
+    def _set_last(self, kind: str, t_us: int) -> None:
+        if kind == "events":
+            self.last_event_t_us = t_us
+        else:
+            self.last_frame_t_us = t_us
 
     # -- single checks -----------------------------------------------------------------------
 
+    def _check_size(self, height: int, width: int, what: str, *, new_session: bool) -> bool:
+        """Whether the size differs from the stream's (allowed with a new session only)."""
+        n = int(height) * int(width)
+        if self.max_pixels is not None and n > self.max_pixels:
+            raise StreamError(f"{what}: a {width}x{height} sensor has {n} pixels, more "
+                              f"than the limit of {self.max_pixels} (--max-pixels)",
+                              ErrorReason.SENSOR_TOO_LARGE)
+        if self.sensor is None or (int(height), int(width)) == self.sensor.shape:
+            return False
+        if not new_session:
+            raise StreamError(f"{what}: a {width}x{height} sensor, but the stream is "
+                              f"{self.sensor} (a new sensor is accepted when its publisher "
+                              "restarts: sequence numbers from 0 again)",
+                              ErrorReason.SENSOR_CHANGED)
+        return True
+
     def check_sensor(self, height: int, width: int, what: str) -> SensorSize:
         """The stream's sensor: fixed by the first message, every later one must match."""
+        self._check_size(height, width, what, new_session=False)
         if self.sensor is None:
-            n = int(height) * int(width)
-            if self.max_pixels is not None and n > self.max_pixels:
-                raise StreamError(f"{what}: a {width}x{height} sensor has {n} pixels, more "
-                                  f"than the limit of {self.max_pixels} (--max-pixels)",
-                                  ErrorReason.SENSOR_TOO_LARGE)
             self.sensor = SensorSize(int(height), int(width))
-        elif (int(height), int(width)) != self.sensor.shape:
-            raise StreamError(f"{what}: a {width}x{height} sensor, but the stream is "
-                              f"{self.sensor}", ErrorReason.SENSOR_CHANGED)
         return self.sensor
 
-    def check_event_order(self, events: np.ndarray, what: str) -> None:
-        """The chunk does not start before the previous accepted chunk ended."""
-        last = self.last_event_t_us
-        if events.size and last is not None and int(events["t_us"][0]) < last:
-            raise StreamError(f"{what}: time goes backwards: first t_us="
-                              f"{int(events['t_us'][0])} is before the previous chunk's last "
+    def _time(self, kind: str, t_first: int, t_last: int, restart: bool, what: str) -> bool:
+        """Check the message's time against the stream's; True when it starts a new session.
+        Raises :class:`StreamError` for a refused message."""
+        last = self._last(kind)
+        strict = kind == "frames"  # frame times increase, event times may repeat
+        if last is None:
+            return False
+        back = t_first < last or (strict and t_first == last)
+        pol = self.policy
+        if not back and t_first - last <= pol.max_forward_us:
+            self._candidate[kind] = None
+            return False
+        if back and restart:
+            return True  # the publisher restarted: sequence numbers and time went back
+        if back and last - t_first <= pol.jump_us:
+            if kind == "events":
+                raise StreamError(f"{what}: time goes backwards: first t_us={t_first} is "
+                                  f"before the previous chunk's last t_us={last}",
+                                  ErrorReason.TIME_BACKWARDS)
+            raise StreamError(f"{what}: frame time goes backwards: t_us={t_first} after "
                               f"t_us={last}", ErrorReason.TIME_BACKWARDS)
-
-    def check_frame_order(self, t_us: int, what: str) -> None:
-        last = self.last_frame_t_us
-        if last is not None and int(t_us) <= last:
-            raise StreamError(f"{what}: frame time goes backwards: t_us={int(t_us)} after "
-                              f"t_us={last}", ErrorReason.TIME_BACKWARDS)
+        # a jump: a glitch, or a new time base once enough messages agree on it
+        cand = self._candidate[kind]
+        if cand is not None and t_first >= cand[0] and t_first - cand[0] <= pol.max_forward_us:
+            cand = (t_last, cand[1] + 1)
+        else:
+            cand = (t_last, 1)
+        self._candidate[kind] = cand
+        if cand[1] >= pol.confirm_messages:
+            return True
+        raise StreamError(f"{what}: time jumps from t_us={last} to t_us={t_first}; refused "
+                          f"unless {pol.confirm_messages} consecutive messages confirm the new "
+                          f"time base ({cand[1]} so far)", ErrorReason.TIME_JUMP)
 
     def check_seq(self, kind: str, seq: int) -> SeqCheck:
         """Advance the ``kind`` stream's sequence number; what it says about loss."""
@@ -147,41 +216,71 @@ class StreamGuard:
             return SeqCheck(lost=int(seq) - expected)
         return SeqCheck(restart=True)
 
+    def new_session(self) -> None:
+        """Forget both streams' time and sequence state (a new time base starts)."""
+        self.next_seq = {k: None for k in STREAM_KINDS}
+        self.last_event_t_us = self.last_frame_t_us = None
+        self._candidate = {k: None for k in STREAM_KINDS}
+        self.sessions += 1
+
     # -- whole messages ----------------------------------------------------------------------
+
+    def accept(self, kind: str, *, t_first_us: int | None, t_last_us: int | None,
+               what: str, seq: int | None = None, size: tuple[int, int] | None = None
+               ) -> SeqCheck:
+        """Check and accept one message of the ``kind`` stream (``"events"``/``"frames"``).
+
+        ``t_first_us``/``t_last_us`` are its first and last times (None for an empty events
+        message: only sensor and sequence are checked), ``seq`` its sequence number, ``size``
+        the ``(height, width)`` it declares. Returns what the message says about the stream;
+        a ``new_session`` has already reset the guard's time and sequence state.
+        """
+        expected = self.next_seq[kind] if seq is not None else None
+        restart = expected is not None and seq is not None and seq < expected
+        new = False
+        if t_first_us is not None and t_last_us is not None:
+            new = self._time(kind, int(t_first_us), int(t_last_us), restart, what)
+        new_sensor = False
+        if size is not None:
+            new_sensor = self._check_size(size[0], size[1], what,
+                                          new_session=new or (restart and seq == 0))
+            new = new or new_sensor
+        if new:
+            self.new_session()
+        if size is not None and (self.sensor is None or new_sensor):
+            self.sensor = SensorSize(int(size[0]), int(size[1]))
+        check = self.check_seq(kind, seq) if seq is not None else SeqCheck()
+        if t_last_us is not None:
+            self._set_last(kind, int(t_last_us))
+        if new:
+            return SeqCheck(restart=restart, new_session=True, new_sensor=new_sensor)
+        return check
 
     def accept_events(self, events: np.ndarray, *, what: str = "events",
                       seq: int | None = None, size: tuple[int, int] | None = None,
                       validated: bool = False) -> SeqCheck:
-        """Check and accept one chunk of events.
+        """:meth:`accept` for a chunk of events.
 
-        ``size`` is the ``(height, width)`` its message declares (checked against the
-        stream's sensor); ``validated`` says the chunk on its own was already checked against
-        that size (the wire decoder does: order inside the chunk, coordinates, polarity), so
-        only what needs the stream's history is checked here. Without it the chunk is
-        validated in full against the stream's sensor.
+        ``validated`` says the chunk on its own was already checked against ``size`` (the
+        wire decoder does: order inside the chunk, coordinates, polarity), so only what needs
+        the stream's history is checked here. Without it the chunk is validated in full
+        against the stream's sensor.
         """
-        if size is not None:
-            self.check_sensor(size[0], size[1], what)
         if not validated:
             validate_events(events, self.sensor, where=what)  # raises EventError
         elif not (isinstance(events, np.ndarray) and events.dtype == EVENTS_DTYPE):
             raise StreamError(f"{what}: expected an array of EVENTS_DTYPE",
                               ErrorReason.MALFORMED)
-        self.check_event_order(events, what)
-        check = self.check_seq("events", seq) if seq is not None else SeqCheck()
-        if events.size:
-            self.last_event_t_us = int(events["t_us"][-1])
-        return check
+        t = events["t_us"]
+        return self.accept("events", t_first_us=int(t[0]) if t.size else None,
+                           t_last_us=int(t[-1]) if t.size else None, what=what, seq=seq,
+                           size=size)
 
     def accept_frame(self, t_us: int, *, what: str = "frame", seq: int | None = None,
                      size: tuple[int, int] | None = None) -> SeqCheck:
-        """Check and accept one frame at ``t_us`` (its image is checked by its consumer)."""
-        if size is not None:
-            self.check_sensor(size[0], size[1], what)
-        self.check_frame_order(t_us, what)
-        check = self.check_seq("frames", seq) if seq is not None else SeqCheck()
-        self.last_frame_t_us = int(t_us)
-        return check
+        """:meth:`accept` for a frame at ``t_us`` (its image is checked by its consumer)."""
+        return self.accept("frames", t_first_us=int(t_us), t_last_us=int(t_us), what=what,
+                           seq=seq, size=size)
 
     def note_events(self, events: np.ndarray) -> None:
         """Record a chunk accepted by another guard (the stream's time moves on)."""
@@ -197,7 +296,7 @@ class StreamGuard:
         """The guard as JSON-able values (for snapshots)."""
         return {"sensor": str(self.sensor) if self.sensor is not None else None,
                 "next_seq": dict(self.next_seq), "last_event_t_us": self.last_event_t_us,
-                "last_frame_t_us": self.last_frame_t_us}
+                "last_frame_t_us": self.last_frame_t_us, "sessions": self.sessions}
 
     @classmethod
     def from_state(cls, state: dict[str, Any], *, max_pixels: int | None = None
@@ -213,6 +312,7 @@ class StreamGuard:
             for name in ("last_event_t_us", "last_frame_t_us"):
                 v = state.get(name)
                 setattr(guard, name, None if v is None else int(v))
+            guard.sessions = int(state.get("sessions", 0))
         except (KeyError, TypeError, ValueError, AttributeError) as exc:
             raise StreamError(f"not a stream guard state: {exc}") from None
         return guard

@@ -32,6 +32,7 @@ from evcal.io.wire import (
     encode_frame,
 )
 from evcal.service import keys
+from evcal.service.state import snapshot_name
 from evcal.service.transport import Transport, TransportError, options_from_args
 from evcal.stream import StreamGuard
 
@@ -101,7 +102,8 @@ class CameraWriter:
 class Recorder:
     """Subscribes to cameras and writes one MCAP file per camera."""
 
-    def __init__(self, out: str, cameras: list[str], prefix: str = "evcal"):
+    def __init__(self, out: str, cameras: list[str], prefix: str = "evcal", *,
+                 max_cameras: int = 64):
         self.prefix = prefix.strip("/")
         self.cameras = cameras
         single = len(cameras) == 1 and not any(ch in cameras[0] for ch in "*$")
@@ -111,12 +113,17 @@ class Recorder:
         self.out = out
         self.single = single
         self.writers: dict[str, CameraWriter] = {}
+        self.max_cameras = int(max_cameras)  # open files at once
+        self.refused: dict[str, int] = {}  # messages of cameras not recorded
         self._lock = threading.Lock()
 
     def path_for(self, camera: str) -> Path:
+        """The file of ``camera``: ``{camera}`` becomes its id percent-encoded (``/`` ->
+        ``%2F``; injective, never a path separator or ``..``), cut with a hash suffix when
+        long (the same names as the service's snapshots)."""
         if self.single:
             return Path(self.out)
-        return Path(self.out.replace("{camera}", camera.replace("/", "_")))
+        return Path(self.out.replace("{camera}", snapshot_name(camera)[: -len(".npz")]))
 
     def on_sample(self, key: str, payload: bytes, encoding: str) -> None:
         parsed = keys.split_camera_key(self.prefix, key)
@@ -128,8 +135,23 @@ class Recorder:
         with self._lock:
             w = self.writers.get(camera)
             if w is None:
+                try:
+                    keys.check_camera_id(camera)
+                except ValueError as exc:
+                    self._refuse(camera, str(exc))
+                    return
+                if len(self.writers) >= self.max_cameras:
+                    self._refuse(camera, f"already recording {self.max_cameras} cameras "
+                                         "(--max-cameras)")
+                    return
                 w = self.writers[camera] = CameraWriter(self.path_for(camera), camera)
             w.add(kind, payload)
+
+    def _refuse(self, camera: str, why: str) -> None:
+        self.refused[camera] = self.refused.get(camera, 0) + 1
+        if self.refused[camera] == 1 and len(self.refused) <= 20:
+            print(f"evcal record: not recording camera {camera[:80]!r}: {why}",
+                  file=sys.stderr, flush=True)
 
     def subscribe(self, t: Transport) -> None:
         for cam in self.cameras:
@@ -151,6 +173,8 @@ def build_parser():
                    metavar="ID_OR_KEYEXPR", help="camera(s) to record (default: **)")
     p.add_argument("--duration", type=float, default=None, metavar="S",
                    help="stop after S seconds (default: until Ctrl-C)")
+    p.add_argument("--max-cameras", type=int, default=64,
+                   help="record at most this many cameras (open files) at once (default 64)")
     return p
 
 
@@ -160,7 +184,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     cameras = [c.strip("/") for c in args.cameras] or ["**"]
     try:
         zopts = options_from_args(args)
-        rec = Recorder(args.out, cameras, args.prefix)
+        rec = Recorder(args.out, cameras, args.prefix, max_cameras=args.max_cameras)
     except ValueError as exc:
         return fail(prog, str(exc), 2)
     stop = threading.Event()
@@ -182,8 +206,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"{prog}: {cam}: {c['events']} events, {c['frames']} frames, "
               f"{c['calibrations']} calibrations, {c['lost']} lost, {c['rejected']} rejected "
               f"-> {rec.path_for(cam)}", file=sys.stderr)
+    if rec.refused:
+        print(f"{prog}: {sum(rec.refused.values())} messages of {len(rec.refused)} camera(s) "
+              "not recorded (see above)", file=sys.stderr)
     if not counts:
-        print(f"{prog}: nothing received in {time.monotonic() - t0:.1f} s", file=sys.stderr)
+        return fail(prog, f"nothing received in {time.monotonic() - t0:.1f} s (is anything "
+                          f"publishing under {args.prefix}, reachable with these --connect/"
+                          "--mode settings?)", 3)
     return 0
 
 

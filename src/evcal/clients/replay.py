@@ -7,15 +7,25 @@ last event has happened (scaled by ``--speed``), a frame at its time; ``--max-ra
 fast as the link and the subscribers allow (publishers use congestion control BLOCK).
 ``--loop`` replays again with times shifted past the end, so time and sequence numbers keep
 increasing.
+
+Delivery is checked, not assumed: nothing is sent while no subscriber matches (exit code 3
+after ``--wait-subscriber``); at the end the service's status says what it processed,
+dropped and rejected of this run, and messages it never saw are reported (exit code 4, also
+when the service dropped or rejected some, or when messages went out with nobody
+subscribed). Publishers use congestion control BLOCK with ``--block-timeout`` (default 1 h)
+instead of zenoh's 5 s before a stalled link is closed, so a ``--on-full block`` service is
+lossless end to end across long stalls.
 """
 
 from __future__ import annotations
 
+import json
 import sys
 import threading
 import time
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 
@@ -31,11 +41,28 @@ from .common import base_parser, camera_arg, fail
 
 @dataclass
 class ReplayStats:
+    """What was sent, and what the service says it received (``delivered``)."""
+
     events: int = 0
     event_messages: int = 0
     frames: int = 0
     bytes: int = 0
     seconds: float = 0.0
+    subscribed: bool = True  # a subscriber matched before sending
+    unmatched_messages: int = 0  # sent while nobody subscribed (lost)
+    # the service's account of this run (status differences), None when no service answered
+    delivered: dict[str, int] | None = None
+
+    @property
+    def messages(self) -> int:
+        return self.event_messages + self.frames
+
+    @property
+    def missing_messages(self) -> int | None:
+        """Messages the service never saw (neither processed, dropped nor rejected)."""
+        if self.delivered is None:
+            return None
+        return self.messages - self.delivered["accounted_messages"]
 
     @property
     def events_per_s(self) -> float:
@@ -81,6 +108,12 @@ def replay(t: Transport, rec: Recording, camera: str, *, prefix: str = "evcal",
         if time.monotonic() > deadline or stop.is_set():
             break
         time.sleep(0.02)
+    status_key = keys.camera_key(prefix, camera, "status")
+    before = _status(t, status_key)
+    stats = ReplayStats()
+    if not (pub_ev.has_subscribers or pub_fr.has_subscribers):
+        stats.subscribed = False
+        return stats  # nobody listens: nothing is sent (the caller says so)
     images = rec.frames.images
     if images.dtype.kind == "f" and images.dtype != np.float32:
         images = images.astype(np.float32)
@@ -88,7 +121,6 @@ def replay(t: Transport, rec: Recording, camera: str, *, prefix: str = "evcal",
     period = int(np.median(np.diff(rec.frames.t_us))) if len(rec.frames) > 1 else 1
     span = t1 - t0 + max(period, 1)
     plan = list(schedule(rec, chunk_events=chunk_events, chunk_us=chunk_us))
-    stats = ReplayStats()
     seq_ev = seq_fr = 0
     wall0 = time.monotonic()
     loop_i = 0
@@ -106,6 +138,7 @@ def replay(t: Transport, rec: Recording, camera: str, *, prefix: str = "evcal",
                 msg = encode_frame(int(rec.frames.t_us[i0]) + shift, images[i0],
                                    exposure_us=int(rec.frames.exposure_us[i0]), seq=seq_fr)
                 pub_fr.put(msg)
+                stats.unmatched_messages += not pub_fr.has_subscribers
                 seq_fr += 1
                 stats.frames += 1
             else:
@@ -115,6 +148,7 @@ def replay(t: Transport, rec: Recording, camera: str, *, prefix: str = "evcal",
                     ev["t_us"] += shift
                 msg = encode_events(ev, height=h, width=w, seq=seq_ev)
                 pub_ev.put(msg)
+                stats.unmatched_messages += not pub_ev.has_subscribers
                 seq_ev += 1
                 stats.events += i1 - i0
                 stats.event_messages += 1
@@ -123,9 +157,54 @@ def replay(t: Transport, rec: Recording, camera: str, *, prefix: str = "evcal",
         if not loop or (max_loops is not None and loop_i >= max_loops):
             break
     # confirm delivery through the service's status queryable before the session closes
-    t.flush(keys.camera_key(prefix, camera, "status"))
+    t.flush(status_key)
     stats.seconds = time.monotonic() - wall0
+    if before is not None or _status(t, status_key) is not None:
+        stats.delivered = _delivered(t, status_key, before or {}, stats.messages)
     return stats
+
+
+def _status(t: Transport, key: str) -> dict[str, Any] | None:
+    """The camera's status from the service (None: no service answered)."""
+    try:
+        replies = [r for r in t.get(key, timeout_s=2.0) if r.ok]
+        return json.loads(replies[0].payload) if replies else None
+    except Exception:  # noqa: BLE001 - a diagnosis only
+        return None
+
+
+def _account(st: dict[str, Any], before: dict[str, Any]) -> dict[str, int]:
+    def diff(name: str) -> int:
+        v, b = st.get(name, 0), before.get(name, 0)
+        if isinstance(v, dict):
+            return int(sum(v.values()) - sum((b or {}).values()))
+        return int(v - (b or 0))
+
+    out = {"event_messages": diff("event_messages"), "events": diff("events"),
+           "frames": diff("frames"), "dropped_messages": diff("dropped_messages"),
+           "rejected_messages": diff("errors")}
+    out["accounted_messages"] = (out["event_messages"] + out["frames"]
+                                 + out["dropped_messages"] + out["rejected_messages"])
+    return out
+
+
+def _delivered(t: Transport, key: str, before: dict[str, Any], sent: int, *,
+               timeout_s: float = 15.0) -> dict[str, int]:
+    """What the service received of this run, once every sent message is accounted for (or
+    its counters stop moving): processed, dropped by its queue, rejected."""
+    deadline = time.monotonic() + timeout_s
+    last: dict[str, int] = {"accounted_messages": -1}
+    stable = 0
+    while True:
+        st = _status(t, key)
+        acc = _account(st, before) if st is not None else last
+        if acc["accounted_messages"] >= sent or time.monotonic() > deadline:
+            return acc
+        stable = stable + 1 if acc == last else 0
+        if stable >= 10:  # 2 s without a change: the rest is not coming
+            return acc
+        last = acc
+        time.sleep(0.2)
 
 
 def build_parser():
@@ -144,7 +223,11 @@ def build_parser():
     p.add_argument("--chunk-ms", type=float, default=10.0)
     p.add_argument("--sensor", help="WxH, for recordings that do not tell it")
     p.add_argument("--wait-subscriber", type=float, default=5.0, metavar="S",
-                   help="wait up to S seconds for a subscriber before sending (default 5)")
+                   help="wait up to S seconds for a subscriber before sending (default 5); "
+                        "with none, nothing is sent and the exit code is 3")
+    p.add_argument("--block-timeout", type=float, default=3600.0, metavar="S",
+                   help="how long a message may wait for a stalled receiver before zenoh "
+                        "closes the link (default 3600; zenoh's own default is 5)")
     return p
 
 
@@ -160,6 +243,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         return fail(prog, f"--speed {args.speed} must be > 0", 2)
     try:
         zopts = options_from_args(args)
+        # BLOCK publishers: a receiver stalled longer than zenoh's 5 s would see its link
+        # closed and the queued messages lost; wait as long as asked instead
+        zopts = replace(zopts, extra=(*zopts.extra, (
+            "transport/link/tx/queue/congestion_control/block/wait_before_close",
+            str(int(args.block_timeout * 1e6)))))
         sensor = SensorSize.parse(args.sensor) if args.sensor else None
         rec = open_recording(args.recording, sensor=sensor)
     except (ValueError, RecordingError) as exc:
@@ -178,11 +266,37 @@ def main(argv: Sequence[str] | None = None) -> int:
     finally:
         for s, h in old.items():
             signal.signal(s, h)
-    print(f"{prog}: {stats.events} events in {stats.event_messages} messages, {stats.frames} "
-          f"frames, {stats.bytes / 1e6:.1f} MB in {stats.seconds:.2f} s "
-          f"({stats.events_per_s / 1e6:.2f} M events/s) to {args.prefix}/{args.camera}",
-          file=sys.stderr)
-    return 0
+    target = f"{args.prefix}/{args.camera}"
+    if not stats.subscribed:
+        return fail(prog, f"nobody subscribes to {target}/events|frames after "
+                          f"{args.wait_subscriber:g} s (is `evcal serve` or `evcal record` "
+                          "running and reachable with these --connect/--mode settings?); "
+                          "nothing was sent", 3)
+    print(f"{prog}: sent {stats.events} events in {stats.event_messages} messages and "
+          f"{stats.frames} frames, {stats.bytes / 1e6:.1f} MB in {stats.seconds:.2f} s "
+          f"({stats.events_per_s / 1e6:.2f} M events/s) to {target}", file=sys.stderr)
+    code = 0
+    if stats.unmatched_messages:
+        print(f"{prog}: {stats.unmatched_messages} messages were sent while nobody subscribed "
+              "(lost)", file=sys.stderr)
+        code = 4
+    d = stats.delivered
+    if d is None:
+        print(f"{prog}: delivery not confirmed (no evcal service answered on "
+              f"{target}/status)", file=sys.stderr)
+    else:
+        print(f"{prog}: the service processed {d['event_messages']} event messages "
+              f"({d['events']} events) and {d['frames']} frames, dropped "
+              f"{d['dropped_messages']} and rejected {d['rejected_messages']} messages",
+              file=sys.stderr)
+        missing = stats.missing_messages or 0
+        if missing > 0:
+            print(f"{prog}: {missing} of {stats.messages} messages never reached the service",
+                  file=sys.stderr)
+            code = 4
+        elif d["dropped_messages"] or d["rejected_messages"]:
+            code = 4
+    return code
 
 
 if __name__ == "__main__":

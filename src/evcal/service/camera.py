@@ -130,6 +130,7 @@ class Counters:
     dropped: dict[str, int] = field(default_factory=_per_stream)
     lost: dict[str, int] = field(default_factory=_per_stream)
     seq_restarts: dict[str, int] = field(default_factory=_per_stream)
+    restarts: dict[str, int] = field(default_factory=_per_stream)  # new sessions
     errors: dict[str, int] = field(default_factory=dict)
     errors_published: int = 0
     errors_suppressed: int = 0
@@ -170,54 +171,53 @@ class CameraState:
 
     # -- inputs --------------------------------------------------------------------------------
 
-    def _sensor(self, header: dict[str, Any], what: str) -> OnlineCalibrator:
-        try:
-            sensor = self.guard.check_sensor(header["height"], header["width"], what)
-        except EvcalError as exc:
-            raise Rejected(f"{exc}; restart the service (or use another camera id) for a new "
-                           "sensor" if exc.reason == ErrorReason.SENSOR_CHANGED else str(exc),
-                           exc.reason) from None
-        if self.calibrator is None:
-            self.calibrator = OnlineCalibrator(sensor, self.onei)
-            log.info("camera %s: %s sensor", self.id, sensor)
-        return self.calibrator
-
-    def _seq(self, kind: str, seq: int, calibrator: OnlineCalibrator, drops_before: int
-             ) -> None:
-        check = self.guard.check_seq(kind, seq)
-        if check.lost:
-            # the gap minus the messages this service's own queue dropped: upstream loss
-            self.counters.lost[kind] += max(0, check.lost - drops_before)
-        if check.restart:
-            self.counters.seq_restarts[kind] += 1
-        if check.gap and kind == "events":
-            # events went missing (or the publisher restarted): no OnEI equation may span
-            # this interval, its counts are incomplete
-            calibrator.mark_gap()
-
-    def _accept(self, kind: str, header: dict[str, Any], payload: Any, drops_before: int
-                ) -> OnlineCalibrator:
-        """The stream checks of one message (sensor, order, sequence number), in that order;
-        ``payload`` is the events (``kind="events"``) or the frame's ``t_us``."""
+    def _accept(self, kind: str, header: dict[str, Any], t_first: int | None,
+                t_last: int | None, drops_before: int) -> OnlineCalibrator:
+        """The stream checks of one message (:meth:`StreamGuard.accept`: sensor, time, sequence
+        number) and what they imply for OnEI: a new calibrator for the first message or a new
+        sensor, a new session (buffers emptied) for a new time base, a gap for lost events."""
         what = f"{'events' if kind == 'events' else 'frame'} message seq {header['seq']}"
-        cal = self._sensor(header, what)
         try:
-            if kind == "events":
-                self.guard.check_event_order(payload, what)
-            else:
-                self.guard.check_frame_order(payload, what)
+            check = self.guard.accept(kind, t_first_us=t_first, t_last_us=t_last, what=what,
+                                      seq=header["seq"], size=(header["height"],
+                                                               header["width"]))
         except EvcalError as exc:
             raise Rejected(str(exc), exc.reason) from None
-        self._seq(kind, header["seq"], cal, drops_before)
-        return cal
+        sensor = self.guard.sensor
+        assert sensor is not None  # accept() fixed it
+        c = self.counters
+        if self.calibrator is None or check.new_sensor:
+            if check.new_sensor:
+                # the old sensor's calibration does not describe this one
+                self.calibration = self.calibration_msg = None
+                c.restarts[kind] += 1
+            self.calibrator = OnlineCalibrator(sensor, self.onei)
+            self.frame_dtype = None
+            log.info("camera %s: %s sensor", self.id, sensor)
+        elif check.new_session:
+            self.calibrator.new_session()
+            self.frame_dtype = None
+            c.restarts[kind] += 1
+            log.info("camera %s: a new session of its %s stream (time base changed)", self.id,
+                     kind)
+        if check.lost:
+            # the gap minus the messages this service's own queue dropped: upstream loss
+            c.lost[kind] += max(0, check.lost - drops_before)
+        if check.restart:
+            c.seq_restarts[kind] += 1
+        if (check.lost or check.restart) and kind == "events" and not check.new_session:
+            # events went missing: no OnEI equation may span this interval
+            self.calibrator.mark_gap()
+        return self.calibrator
 
     def on_events(self, decoded: DecodedEvents, nbytes: int, *, now_s: float,
                   drops_before: int = 0) -> list[Output]:
         """A decoded events message (the decoder validated the chunk against its header's
         size); raises :class:`Rejected`."""
         ev, header = decoded
-        cal = self._accept("events", header, ev, drops_before)
-        self.guard.note_events(ev)
+        t = ev["t_us"]
+        cal = self._accept("events", header, int(t[0]) if t.size else None,
+                           int(t[-1]) if t.size else None, drops_before)
         cal.feed_events(ev, checked=True)
         c = self.counters
         c.events += int(ev.size)
@@ -234,16 +234,15 @@ class CameraState:
         """A decoded frame message; raises :class:`Rejected`."""
         t_us, exposure_us, image, header = decoded
         what = f"frame message seq {header['seq']}"
+        cal = self._accept("frames", header, t_us, t_us, drops_before)
         if self.frame_dtype is not None and image.dtype != self.frame_dtype:
             raise Rejected(f"{what}: a {image.dtype} frame, but this camera's frames are "
                            f"{self.frame_dtype}", ErrorReason.MALFORMED)
-        cal = self._accept("frames", header, t_us, drops_before)
         self.frame_dtype = image.dtype
         try:
             updated = cal.feed_frame(t_us, image, exposure_us)
         except EvcalError as exc:
             raise Rejected(f"{what}: {exc}", ErrorReason.REJECTED) from None
-        self.guard.note_frame(t_us)
         out: list[Output] = []
         if updated:
             out.append(self._update(cal, t_us, t_recv_s, t_start_s))

@@ -59,6 +59,7 @@ def camera_status(cam: Camera, *, now_s: float | None = None) -> dict[str, Any]:
         "dropped": dict(c.dropped),
         "lost": dict(c.lost),
         "seq_restarts": dict(c.seq_restarts),
+        "restarts": dict(c.restarts),  # new sessions: time base (or sensor) changed
         "errors": dict(c.errors),
         "errors_total": c.errors_total,
         "errors_suppressed": c.errors_suppressed,
