@@ -38,3 +38,51 @@ def test_image_budget_bounds_the_file(tmp_path):
         res = subprocess.run([rerun, "rrd", "verify", str(path)], capture_output=True,
                              text=True, timeout=120)
         assert res.returncode == 0, res.stdout + res.stderr
+
+
+def test_a_restart_never_overwrites_the_previous_recording(tmp_path):
+    path = tmp_path / "run.rrd"
+    first = RrdLogger(path)
+    first.close()
+    size = path.stat().st_size
+    second = RrdLogger(path)
+    second.close()
+    assert second.path == tmp_path / "run.1.rrd"
+    assert path.stat().st_size == size
+    assert read_entities(second.path)["/service"] >= 2
+
+
+def test_a_full_disk_stops_recording_cleanly_and_keeps_the_file_readable(tmp_path):
+    free = {"bytes": 1 << 30}
+    path = tmp_path / "run.rrd"
+    log = RrdLogger(path, map_period_s=0.0, scalar_period_s=0.0, min_free_bytes=100 << 20,
+                    disk_free=lambda _p: free["bytes"])
+    cal = Calibration.uniform((48, 64), 0.2, 0.01, log_offset=30.0)
+    status = {"latency_ms": {"last": 5.0}, "event_rate_hz": 1e5, "errors_total": 0}
+    for k in range(5):
+        log._next_disk_check = 0.0  # check every call (normally once a second)
+        log.updated("cam0", cal, k * 40_000, status)
+    assert log.stopped is None
+    free["bytes"] = 10 << 20  # the disk fills up
+    for k in range(5, 10):
+        log._next_disk_check = 0.0
+        log.updated("cam0", cal, k * 40_000, status)
+    assert log.stopped is not None and "MiB free" in log.stopped
+    assert log.state()["recording"] is False
+    log.close()  # never raises, even after a stop
+    ents = read_entities(path)  # what was written is complete and readable
+    assert ents["/cameras/cam0/series/latency_ms"] == 5
+
+
+def test_a_rerun_failure_stops_recording_never_the_caller(tmp_path):
+    log = RrdLogger(tmp_path / "run.rrd", map_period_s=0.0)
+    cal = Calibration.uniform((4, 5), 0.2, 0.01, log_offset=30.0)
+
+    def broken(*_a, **_k):
+        raise OSError(28, "No space left on device")
+
+    log.rec.log = broken  # every write fails from now on
+    log.updated("cam0", cal, 0, {})
+    assert log.stopped is not None and "No space left" in log.stopped
+    log.frame("cam0", 1, np.zeros((4, 5), np.uint8))  # ignored, no exception
+    log.close()

@@ -358,6 +358,8 @@ class Service:
             "publish_errors": self.publish_errors,
             "recorder_errors": self.observer_errors,
             "recorder_dropped": self.observer_dropped,
+            "recorder": (self.observer.state() if hasattr(self.observer, "state")
+                         else None),
             "cameras": [{"id": c.id, "sensor": str(c.sensor) if c.sensor else None,
                          "updates": c.counters.updates, "events": c.counters.events,
                          "last_update_t_us": c.state.calibration_t_us}

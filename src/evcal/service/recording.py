@@ -25,9 +25,12 @@ appears.
 
 from __future__ import annotations
 
+import itertools
 import logging
+import shutil
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -103,14 +106,46 @@ class _CameraLog:
     last_scalar_t_us: int | None = None
 
 
+def free_path(path: Path) -> Path:
+    """``path``, or the first of ``stem.1.rrd``, ``stem.2.rrd``... that does not exist: a
+    restarted service never overwrites the previous run's recording."""
+    if not path.exists():
+        return path
+    for i in itertools.count(1):
+        p = path.with_name(f"{path.stem}.{i}{path.suffix}")
+        if not p.exists():
+            return p
+    raise AssertionError("unreachable")
+
+
+def _disk_free(path: Path) -> int:
+    return int(shutil.disk_usage(path).free)
+
+
 class RrdLogger:
-    """Writes one ``.rrd`` per service run; implements :class:`evcal.service.core.Observer`."""
+    """Writes one ``.rrd`` per service run; implements :class:`evcal.service.core.Observer`.
+
+    It never overwrites a file (a restart writes ``run.1.rrd`` beside ``run.rrd``) and never
+    fails the service: when the disk gets short (less than ``min_free_bytes`` free) or rerun
+    raises, it logs why, finishes the file so that what was written stays readable, and
+    stops recording (``state()`` says so, the service's ``cameras`` reply shows it).
+    """
 
     def __init__(self, path: str | Path, *, map_period_s: float = 2.0,
                  recon_period_s: float = 2.0, recon_frames: int = 5,
                  scalar_period_s: float = 0.2, max_image_bytes: int = 300 << 20,
-                 max_recon_events: int = 5_000_000, recording_id: str | None = None):
-        self.path = Path(path)
+                 max_recon_events: int = 5_000_000, recording_id: str | None = None,
+                 min_free_bytes: int = 64 << 20,
+                 disk_free: Callable[[Path], int] = _disk_free):
+        self.requested_path = Path(path)
+        self.path = free_path(self.requested_path)
+        if self.path != self.requested_path:
+            log.warning("%s exists: this run records to %s", self.requested_path, self.path)
+        self.min_free_bytes = int(min_free_bytes)
+        self._disk_free = disk_free
+        self._next_disk_check = 0.0
+        self.stopped: str | None = None  # why recording stopped, None while it records
+        self.errors = 0
         self.map_period_us = int(map_period_s * 1e6)
         self.recon_period_us = int(recon_period_s * 1e6)
         self.recon_frames = int(recon_frames)
@@ -134,6 +169,59 @@ class RrdLogger:
         if t_us is not None:
             self.rec.set_time("sensor_time", duration=t_us * 1e-6)
         self.rec.set_time("wall_time", timestamp=time.time())
+
+    def state(self) -> dict[str, Any]:
+        """Where and whether it records (for the service's ``cameras`` reply)."""
+        return {"path": str(self.path), "recording": self.stopped is None,
+                "stopped": self.stopped, "errors": self.errors,
+                "image_bytes": self.image_bytes}
+
+    def _disk_ok(self) -> bool:
+        """False (and recording stopped) when the disk is nearly full; checked at most once
+        a second."""
+        now = time.monotonic()
+        if now < self._next_disk_check:
+            return True
+        self._next_disk_check = now + 1.0
+        free = self._disk_free(self.path.parent)
+        if free < self.min_free_bytes:
+            self.stop(f"the disk holding {self.path} has {free >> 20} MiB free, less than "
+                      f"{self.min_free_bytes >> 20} MiB: recording stopped, the file so far is "
+                      "complete")
+            return False
+        return True
+
+    def stop(self, reason: str) -> None:
+        """Stop recording for good, finishing the file (never raises)."""
+        if self.stopped is not None:
+            return
+        self.stopped = reason
+        log.error("rerun recording: %s", reason)
+        try:
+            self._set_time(None)
+            self.rec.log("service", rr.TextLog(reason, level="ERROR"))
+        except Exception:  # noqa: BLE001 - stopping anyway
+            pass
+        self._finish()
+
+    def _finish(self) -> None:
+        try:
+            self.rec.flush()
+            self.rec.disconnect()
+        except Exception as exc:  # noqa: BLE001 - the file so far is what it is
+            self.errors += 1
+            log.error("rerun recording: cannot finish %s: %s", self.path, exc)
+
+    def _guard(self, fn: Callable[..., None], *args: Any) -> None:
+        """Run one observer call unless stopped; a failure stops recording, never the
+        service."""
+        if self.stopped is not None or self._closed or not self._disk_ok():
+            return
+        try:
+            fn(*args)
+        except Exception as exc:  # noqa: BLE001 - disk full, rerun errors
+            self.errors += 1
+            self.stop(f"recording failed ({type(exc).__name__}: {exc}); stopped")
 
     def _image_budget(self, nbytes: int, camera: str) -> bool:
         with self._lock:
@@ -170,11 +258,17 @@ class RrdLogger:
     # -- Observer --------------------------------------------------------------------------
 
     def events(self, camera: str, events: np.ndarray) -> None:
+        self._guard(self._events, camera, events)
+
+    def _events(self, camera: str, events: np.ndarray) -> None:
         cl = self._cams.get(camera)
         if cl is not None:
             cl.evaluator.events(events)
 
     def frame(self, camera: str, t_us: int, image: np.ndarray) -> None:
+        self._guard(self._frame, camera, t_us, image)
+
+    def _frame(self, camera: str, t_us: int, image: np.ndarray) -> None:
         cl = self._cams.get(camera)
         if cl is None:
             return
@@ -199,6 +293,10 @@ class RrdLogger:
 
     def updated(self, camera: str, cal: Calibration, t_us: int, status: dict[str, Any]
                 ) -> None:
+        self._guard(self._updated, camera, cal, t_us, status)
+
+    def _updated(self, camera: str, cal: Calibration, t_us: int, status: dict[str, Any]
+                 ) -> None:
         cl = self._camera(camera, cal.shape)
         cl.evaluator.calibration(cal)
         self._set_time(t_us)
@@ -249,19 +347,27 @@ class RrdLogger:
                           "frames or events); the open reconstruction was abandoned")
 
     def note(self, camera: str, text: str, level: str = "WARN") -> None:
+        self._guard(self._note, camera, text, level)
+
+    def _note(self, camera: str, text: str, level: str) -> None:
         if camera in self._cams:
             self._set_time(None)
             self.rec.log(entity(camera, "log"), rr.TextLog(text, level=level))
 
     def close(self) -> None:
-        """Flush and finish the file (footer included): the ``.rrd`` is complete after this."""
+        """Flush and finish the file (footer included): the ``.rrd`` is complete after this.
+        Never raises."""
         if self._closed:
             return
         self._closed = True
-        self._set_time(None)
-        self.rec.log("service", rr.TextLog("evcal service stopped", level="INFO"))
-        self.rec.flush()
-        self.rec.disconnect()
+        if self.stopped is not None:
+            return  # already finished
+        try:
+            self._set_time(None)
+            self.rec.log("service", rr.TextLog("evcal service stopped", level="INFO"))
+        except Exception:  # noqa: BLE001
+            self.errors += 1
+        self._finish()
 
 
 def read_entities(path: str | Path) -> dict[str, int]:
