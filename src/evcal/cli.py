@@ -236,6 +236,10 @@ DELEGATED: dict[str, tuple[Callable[[list[str]], int], str]] = {
     "query": (_delegate("evcal.clients.query"), "fetch a camera's current calibration"),
     "record": (_delegate("evcal.clients.record"), "record Zenoh traffic to MCAP"),
     "demo": (_delegate("evcal.clients.demo"), "end-to-end demo with an embedded Zenoh peer"),
+    "keygen": (_delegate("evcal.clients.admin", "main_keygen"),
+               "make an Ed25519 key pair to sign calibrations"),
+    "forget": (_delegate("evcal.clients.admin", "main_forget"),
+               "ask the service to drop a camera's state"),
 }
 
 

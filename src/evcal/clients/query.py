@@ -19,6 +19,7 @@ from evcal.calibration import Calibration
 from evcal.io import load_calibration
 from evcal.io.calibfile import CalibrationFileError
 from evcal.service import keys
+from evcal.service.signing import SignatureError, Verifier, read_attachment
 from evcal.service.transport import Reply, Transport, TransportError, options_from_args
 
 from .common import base_parser, camera_arg, fail
@@ -54,31 +55,65 @@ def _nobody(t: Transport, prefix: str, camera: str, key: str, timeout_s: float) 
 
 
 def fetch_calibration_npz(t: Transport, camera: str, *, prefix: str = "evcal",
-                          timeout_s: float = 5.0) -> tuple[bytes, dict[str, Any]]:
-    """The newest ``.npz`` bytes of ``camera``'s calibration and its params."""
+                          timeout_s: float = 5.0, verifier: Verifier | None = None,
+                          instance: str | None = None) -> tuple[bytes, dict[str, Any]]:
+    """The ``.npz`` bytes of ``camera``'s calibration and its params (``t_us``, ...).
+
+    Every answer names the service instance that sent it (the reply's attachment). With a
+    ``verifier`` only answers signed with its key count (:mod:`evcal.service.signing`);
+    with ``instance`` only that instance's. Answers of several instances that disagree are
+    refused (:class:`QueryError`) unless ``instance`` says which to trust: a rogue
+    queryable cannot win by claiming a newer calibration.
+    """
     import io
 
     import numpy as np
 
     key = keys.camera_key(prefix, camera, "calibration")
     replies = t.get(f"{key}?format=npz", timeout_s=timeout_s)
-    best: tuple[int, bytes, dict[str, Any]] | None = None
+    answers: dict[str, tuple[int, bytes, dict[str, Any]]] = {}
+    refused: list[str] = []
     for r in replies:
         if not r.ok:
             continue
-        with np.load(io.BytesIO(r.payload), allow_pickle=False) as z:
-            params = json.loads(str(z["params_json"]))
+        if verifier is not None:
+            try:
+                who = verifier.verify(r.key, r.payload, r.attachment)
+            except SignatureError as exc:
+                refused.append(str(exc))
+                continue
+        else:
+            who = str(read_attachment(r.attachment).get("instance", "?"))
+        if instance is not None and who != instance:
+            refused.append(f"an answer from instance {who!r}, not {instance!r}")
+            continue
+        try:
+            with np.load(io.BytesIO(r.payload), allow_pickle=False) as z:
+                params = json.loads(str(z["params_json"]))
+        except Exception as exc:  # noqa: BLE001 - a malformed answer: refused, said why
+            refused.append(f"a malformed answer from instance {who!r} ({exc})")
+            continue
+        params["instance"] = who
         t_us = int(params.get("t_us", -1))
-        if best is None or t_us > best[0]:
-            best = (t_us, r.payload, params)
-    if best is None:
-        raise QueryError(_errors(replies) or _nobody(t, prefix, camera, key, timeout_s))
+        if who not in answers or t_us > answers[who][0]:
+            answers[who] = (t_us, r.payload, params)
+    if not answers:
+        why = "; ".join(refused) or _errors(replies) or _nobody(t, prefix, camera, key,
+                                                                 timeout_s)
+        raise QueryError(why)
+    if len(answers) > 1 and len({a[1] for a in answers.values()}) > 1:
+        raise QueryError(f"{len(answers)} instances answer for {camera!r} with different "
+                         f"calibrations ({', '.join(sorted(answers))}); pass --instance NAME "
+                         "to say which to trust (and --verify KEY.pub to check it)")
+    best = max(answers.values(), key=lambda a: a[0])
     return best[1], best[2]
 
 
 def fetch_calibration(t: Transport, camera: str, *, prefix: str = "evcal",
-                      timeout_s: float = 5.0) -> Calibration:
-    payload, _ = fetch_calibration_npz(t, camera, prefix=prefix, timeout_s=timeout_s)
+                      timeout_s: float = 5.0, verifier: Verifier | None = None,
+                      instance: str | None = None) -> Calibration:
+    payload, _ = fetch_calibration_npz(t, camera, prefix=prefix, timeout_s=timeout_s,
+                                       verifier=verifier, instance=instance)
     with tempfile.TemporaryDirectory() as d:
         p = Path(d) / "calibration.npz"
         p.write_bytes(payload)
@@ -112,6 +147,12 @@ def build_parser():
     p.add_argument("--status", action="store_true", help="print the camera's status (JSON)")
     p.add_argument("--list", action="store_true", help="list the cameras of every instance")
     p.add_argument("--timeout", type=float, default=5.0, metavar="S")
+    p.add_argument("--verify", metavar="KEY.pub",
+                   help="accept only calibrations signed with this Ed25519 public key "
+                        "(the service's --sign-key); unsigned or forged answers are refused")
+    p.add_argument("--instance", metavar="NAME",
+                   help="accept only answers of this service instance (needed when several "
+                        "instances disagree)")
     return p
 
 
@@ -122,6 +163,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return fail(prog, "give --camera ID with --out CALIB.npz and/or --status, or --list", 2)
     try:
         zopts = options_from_args(args)
+        verifier = Verifier(args.verify) if args.verify else None
     except ValueError as exc:
         return fail(prog, str(exc), 2)
     try:
@@ -138,10 +180,13 @@ def main(argv: Sequence[str] | None = None) -> int:
                     print(json.dumps(st, indent=2))
             if args.camera and args.out:
                 payload, params = fetch_calibration_npz(t, args.camera, prefix=args.prefix,
-                                                        timeout_s=args.timeout)
+                                                        timeout_s=args.timeout,
+                                                        verifier=verifier,
+                                                        instance=args.instance)
                 cal = save_npz_bytes(payload, Path(args.out))
                 print(f"{prog}: {args.camera}: {cal.shape[1]}x{cal.shape[0]} {cal.method} "
-                      f"calibration at t_us={params.get('t_us')}, "
+                      f"calibration at t_us={params.get('t_us')} from instance "
+                      f"{params.get('instance')}{' (signature verified)' if verifier else ''}, "
                       f"{100 * cal.valid_fraction:.1f}% valid pixels -> {args.out}",
                       file=sys.stderr)
     except (QueryError, TransportError, CalibrationFileError) as exc:

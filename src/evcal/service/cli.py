@@ -12,6 +12,7 @@ from collections.abc import Sequence
 
 from ..online import OnEIConfig
 from .core import ON_FULL, ServiceConfig
+from .signing import SignatureError
 from .transport import TransportError, add_zenoh_arguments, check_key, options_from_args
 
 
@@ -37,6 +38,9 @@ def build_parser(prog: str = "evcal serve") -> argparse.ArgumentParser:
                    help="log a reconstruction at most every S seconds of sensor time")
     p.add_argument("--rrd-max-mb", type=float, default=300.0,
                    help="stop logging images after this many MiB of them (default 300)")
+    p.add_argument("--sign-key", metavar="FILE.key",
+                   help="Ed25519 private key (PEM, from `evcal keygen`): sign every calibration "
+                        "so that `evcal query --verify FILE.pub` detects spoofed answers")
     p.add_argument("--state-dir", metavar="DIR",
                    help="snapshot each camera's state here (atomically) and restore at start")
     p.add_argument("--snapshot-period", type=float, default=30.0, metavar="S",
@@ -112,8 +116,9 @@ def main_serve(argv: Sequence[str] | None = None) -> int:
                                    "recon_period_s": args.rrd_recon_period,
                                    "max_image_bytes": int(args.rrd_max_mb * (1 << 20))},
                       ready=lambda s: print(f"evcal serve: ready ({s.instance})",
-                                            file=sys.stderr, flush=True))
-    except TransportError as exc:
+                                            file=sys.stderr, flush=True),
+                      sign_key=args.sign_key)
+    except (TransportError, SignatureError) as exc:
         print(f"evcal serve: {exc}", file=sys.stderr)
         return 1
     finally:

@@ -58,6 +58,7 @@ from .outputs import (
     error_body,
     parse_query,
 )
+from .signing import Signer
 from .state import Snapshot, StateStore
 
 log = logging.getLogger("evcal.service")
@@ -139,13 +140,16 @@ class Service:
 
     def __init__(self, config: ServiceConfig, publish: PublishFn, *,
                  match: MatchFn | None = None, observer: Observer | None = None,
-                 store: StateStore | None = None, instance: str = "") -> None:
+                 store: StateStore | None = None, instance: str = "",
+                 signer: Signer | None = None) -> None:
         self.config = config
         self._publish = publish
         self._match = match or keys.matches
         self.observer = observer
         self.store = store
         self.instance = instance or config.instance or "evcal"
+        # the attachment of calibration messages: the instance, signed when a key was given
+        self.signer = signer or Signer(self.instance)
         self.cameras: dict[str, Camera] = {}
         self._limiter = ErrorLimiter(config.error_rate_hz)  # refusals not of one camera
         self._lock = threading.Lock()
@@ -168,9 +172,17 @@ class Service:
     def key(self, camera: str, kind: str) -> str:
         return keys.camera_key(self.config.prefix, camera, kind)
 
-    def publish(self, key: str, payload: bytes, encoding: str) -> None:
+    def attachment(self, key: str, payload: bytes) -> bytes:
+        """The attachment of a calibration message on ``key`` (see :mod:`.signing`)."""
+        return self.signer.attachment(key, payload)
+
+    def publish(self, key: str, payload: bytes, encoding: str, *,
+                attachment: bytes | None = None) -> None:
         try:
-            self._publish(key, payload, encoding)
+            if attachment is None:
+                self._publish(key, payload, encoding)
+            else:
+                self._publish(key, payload, encoding, attachment=attachment)  # type: ignore[call-arg]
         except Exception as exc:  # a closed session at shutdown, a transport hiccup
             self.publish_errors += 1
             log.warning("cannot publish on %s: %s", key, exc)
@@ -196,7 +208,9 @@ class Service:
         """Publish what a camera's state machine returned (its worker thread, its lock held)."""
         for out in outputs:
             if isinstance(out, CalibrationUpdate):
-                self.publish(self.key(cam.id, "calibration"), out.message, keys.ENC_CALIBRATION)
+                key = self.key(cam.id, "calibration")
+                self.publish(key, out.message, keys.ENC_CALIBRATION,
+                             attachment=self.attachment(key, out.message))
                 cam.state.published(out, time.monotonic())
                 if self._observer_thread is not None:
                     self._observer_thread.submit(

@@ -18,6 +18,7 @@ from ..errors import EvcalError
 from . import keys
 from .core import Service, ServiceConfig
 from .outputs import error_reply
+from .signing import Signer
 from .state import StateStore
 from .transport import Request, Transport, ZenohOptions, intersects
 
@@ -38,6 +39,7 @@ def run(
     rrd_options: dict | None = None,
     ready: Callable[[Service], None] | None = None,
     tick_s: float = 0.1,
+    sign_key: str | Path | None = None,
 ) -> Service:
     """Serve until ``stop`` is set; returns the (closed) service for its counters."""
     store = StateStore(state_dir) if state_dir else None
@@ -50,8 +52,9 @@ def run(
     try:
         with Transport(zenoh) as t:
             instance = config.instance or t.zid
+            signer = Signer.from_file(instance, sign_key)
             service = Service(config, t.put, match=intersects, observer=observer, store=store,
-                              instance=instance)
+                              instance=instance, signer=signer)
             restored = service.restore()
             if restored:
                 log.info("restored %d camera(s) from %s: %s", len(restored), state_dir,
@@ -65,7 +68,7 @@ def run(
                     _reply_error(req, exc)
                     return
                 for key, payload, enc in replies:
-                    req.reply(key, payload, enc)
+                    req.reply(key, payload, enc, attachment=service.attachment(key, payload))
 
             def on_status(req: Request) -> None:
                 for key, payload, enc in service.query_status(req.key):

@@ -151,8 +151,10 @@ class Request:
         """Whether a reply on concrete ``key`` answers this query."""
         return intersects(self.key, key)
 
-    def reply(self, key: str, payload: bytes, encoding: str) -> None:
-        self._query.reply(key, payload, encoding=zenoh.Encoding(encoding))
+    def reply(self, key: str, payload: bytes, encoding: str, *,
+              attachment: bytes | None = None) -> None:
+        self._query.reply(key, payload, encoding=zenoh.Encoding(encoding),
+                          attachment=attachment)
 
     def reply_err(self, message: str) -> None:
         self._query.reply_err(message.encode(), encoding=zenoh.Encoding.TEXT_PLAIN)
@@ -167,6 +169,7 @@ class Reply:
     key: str
     payload: bytes
     encoding: str
+    attachment: bytes | None = None
 
 
 class Publisher:
@@ -278,9 +281,11 @@ class Transport:
         return Publisher(self._keep(self.session.declare_publisher(
             key, encoding=zenoh.Encoding(encoding), congestion_control=cc, express=express)))
 
-    def put(self, key: str, payload: bytes, encoding: str, *, block: bool = False) -> None:
+    def put(self, key: str, payload: bytes, encoding: str, *, block: bool = False,
+            attachment: bytes | None = None) -> None:
         cc = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
-        self.session.put(key, payload, encoding=zenoh.Encoding(encoding), congestion_control=cc)
+        self.session.put(key, payload, encoding=zenoh.Encoding(encoding), congestion_control=cc,
+                         attachment=attachment)
 
     def get(self, selector: str, *, timeout_s: float = 5.0, all_replies: bool = True
             ) -> list[Reply]:
@@ -298,7 +303,9 @@ class Transport:
         for r in self.session.get(selector, **kwargs):
             if r.ok is not None:
                 s = r.ok
-                out.append(Reply(True, str(s.key_expr), s.payload.to_bytes(), str(s.encoding)))
+                att = s.attachment.to_bytes() if s.attachment is not None else None
+                out.append(Reply(True, str(s.key_expr), s.payload.to_bytes(), str(s.encoding),
+                                 att))
             else:
                 e = r.err
                 out.append(Reply(False, "", e.payload.to_bytes(), str(e.encoding)))
