@@ -138,9 +138,10 @@ def test_a_rogue_answer_does_not_win_the_query(signed_service):
 # ----------------------------------------------------------------------------- mutual TLS
 
 
-def _ca_and_certs(d: Path) -> dict[str, Path]:
-    """A test CA, a server certificate for 127.0.0.1 and a client certificate; and a second
-    CA with its own client certificate (the wrong one)."""
+def _ca_and_certs(d: Path, roles: tuple[str, ...] = ("server", "client")
+                  ) -> dict[str, Path]:
+    """A test CA with a certificate for each role (CN ``evcal-<role>``, valid for localhost and
+    127.0.0.1), and a second CA with its own ``rogue_client`` certificate (the wrong one)."""
     from cryptography import x509
     from cryptography.hazmat.primitives import hashes, serialization
     from cryptography.hazmat.primitives.asymmetric import ec
@@ -177,11 +178,11 @@ def _ca_and_certs(d: Path) -> dict[str, Path]:
         (d / f"{ca_name}.pem").write_bytes(cert(ca_name, ca_key, ca_name, ca_key, ca=True,
                                                 san=False))
         out[ca_name] = d / f"{ca_name}.pem"
-        for who in (("server", "client") if ca_name == "ca" else ("client",)):
+        for who in (roles if ca_name == "ca" else ("client",)):
             k = ec.generate_private_key(ec.SECP256R1())
             stem = who if ca_name == "ca" else f"rogue_{who}"
             out[f"{stem}_key"] = write_key(k, d / f"{stem}.key")
-            (d / f"{stem}.pem").write_bytes(cert(f"evcal-{stem}", k, ca_name, ca_key,
+            (d / f"{stem}.pem").write_bytes(cert(f"evcal-{who}", k, ca_name, ca_key,
                                                  ca=False, san=True))
             out[f"{stem}_cert"] = d / f"{stem}.pem"
     return out
@@ -231,3 +232,118 @@ def test_mutual_tls_refuses_a_client_without_the_right_certificate(tmp_path):
         # and plain TCP to a TLS port gets nothing either
         assert not _reaches(ZenohOptions.loopback(connect=[f"tcp/127.0.0.1:{port}"]),
                             "evcal/probe")
+
+
+# ----------------------------------------------------------------------------- access control
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_the_shipped_access_control_lets_each_role_do_only_its_job(tmp_path):
+    """docker/zenoh/secure/router.json5 in a Python router (mutual TLS, its ACL): rigs put
+    inputs, only the service publishes and answers calibrations, clients read."""
+    import zenoh
+
+    conf_path = ROOT / "docker" / "zenoh" / "secure" / "router.json5"
+    if not conf_path.is_file():
+        pytest.skip("not running from a source checkout")
+    c = _ca_and_certs(tmp_path, ("router", "rig", "service", "client"))
+    port = free_port()
+    conf = zenoh.Config.from_file(str(conf_path))
+    conf.insert_json5("listen/endpoints", json.dumps([f"tls/127.0.0.1:{port}"]))
+    for k, v in (("root_ca_certificate", c["ca"]), ("listen_certificate", c["router_cert"]),
+                 ("listen_private_key", c["router_key"]),
+                 ("connect_certificate", c["router_cert"]),
+                 ("connect_private_key", c["router_key"])):
+        conf.insert_json5(f"transport/link/tls/{k}", json.dumps(str(v)))
+
+    def client(role: str) -> ZenohOptions:
+        opts = _tls(c["ca"], c[f"{role}_cert"], c[f"{role}_key"],
+                    connect=f"tls/localhost:{port}")
+        return ZenohOptions(mode="client", connect=opts.connect, multicast_scouting=False,
+                            extra=opts.extra)
+
+    got: dict[str, list[bytes]] = {"service": [], "client": []}
+    with zenoh.open(conf), Transport(client("service")) as svc, \
+            Transport(client("rig")) as rig, Transport(client("client")) as cli:
+        svc.subscribe("evcal/**/events", lambda k, p, e: got["service"].append(p))
+        svc.queryable("evcal/cam0/calibration", lambda req: req.reply(
+            "evcal/cam0/calibration", b"genuine", keys.ENC_CALIBRATION))
+        cli.subscribe("evcal/**/calibration", lambda k, p, e: got["client"].append(p))
+        wait_for(lambda: any(r.ok and r.payload == b"genuine"
+                             for r in cli.get("evcal/cam0/calibration", timeout_s=2.0)),
+                 timeout_s=30, what="the client's query answered by the service")
+
+        def sent(t: Transport, key: str, payload: bytes) -> None:
+            t.put(key, payload, keys.ENC_EVENTS)
+
+        wait_for(lambda: sent(rig, "evcal/cam0/events", b"ev") or got["service"],
+                 timeout_s=20, what="a rig's events reaching the service")
+        svc.put("evcal/cam0/calibration", b"from-service", keys.ENC_CALIBRATION)
+        wait_for(lambda: got["client"], timeout_s=10, what="the service's calibration")
+        # what each role may not do
+        rig.put("evcal/cam0/calibration", b"spoof", keys.ENC_CALIBRATION)
+        cli.put("evcal/cam0/events", b"client-events", keys.ENC_EVENTS)
+        rig.queryable("evcal/cam1/calibration", lambda req: req.reply(
+            "evcal/cam1/calibration", b"rogue", keys.ENC_CALIBRATION))
+        import time
+
+        time.sleep(1.0)
+        assert b"spoof" not in got["client"], got["client"]
+        assert b"client-events" not in got["service"]
+        assert not [r for r in cli.get("evcal/cam1/calibration", timeout_s=2.0) if r.ok]
+
+
+def test_the_secure_compose_setup_is_consistent(tmp_path):
+    """docker/compose.secure.yaml: its commands parse, its zenoh configs load with mutual TLS
+    and a deny-by-default ACL, and docker/make-certs.sh makes certificates whose common names
+    are the ACL's subjects and that pass a real mutual-TLS handshake."""
+    import shutil
+    import subprocess
+
+    import zenoh
+
+    yaml = pytest.importorskip("yaml")
+    docker = ROOT / "docker"
+    if not (docker / "compose.secure.yaml").is_file():
+        pytest.skip("not running from a source checkout")
+    compose = yaml.safe_load((docker / "compose.secure.yaml").read_text())
+    from evcal.service.cli import build_parser as serve_parser
+
+    serve = compose["services"]["evcal"]["command"]
+    args = serve_parser().parse_args(serve[1:])
+    assert args.sign_key and args.config.endswith("zenoh-client.json5")
+    for svc in compose["services"].values():
+        for vol in svc.get("volumes", []):
+            src = vol.split(":")[0]
+            if src.startswith("./zenoh"):
+                assert (docker / src).is_file(), vol
+    router = zenoh.Config.from_file(str(docker / "zenoh" / "secure" / "router.json5"))
+    client = zenoh.Config.from_file(str(docker / "zenoh" / "secure" / "client.json5"))
+    for conf in (router, client):
+        assert json.loads(conf.get_json("transport/link/tls/enable_mtls")) is True
+    acl = json.loads(router.get_json("access_control"))
+    assert acl["enabled"] and acl["default_permission"] == "deny"
+    cns = {cn for s in acl["subjects"] for cn in s.get("cert_common_names", [])}
+    assert cns == {"evcal-rig", "evcal-service", "evcal-client", "evcal-operator"}
+    if shutil.which("openssl") is None:
+        pytest.skip("no openssl to run docker/make-certs.sh")
+    out = tmp_path / "certs"
+    res = subprocess.run(["bash", str(docker / "make-certs.sh"), str(out)],
+                         capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    from cryptography import x509
+
+    made = {x509.load_pem_x509_certificate((out / f"{r}.pem").read_bytes()).subject
+            .rfc4514_string() for r in ("rig", "service", "client", "operator")}
+    assert made == {f"CN={cn}" for cn in cns}
+    port = free_port()
+    server = _tls(out / "ca.pem", out / "router.pem", out / "router.key",
+                  listen=f"tls/127.0.0.1:{port}")
+    with Transport(server) as t:
+        t.queryable("evcal/probe", lambda req: req.reply("evcal/probe", b"ok",
+                                                         keys.ENC_STATUS))
+        rig = _tls(out / "ca.pem", out / "rig.pem", out / "rig.key",
+                   connect=f"tls/localhost:{port}")
+        wait_for(lambda: _reaches(rig, "evcal/probe"), timeout_s=30,
+                 what="a rig with make-certs.sh's certificate")
