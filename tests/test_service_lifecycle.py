@@ -13,6 +13,7 @@ import pytest
 from test_service_core import Collector, feed, make_service, settle, stream
 
 from evcal.errors import EvcalError
+from evcal.events import SensorSize
 from evcal.events import make_events
 from evcal.io.wire import encode_events, encode_frame
 from evcal.online import OnEIConfig
@@ -332,3 +333,69 @@ def test_a_sensor_change_is_accepted_with_a_publisher_restart():
         assert cam.state.calibration.shape == (7, 9)
     finally:
         svc.close()
+
+
+# ----------------------------------------------------------------------------- lossless block
+
+
+def test_block_mode_is_lossless_across_a_stall_longer_than_zenoh_s_5_s(tmp_path):
+    """The service's worker stalls for 7 s (longer than zenoh's default 5 s before a blocked
+    link is closed) while a replay publishes as fast as it can: with replay's block timeout
+    nothing is lost, and replay's own account says so."""
+    import dataclasses
+    import threading
+
+    pytest.importorskip("zenoh")
+    from evcal.clients.replay import replay
+    from evcal.service.server import run
+    from evcal.service.transport import Transport, ZenohOptions
+    from evcal.testing import endpoint, free_port
+
+    # far more than the socket and zenoh buffers hold (~50 MB), so the publisher must block
+    from evcal.bench import random_recording
+
+    rec = random_recording(SensorSize(48, 64), 4_000_000, 40)
+    ep = endpoint(free_port())
+    stop, ready = threading.Event(), threading.Event()
+    box: dict = {}
+
+    def ready_cb(svc):
+        box["svc"] = svc
+        ready.set()
+
+    cfg = ServiceConfig(on_full="block", queue_bytes=256 << 10, max_message_bytes=256 << 10,
+                        onei=OnEIConfig(n_small=3000, n_large=10**6))
+    th = threading.Thread(target=run, args=(ZenohOptions.loopback(listen=[ep]), cfg),
+                          kwargs={"stop": stop, "ready": ready_cb})
+    th.start()
+    try:
+        assert ready.wait(30)
+        svc = box["svc"]
+        opts = ZenohOptions.loopback(connect=[ep])
+        opts = dataclasses.replace(opts, extra=(
+            ("transport/link/tx/queue/congestion_control/block/wait_before_close",
+             "60000000"),))
+        with Transport(opts) as t:
+            # the first message creates the camera; then hold its worker for 7 s
+            stats_box: dict = {}
+            sender = threading.Thread(target=lambda: stats_box.update(
+                s=replay(t, rec, "stall/cam0", speed=None, chunk_events=20_000)))
+            sender.start()
+            deadline = time.monotonic() + 10
+            while "stall/cam0" not in svc.cameras and time.monotonic() < deadline:
+                time.sleep(0.01)
+            cam = svc.cameras["stall/cam0"]
+            with cam.lock:
+                time.sleep(7.0)
+            sender.join(120)
+            st = stats_box["s"]
+        assert st.subscribed
+        assert not st.service_gone  # with zenoh's default 5 s it is: the link is closed
+        assert st.delivered is not None
+        assert st.missing_messages == 0, (st, st.delivered)
+        assert st.delivered["dropped_messages"] == 0
+        assert cam.counters.frames == len(rec.frames)
+        assert cam.counters.events == rec.n_events
+    finally:
+        stop.set()
+        th.join(60)

@@ -50,6 +50,7 @@ class ReplayStats:
     seconds: float = 0.0
     subscribed: bool = True  # a subscriber matched before sending
     unmatched_messages: int = 0  # sent while nobody subscribed (lost)
+    service_gone: bool = False  # the service answered before the run and not after
     # the service's account of this run (status differences), None when no service answered
     delivered: dict[str, int] | None = None
 
@@ -159,8 +160,11 @@ def replay(t: Transport, rec: Recording, camera: str, *, prefix: str = "evcal",
     # confirm delivery through the service's status queryable before the session closes
     t.flush(status_key)
     stats.seconds = time.monotonic() - wall0
-    if before is not None or _status(t, status_key) is not None:
+    after = _status(t, status_key)
+    if after is not None:
         stats.delivered = _delivered(t, status_key, before or {}, stats.messages)
+    elif before is not None:
+        stats.service_gone = True  # it answered before the run, not after: link lost?
     return stats
 
 
@@ -281,7 +285,12 @@ def main(argv: Sequence[str] | None = None) -> int:
               "(lost)", file=sys.stderr)
         code = 4
     d = stats.delivered
-    if d is None:
+    if stats.service_gone:
+        print(f"{prog}: the service answered on {target}/status before the run but not "
+              "after it: the link was lost (a stall longer than --block-timeout?) and "
+              "messages may be lost", file=sys.stderr)
+        code = 4
+    elif d is None:
         print(f"{prog}: delivery not confirmed (no evcal service answered on "
               f"{target}/status)", file=sys.stderr)
     else:
