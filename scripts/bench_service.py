@@ -3,6 +3,7 @@
     python scripts/bench_service.py throughput [--sizes 346x260,1280x720] [--events 40e6]
     python scripts/bench_service.py latency [--rates 1e6,2e6,5e6] [--seconds 20] [--rrd]
     python scripts/bench_service.py memory [--minutes 10]
+    python scripts/bench_service.py stress [--minutes 10] [--cameras 4]
     python scripts/bench_service.py all
 
 The service runs as its own process (``python -m evcal.service``) on ``tcp/127.0.0.1`` with
@@ -28,6 +29,11 @@ latency     a DAVIS346-like real-time stream: 346x260, 25 Hz frames, events at `
             calibration received back.
 memory      the service's RSS every 10 s while a 346x260 camera streams 1 M events/s and
             25 Hz frames in real time (re-solves every ~10 frames).
+stress      ``--cameras`` real ``evcal replay --max-rate --loop`` processes (346x260 simulated
+            recordings) into one default service (``--on-full drop``) for ``--minutes``,
+            then SIGINT to the replays: the service must still run, each camera's counters
+            must balance (messages sent = processed + dropped + rejected, from replay's own
+            account of the run), and its RSS must stay flat. The acceptance run of issue 8.
 """
 
 from __future__ import annotations
@@ -44,8 +50,8 @@ import psutil
 from evcal.events import EVENTS_DTYPE, SensorSize
 from evcal.io.wire import encode_events, encode_frame
 from evcal.service import keys
-from evcal.testing import ServiceProcess, endpoint, free_port, wait_for
 from evcal.service.transport import Transport, ZenohOptions
+from evcal.testing import ServiceProcess, endpoint, free_port, wait_for
 
 ZARGS = ["--no-multicast-scouting"]
 FRAME_US = 40_000  # 25 Hz
@@ -320,6 +326,79 @@ def memory(minutes: float) -> dict:
                                        else float("nan"))}
 
 
+def stress(minutes: float, n_cameras: int) -> dict:
+    import re
+    import signal
+    import subprocess
+    import tempfile
+    from pathlib import Path
+
+    from evcal.io import write_recording
+    from evcal.sim.ideal import SimConfig, simulate_ideal
+    from evcal.testing import python_env
+
+    d = Path(tempfile.mkdtemp(prefix="evcal-stress-"))
+    sim = simulate_ideal(SimConfig(height=260, width=346, duration_s=4.0, seed=11))
+    path = write_recording(sim.recording, d / "cam.npz")
+    ep = endpoint(free_port())
+    sp = ServiceProcess(["--listen", ep, *ZARGS, "--status-period", "1", "--state-dir",
+                         str(d / "state"), "--max-pixels", str(1280 * 720)],
+                        log_path=d / "service.log").start()
+    proc = psutil.Process(sp.pid)
+    rss: list[float] = []
+    reps: list[subprocess.Popen[str]] = []
+    try:
+        with Transport(ZenohOptions.loopback(connect=[ep])) as t:
+            wait_for(lambda: t.alive("evcal/@service/*", timeout_s=1.0), timeout_s=60)
+            for c in range(n_cameras):
+                reps.append(subprocess.Popen(
+                    [sys.executable, "-m", "evcal.clients.replay", str(path), "--camera",
+                     f"stress/cam{c}", "--connect", ep, *ZARGS, "--max-rate", "--loop"],
+                    stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                    env=python_env()))
+            t0 = time.monotonic()
+            while time.monotonic() - t0 < minutes * 60:
+                time.sleep(10.0)
+                rss.append(proc.memory_info().rss / 2**20)
+                alive = sp.alive()
+                print(f"  t={time.monotonic() - t0:6.0f} s  service "
+                      f"{'running' if alive else 'EXITED'}, RSS {rss[-1]:7.1f} MiB",
+                      file=sys.stderr, flush=True)
+                if not alive:
+                    break
+            for r in reps:
+                r.send_signal(signal.SIGINT)
+            outs = [r.communicate(timeout=120)[1] for r in reps]
+            time.sleep(3.0)
+            per_cam = []
+            for c, err in enumerate(outs):
+                m = re.search(r"sent (\d+) events in (\d+) messages and (\d+) frames", err)
+                st = status(t, f"stress/cam{c}")
+                sent = int(m.group(2)) + int(m.group(3)) if m else -1
+                got = (st.get("event_messages", 0) + st.get("frames", 0)
+                       + sum(st.get("dropped_messages", {}).values())
+                       + st.get("errors_total", 0))
+                per_cam.append({"camera": f"stress/cam{c}", "sent_messages": sent,
+                                "processed": st.get("event_messages", 0) + st.get("frames", 0),
+                                "dropped": sum(st.get("dropped_messages", {}).values()),
+                                "rejected": st.get("errors_total", 0),
+                                "accounted": got, "restarts": st.get("restarts"),
+                                "updates": st.get("updates")})
+            alive = sp.alive()
+    finally:
+        for r in reps:
+            if r.poll() is None:
+                r.kill()
+        code = sp.stop() if sp.alive() else sp.proc.returncode  # type: ignore[union-attr]
+    half = len(rss) // 2
+    return {"minutes": minutes, "cameras": n_cameras, "service_alive": alive,
+            "service_exit": code, "per_camera": per_cam,
+            "rss_mb_first": rss[0] if rss else float("nan"),
+            "rss_mb_last": rss[-1] if rss else float("nan"),
+            "rss_mb_growth_2nd_half": rss[-1] - rss[half] if rss else float("nan"),
+            "log": str(d / "service.log")}
+
+
 # ----------------------------------------------------------------------------- main
 
 
@@ -344,7 +423,8 @@ def print_latency(r: dict) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=(__doc__ or "").split("\n")[0])
-    p.add_argument("what", choices=["throughput", "latency", "memory", "all"])
+    p.add_argument("what", choices=["throughput", "latency", "memory", "stress", "all"])
+    p.add_argument("--cameras", type=int, default=4, help="stress: replays at once")
     p.add_argument("--sizes", default="346x260,1280x720", help="throughput: sensor sizes")
     p.add_argument("--modes", default=",".join(THROUGHPUT_MODES),
                    help="throughput: modes (events, frames, updates)")
@@ -374,6 +454,18 @@ def main(argv: list[str] | None = None) -> int:
               f"{r['rss_mb_last']:.1f} MiB (max {r['rss_mb_max']:.1f}; second half "
               f"{r['rss_mb_growth_2nd_half']:+.1f} MiB); {r['updates']} updates, "
               f"{r['errors']} errors", flush=True)
+    if args.what == "stress":
+        r = stress(args.minutes, args.cameras)
+        print(f"stress: {r['cameras']} cameras at --max-rate --loop for {r['minutes']:g} min "
+              f"into a --on-full drop service: service "
+              f"{'alive' if r['service_alive'] else 'DEAD'}, exit {r['service_exit']}; RSS "
+              f"{r['rss_mb_first']:.0f} -> {r['rss_mb_last']:.0f} MiB (second half "
+              f"{r['rss_mb_growth_2nd_half']:+.1f} MiB)", flush=True)
+        for c in r["per_camera"]:
+            ok = "balanced" if c["sent_messages"] == c["accounted"] else "NOT BALANCED"
+            print(f"  {c['camera']}: sent {c['sent_messages']} = processed {c['processed']} + "
+                  f"dropped {c['dropped']} + rejected {c['rejected']} ({ok}); "
+                  f"{c['updates']} updates, restarts {c['restarts']}", flush=True)
     return 0
 
 
