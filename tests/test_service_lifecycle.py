@@ -4,6 +4,7 @@ its own drops, a failing periodic step (each of these failed before the fix)."""
 from __future__ import annotations
 
 import json
+import sys
 import time
 import zipfile
 
@@ -226,33 +227,59 @@ def test_a_failing_periodic_step_is_counted_never_raised(monkeypatch):
         svc.close()
 
 
-@pytest.mark.parametrize("n_cameras", [3])
-def test_status_and_snapshots_while_cameras_run_at_full_rate(tmp_path, n_cameras):
-    """The crash of issue 8: status() walked OnEI's buffer while a worker changed it. Status,
-    queries and snapshots now read under the camera's lock; hammer them while cameras run."""
+def test_status_and_snapshots_while_cameras_run_at_full_rate(tmp_path):
+    """The crash of issue 8: status() walked OnEI's frame buffer while the camera's worker
+    changed it ('deque mutated during iteration' in the ticker, then the service exited).
+    Status, queries and snapshots now read under the camera's lock: hammer them from other
+    threads while three cameras with long buffers run flat out. (Without the lock in
+    Service.status this test fails within seconds.)"""
+    import threading
+
     store = StateStore(tmp_path)
-    svc = Service(_cfg(snapshot_period_s=0.05, status_period_s=0.0 + 1e-3), Collector(),
-                  store=store)
-    errors_before = svc.tick_errors
-    try:
-        msgs = stream(n_frames=150)
-        deadline = time.monotonic() + 8.0
-        rounds = 0
-        while time.monotonic() < deadline:
-            for c in range(n_cameras):
-                feed(svc, f"cam{c}", msgs[(rounds * 20) % 280:(rounds * 20) % 280 + 20])
-            for _ in range(5):
+    cfg = ServiceConfig(onei=OnEIConfig(n_small=50, n_large=10**9, max_buffer_frames=400),
+                        error_rate_hz=1000, snapshot_period_s=0.2)
+    svc = Service(cfg, Collector(), store=store)
+    failures: list[BaseException] = []
+    stop = threading.Event()
+
+    def hammer() -> None:
+        while not stop.is_set():
+            try:
+                for cam in list(svc.cameras.values()):
+                    svc.status(cam)
                 svc.tick()
                 try:
                     svc.query_calibration("evcal/**", {"format": "npz"})
                 except EvcalError:
                     pass  # no calibration yet
-            rounds += 1
-        settle(svc)
-        assert svc.tick_errors == errors_before
-        assert len(svc.cameras) == n_cameras
+            except Exception as exc:  # noqa: BLE001 - what the test looks for
+                failures.append(exc)
+                return
+
+    threads = [threading.Thread(target=hammer) for _ in range(2)]
+    old_interval = sys.getswitchinterval()
+    sys.setswitchinterval(1e-5)  # switch threads often: a race shows within seconds
+    for th in threads:
+        th.start()
+    try:
+        deadline = time.monotonic() + 8.0
+        k = 0
+        while time.monotonic() < deadline and not failures:
+            for c in range(3):
+                feed(svc, f"cam{c}", stream(n_frames=20, seed=k, t0=k * 200_000))
+            settle(svc)
+            k += 1
     finally:
+        stop.set()
+        for th in threads:
+            th.join(30)
+        sys.setswitchinterval(old_interval)
         svc.close()
+    assert not failures, repr(failures[0])
+    assert svc.tick_errors == 0
+    assert all(c.counters.errors == {} for c in svc.cameras.values())
+    assert min(c.state.calibrator.status()["buffer_frames"]
+               for c in svc.cameras.values()) > 100
 
 
 # ----------------------------------------------------------------------------- stream sessions
