@@ -210,18 +210,42 @@ def test_evaluate_per_image_matches_manual(sim: SimResult) -> None:
 
 
 def test_evaluate_di_against_itself_and_offset_fallback(sim: SimResult) -> None:
-    # a uniform calibration carries log_offset 0: the fallback offset is used and noted
+    # a uniform calibration does not say its offset (NaN): the fallback is used and noted
     di = Calibration.uniform(SHAPE, 0.1, 0.0)
+    assert not di.log_offset_known
     res = evaluate(sim.recording, di, frames_per_image=10)
     assert res.log_offset == FALLBACK_LOG_OFFSET
     assert "used 30" in res.log_offset_note
     s = res.summary()
     assert s["gain_db"] == 0.0
     assert s["calibrated"] == s["di"]
-    # a calibration cannot carry a non-finite offset at all
-    with pytest.raises(ValueError, match="log_offset=nan"):
-        di.replace(log_offset=float("nan"))
+    # an infinite or negative offset is not an offset
+    for bad in (float("inf"), -1.0):
+        with pytest.raises(ValueError, match="log_offset="):
+            di.replace(log_offset=bad)
     assert evaluate(sim.recording, di, frames_per_image=10, log_offset=50.0).log_offset == 50.0
+
+
+def test_an_offset_of_zero_is_honoured(sim: SimResult) -> None:
+    # 0 is a legitimate offset (log of DN, as v2e uses), never "not estimated"
+    zero = Calibration.uniform(SHAPE, 0.1, 0.0, log_offset=0.0)
+    assert zero.log_offset_known
+    res = evaluate(sim.recording, zero, frames_per_image=10)
+    assert res.log_offset == 0.0
+    assert res.log_offset_note == "from the calibration"
+    assert evaluate(sim.recording, di_nan := Calibration.uniform(SHAPE), frames_per_image=10,
+                    log_offset=0.0).log_offset == 0.0
+    assert not di_nan.log_offset_known
+
+
+def test_short_recordings_get_fewer_events_per_image(sim: SimResult) -> None:
+    rec = sim.recording
+    cal = Calibration.uniform(SHAPE, 0.1, 0.0, log_offset=30.0)
+    res = evaluate(rec, cal, events_per_image=10 * rec.n_events)  # far more than it holds
+    assert res.n_images >= 2
+    assert "fewer than events_per_image" in res.params["events_per_image_note"]
+    with pytest.raises(EvaluationError, match="no frame pair"):
+        evaluate(rec, cal, events_per_image=10 * rec.n_events, adapt_events_per_image=False)
 
 
 def test_evaluate_errors(sim: SimResult) -> None:
@@ -234,7 +258,8 @@ def test_evaluate_errors(sim: SimResult) -> None:
         EvaluationError,
         match=rf"76 frames and {rec.n_events} events .* asked events_per_image=500000",
     ):
-        evaluate(rec, cal)  # ~240k events: not one window of 500k
+        # ~240k events: not one window of 500k (and adapting the size is switched off)
+        evaluate(rec, cal, adapt_events_per_image=False)
     one_frame = Recording(rec.sensor, rec.events, Frames(rec.frames.t_us[:1],
                                                          rec.frames.images[:1],
                                                          rec.frames.exposure_us[:1]))
@@ -242,5 +267,5 @@ def test_evaluate_errors(sim: SimResult) -> None:
         evaluate(one_frame, cal, frames_per_image=1)
     with pytest.raises(EvaluationError, match="calibration is 3x2, the recording's sensor is 64x48"):
         evaluate(rec, Calibration.uniform((2, 3)), frames_per_image=1)
-    with pytest.raises(ValueError, match="log_offset=0.0 must be"):
-        evaluate(rec, cal, frames_per_image=1, log_offset=0.0)
+    with pytest.raises(ValueError, match="log_offset=-1.0 must be"):
+        evaluate(rec, cal, frames_per_image=1, log_offset=-1.0)

@@ -82,11 +82,14 @@ def test_calibration_partial_and_malformed():
 class Collector:
     def __init__(self):
         self.items: list[tuple[str, bytes, str]] = []
+        self.attachments: dict[str, bytes] = {}  # the latest per key
         self.lock = threading.Lock()
 
-    def __call__(self, key, payload, enc):
+    def __call__(self, key, payload, enc, attachment=None):
         with self.lock:
             self.items.append((key, payload, enc))
+            if attachment is not None:
+                self.attachments[key] = attachment
 
     def on(self, key):
         with self.lock:
@@ -136,6 +139,11 @@ def test_camera_discovery_and_outputs():
         assert cam.counters.updates >= 1
         cals = pub.on("evcal/lab/rig1/cam0/calibration")
         cal, header = decode_calibration(cals[-1])
+        # every calibration names its instance (signed when the service has a key)
+        from evcal.service.signing import read_attachment
+
+        assert read_attachment(pub.attachments["evcal/lab/rig1/cam0/calibration"]) == {
+            "v": 1, "instance": svc.instance}
         assert cal.shape == (6, 8) and header["seq"] == len(cals) - 1
         svc.tick(force=True)
         status = json.loads(pub.on("evcal/lab/rig1/cam0/status")[-1])

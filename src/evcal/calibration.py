@@ -287,10 +287,10 @@ class Calibration:
             object.__setattr__(self, spec.name, check_map(spec.name, getattr(self, spec.name),
                                                           shape))
         lo = self.log_offset
-        if isinstance(lo, bool) or not isinstance(lo, (int, float, np.number)) \
-                or not math.isfinite(float(lo)) or float(lo) < 0:
-            raise CalibrationDataError(f"log_offset={lo!r} must be a finite number >= 0",
-                                       ErrorReason.BAD_VALUES)
+        if isinstance(lo, bool) or not isinstance(lo, (int, float, np.number)) or not (
+                math.isnan(float(lo)) or (math.isfinite(float(lo)) and float(lo) >= 0)):
+            raise CalibrationDataError(f"log_offset={lo!r} must be a number >= 0 (DN), or NaN "
+                                       "when unknown", ErrorReason.BAD_VALUES)
         object.__setattr__(self, "log_offset", float(lo))
         if not isinstance(self.method, str):
             raise CalibrationDataError(f"method must be a string, got {self.method!r}")
@@ -302,6 +302,11 @@ class Calibration:
     def shape(self) -> tuple[int, int]:
         h, w = self.contrast.shape
         return (int(h), int(w))
+
+    @property
+    def log_offset_known(self) -> bool:
+        """False when the calibration does not say its offset (NaN)."""
+        return not math.isnan(self.log_offset)
 
     @property
     def valid_fraction(self) -> float:
@@ -336,9 +341,10 @@ class Calibration:
         bias: float = DEFAULT_BIAS,
         *,
         method: str = "di",
-        log_offset: float = 0.0,
+        log_offset: float = math.nan,
     ) -> Calibration:
-        """The same ``c``, ``b`` everywhere (direct integration, DI)."""
+        """The same ``c``, ``b`` everywhere (direct integration, DI). Its ``log_offset`` is
+        unknown (NaN) unless given: 0 is a legitimate offset (``log(DN)``), never a marker."""
         return cls(
             contrast=np.full(shape, contrast, np.float32),
             bias=np.full(shape, bias, np.float32),

@@ -146,6 +146,9 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     res = evaluate(rec, cal, events_per_image=args.events_per_image,
                    frames_per_image=args.frames_per_image, skip_s=args.skip_s)
     summary = res.summary()
+    for note in (res.params.get("events_per_image_note"), res.log_offset_note):
+        if note and note not in ("given", "from the calibration"):
+            print(f"evcal evaluate: note: {note}", file=sys.stderr)
     keys = ("rmse", "psnr", "ssim", "psnr_paper", "ssim_paper")
     print(f"images: {summary['n_images']}   (psnr, ssim: standard; *_paper: the reference "
           f"code's 20·log10(255²/MSE) and single-window SSIM)")

@@ -13,6 +13,7 @@ Pixels with too few events, no spread in ``E`` or an unrealistic result keep the
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -105,7 +106,7 @@ def offe(rec: Recording, config: OffEConfig | None = None) -> Calibration:
     return Calibration(
         contrast=c.reshape(shape), bias=b.reshape(shape), valid=valid.reshape(shape),
         reason=reason.reshape(shape), stderr_contrast=se_c.reshape(shape),
-        stderr_bias=se_b.reshape(shape), special=special.reshape(shape), log_offset=0.0,
+        stderr_bias=se_b.reshape(shape), special=special.reshape(shape), log_offset=math.nan,
         method="offe", n_events=n_events.reshape(shape),
         diagnostics=OffEDiagnostics(step_us=cfg.step_us, c0=cfg.c0, scale=float(scale),
                                     n_steps=int(m_steps)),

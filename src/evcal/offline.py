@@ -189,7 +189,9 @@ def estimate_log_offset(rec: Recording, cfg: OffEIConfig) -> tuple[float, dict]:
     For each candidate on a log-spaced grid the per-pixel OffEI fit is solved on a sample of
     the busiest pixels; the criterion is the mean unexplained fraction ``RSS / sum(dL^2)``,
     which does not depend on the overall scale of ``dL`` (a larger offset shrinks every
-    ``dL``). The grid minimum is refined by a parabola through its neighbours in ``log o``.
+    ``dL``). The grid minimum is refined by a parabola through its neighbours in ``log o``;
+    ``o = 0`` (no offset: ``log(DN)``) is tried too and wins when it explains the events
+    better than every grid point.
     """
     d = int(cfg.window_frames)
     _check_frames(rec, d)
@@ -222,10 +224,15 @@ def estimate_log_offset(rec: Recording, cfg: OffEIConfig) -> tuple[float, dict]:
     grid = np.geomspace(lo, hi, int(n))
 
     def crit(o: float) -> float:
-        dl = np.log(np.maximum(fk, 0) + o) - np.log(np.maximum(fj, 0) + o)
+        with np.errstate(divide="ignore", invalid="ignore"):  # o = 0 at black pixels
+            dl = np.log(np.maximum(fk, 0) + o) - np.log(np.maximum(fj, 0) + o)
+        dl = np.where(w > 0, dl, 0.0)  # unusable windows weigh nothing
         return _unexplained_fraction(sp_a, se_a, dl, w, dq_a)
 
     vals = np.array([crit(o) for o in grid])
+    # 0 is a candidate of its own (frames in DN whose log the sensor sees, as v2e's); it is
+    # off the log-spaced grid, so it wins only by beating the grid's best outright
+    crit_zero = crit(0.0)
     i = int(np.nanargmin(vals))
     best = float(grid[i])
     if 0 < i < len(grid) - 1:
@@ -240,6 +247,8 @@ def estimate_log_offset(rec: Recording, cfg: OffEIConfig) -> tuple[float, dict]:
             if x[0] <= xv <= x[2]:
                 best = float(np.exp(xv))
     at_edge = i in (0, len(grid) - 1)
+    if np.isfinite(crit_zero) and crit_zero < float(vals[i]):
+        best, at_edge = 0.0, False
     info = {
         "method": "auto",
         "criterion": "mean unexplained fraction of per-pixel OffEI fits",
@@ -247,6 +256,7 @@ def estimate_log_offset(rec: Recording, cfg: OffEIConfig) -> tuple[float, dict]:
         "windows": int(sp_a.shape[0]),
         "grid": grid.round(3).tolist(),
         "criterion_values": np.round(vals, 6).tolist(),
+        "criterion_at_zero": round(float(crit_zero), 6),
         "at_grid_edge": bool(at_edge),
     }
     if sp_a.shape[0] == 0:

@@ -213,13 +213,15 @@ class EvaluationResult:
 
 
 def _resolve_offset(log_offset: float | None, cal: Calibration) -> tuple[float, str]:
+    """The offset to integrate with: given, else the calibration's, else (unknown: NaN) the
+    fallback. 0 is an offset like any other (``log(DN)``), honoured everywhere."""
     if log_offset is not None:
         off = float(log_offset)
-        if not (math.isfinite(off) and off > 0):
-            raise ValueError(f"log_offset={log_offset!r} must be a finite number > 0 (DN)")
+        if not (math.isfinite(off) and off >= 0):
+            raise ValueError(f"log_offset={log_offset!r} must be a finite number >= 0 (DN)")
         return off, "given"
     off = float(cal.log_offset)
-    if math.isfinite(off) and off > 0:
+    if math.isfinite(off) and off >= 0:
         return off, "from the calibration"
     return FALLBACK_LOG_OFFSET, (
         f"the calibration's log_offset is {cal.log_offset!r}; used {FALLBACK_LOG_OFFSET:g}"
@@ -235,6 +237,7 @@ def evaluate(
     skip_s: float = 0.0,
     log_offset: float | None = None,
     di_contrast: float = DEFAULT_CONTRAST,
+    adapt_events_per_image: bool = True,
 ) -> EvaluationResult:
     """Reconstruct frames from events with ``cal`` and with DI; score both against the frames.
 
@@ -244,9 +247,13 @@ def evaluate(
     float) by :func:`evcal.metrics.image_metrics`. The DI baseline is
     ``Calibration.uniform(shape, di_contrast, 0.0)`` with the same offset and pairs.
 
-    ``log_offset`` (DN) defaults to ``cal.log_offset``; if that is 0 or NaN (a calibration that
-    did not estimate it, e.g. a uniform one) :data:`FALLBACK_LOG_OFFSET` = 30 is used, and
-    ``result.log_offset_note`` says so.
+    A recording too short for one image of ``events_per_image`` events gets about 4 images of
+    fewer events instead (``adapt_events_per_image``; ``params["events_per_image_note"]`` says
+    so).
+
+    ``log_offset`` (DN) defaults to ``cal.log_offset``, 0 included; if that is unknown (NaN: a
+    calibration that does not say, e.g. a uniform one or OffE's) :data:`FALLBACK_LOG_OFFSET`
+    = 30 is used, and ``result.log_offset_note`` says so.
 
     Raises :class:`EvaluationError` when the recording has no frames or no pair can be formed.
     """
@@ -264,6 +271,20 @@ def evaluate(
     t_ev = rec.events["t_us"]
     pairs = select_pairs(frames.t_us, t_ev, events_per_image=events_per_image,
                          frames_per_image=frames_per_image, skip_s=skip_s)
+    adapted = ""
+    if not pairs and frames_per_image is None and events_per_image is not None \
+            and adapt_events_per_image:
+        # a short recording: fewer events per image, so that it gives about 4 images
+        cuts = frame_cuts(t_ev, frames.t_us)
+        k0 = int(np.searchsorted(frames.t_us, frames.t_us[0] + round(skip_s * 1e6)))
+        available = int(cuts[-1] - cuts[min(k0, len(cuts) - 1)])
+        if available >= 4:
+            smaller = max(1, available // 4)
+            pairs = select_pairs(frames.t_us, t_ev, events_per_image=smaller,
+                                 frames_per_image=None, skip_s=skip_s)
+            adapted = (f"the recording holds {available} events between its frames, fewer "
+                       f"than events_per_image={events_per_image}: used {smaller} per image")
+            events_per_image = smaller
     if not pairs:
         asked = (f"frames_per_image={frames_per_image}" if frames_per_image is not None
                  else f"events_per_image={events_per_image}")
@@ -303,6 +324,7 @@ def evaluate(
             "skip_s": skip_s,
             "di_contrast": di_contrast,
             "method": cal.method,
+            "events_per_image_note": adapted,
         },
     )
 

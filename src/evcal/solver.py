@@ -28,12 +28,17 @@ from .special import classify
 
 
 def log_intensity(image: np.ndarray, log_offset: float) -> np.ndarray:
-    """``log(I + offset)`` as float64; uint8 frames go through a 256-entry table."""
-    if image.dtype == np.uint8:
-        lut = np.log(np.arange(256, dtype=np.float64) + log_offset)
-        return lut[image]
-    img = np.asarray(image, np.float64)
-    return np.log(np.maximum(img, 0.0) + log_offset)
+    """``log(I + offset)`` as float64; uint8 frames go through a 256-entry table.
+
+    With ``offset = 0`` a black pixel (0 DN) has ``-inf``: no signal there (estimators skip
+    such pixels as clipped; a reconstruction from it stays black).
+    """
+    with np.errstate(divide="ignore"):
+        if image.dtype == np.uint8:
+            lut = np.log(np.arange(256, dtype=np.float64) + log_offset)
+            return lut[image]
+        img = np.asarray(image, np.float64)
+        return np.log(np.maximum(img, 0.0) + log_offset)
 
 
 def usable(image: np.ndarray, saturation_dn: tuple[float, float]) -> np.ndarray:

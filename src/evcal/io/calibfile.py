@@ -88,9 +88,9 @@ def calibration_from_npz_arrays(data: Mapping[str, np.ndarray], where: str) -> C
         hint = " (this looks like a recording, not a calibration)" if "events" in data else ""
         raise CalibrationFileError(f"{where}: missing array(s) {missing}{hint}")
     lo = data["log_offset"]
-    if lo.shape != () or lo.dtype.kind not in "fiu" or not math.isfinite(float(lo)):
+    if lo.shape != () or lo.dtype.kind not in "fiu" or math.isinf(float(lo)):
         raise CalibrationFileError(f"{where}: log_offset is {lo.dtype} {lo.shape} = {lo!r}, "
-                                   "expected a finite 0-d float")
+                                   "expected a 0-d float (NaN when unknown)")
     method = _scalar_str(data, "method", where)
     try:
         params = json.loads(_scalar_str(data, "params_json", where))

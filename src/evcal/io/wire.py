@@ -389,7 +389,8 @@ def decode_calibration_maps(
     if not isinstance(method, str):
         raise WireError(f"{what}: field 'method' must be a string")
     lo = obj["log_offset"]
-    if isinstance(lo, bool) or not isinstance(lo, (int, float)) or not math.isfinite(lo):
+    if isinstance(lo, bool) or not isinstance(lo, (int, float)) or not (
+            math.isnan(lo) or (math.isfinite(lo) and lo >= 0)):
         raise WireError(f"{what}: field 'log_offset' must be a finite number, got {lo!r}")
     pj = obj["params_json"]
     try:

@@ -63,7 +63,11 @@ from .state import Snapshot, StateStore
 
 log = logging.getLogger("evcal.service")
 
-PublishFn = Callable[[str, bytes, str], None]
+class PublishFn(Protocol):
+    """``publish(key, payload, encoding, attachment=None)`` (``Transport.put``)."""
+
+    def __call__(self, key: str, payload: bytes, encoding: str, *,
+                 attachment: bytes | None = None) -> None: ...
 MatchFn = Callable[[str, str], bool]  # (key expression, concrete key) -> intersects
 
 ON_FULL = ("drop", "block")
@@ -179,10 +183,7 @@ class Service:
     def publish(self, key: str, payload: bytes, encoding: str, *,
                 attachment: bytes | None = None) -> None:
         try:
-            if attachment is None:
-                self._publish(key, payload, encoding)
-            else:
-                self._publish(key, payload, encoding, attachment=attachment)  # type: ignore[call-arg]
+            self._publish(key, payload, encoding, attachment=attachment)
         except Exception as exc:  # a closed session at shutdown, a transport hiccup
             self.publish_errors += 1
             log.warning("cannot publish on %s: %s", key, exc)
