@@ -57,6 +57,7 @@ def service(tmp_path_factory):
     args = ["--listen", ep, *ZARGS, "--on-full", "block", "--rrd", str(d / "run.rrd"),
             "--rrd-map-period", "0.2", "--rrd-recon-period", "0.2", "--state-dir",
             str(d / "state"), "--n-small", str(N_SMALL), "--n-large", str(N_LARGE),
+            "--log-offset", "30",  # as the offline reference (the default estimates it)
             "--status-period", "0.2", "-v"]
     with ServiceProcess(args, log_path=d / "service.log") as sp:
         with Transport(ZenohOptions.loopback(connect=[ep])) as t:

@@ -77,9 +77,16 @@ def test_kill_9_service_then_restart_answers_with_last_snapshot(tmp_path):
         try:
             def updated_twice():
                 r = t.get("evcal/kill/cam0/status", timeout_s=1.0)
-                return r and json.loads(r[0].payload)["updates"] >= 2 and snap.exists()
+                if not (r and json.loads(r[0].payload)["updates"] >= 2 and snap.exists()):
+                    return False
+                # a snapshot written after an update (it holds a calibration)
+                try:
+                    return load_npz(snap)["calibration_msg"].size > 0
+                except Exception:  # noqa: BLE001 - replaced while read: look again
+                    return False
 
-            wait_for(updated_twice, timeout_s=60, what="two updates and a snapshot")
+            wait_for(updated_twice, timeout_s=60,
+                     what="two updates and a snapshot holding a calibration")
             s1.kill()  # SIGKILL: no clean-up, no final snapshot
         finally:
             replay.kill()

@@ -228,6 +228,7 @@ class OnEIDiagnostics(Diagnostics):
     n_small: int = 0
     n_large: int = 0
     last_frame_t_us: int | None = None
+    log_offset: float = math.nan  # the offset the equations use (NaN: not estimated yet)
     config: Mapping[str, Any] = field(default_factory=dict)
     log_offset_estimation: Mapping[str, Any] = field(default_factory=dict)
     # (t_us, contrast, bias, valid) after every n-th update (onei(history_every=n)); in memory

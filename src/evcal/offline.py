@@ -30,6 +30,7 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -136,7 +137,10 @@ def offei(rec: Recording, config: OffEIConfig | None = None) -> Calibration:
             s_j, l_j, u_j = ring[0]
             s_k, l_k, u_k = ring[-1]
             p, e, q, a = _window_terms(s_j, s_k)
-            ne.add(p, e, q, a, l_k - l_j, (u_j & u_k).astype(np.float64))
+            w = (u_j & u_k).astype(np.float64)
+            with np.errstate(invalid="ignore"):  # -inf - -inf at black pixels, offset 0
+                dl = np.where(w > 0, l_k - l_j, 0.0)
+            ne.add(p, e, q, a, dl, w)
     assert last is not None
     # Events used: those between the first and the last frame.
     first_t, last_t = int(rec.frames.t_us[0]), int(rec.frames.t_us[-1])
@@ -216,11 +220,24 @@ def estimate_log_offset(rec: Recording, cfg: OffEIConfig) -> tuple[float, dict]:
             f_j.append(ij)
             f_k.append(ik)
             ws.append(usable(ij, cfg.saturation_dn) & usable(ik, cfg.saturation_dn))
-    sp_a, se_a, dq_a = np.asarray(sps), np.asarray(ses), np.asarray(dqs)
-    fj = np.asarray(f_j, np.float64)
-    fk = np.asarray(f_k, np.float64)
-    w = np.asarray(ws, np.float64)
-    lo, hi, n = cfg.offset_grid
+    if not sps:
+        raise RecordingError("no windows to estimate the log offset from")
+    best, info = offset_from_windows(
+        np.asarray(sps), np.asarray(ses), np.asarray(dqs), np.asarray(f_j, np.float64),
+        np.asarray(f_k, np.float64), np.asarray(ws, np.float64), cfg.offset_grid)
+    info["pixels"] = int(pix.size)
+    return best, info
+
+
+def offset_from_windows(sp_a: np.ndarray, se_a: np.ndarray, dq_a: np.ndarray,
+                        fj: np.ndarray, fk: np.ndarray, w: np.ndarray,
+                        offset_grid: tuple[float, float, int] = (1.0, 400.0, 21)
+                        ) -> tuple[float, dict[str, Any]]:
+    """The criterion of :func:`estimate_log_offset` on prepared windows ``[window, pixel]``:
+    net polarity, count, change of last polarity, the raw frames at both ends and the weights
+    (1 where both frames are usable). Shared with OnEI's online estimate
+    (:meth:`evcal.online.OnlineCalibrator`, ``log_offset="auto"``)."""
+    lo, hi, n = offset_grid
     grid = np.geomspace(lo, hi, int(n))
 
     def crit(o: float) -> float:
@@ -247,18 +264,21 @@ def estimate_log_offset(rec: Recording, cfg: OffEIConfig) -> tuple[float, dict]:
             if x[0] <= xv <= x[2]:
                 best = float(np.exp(xv))
     at_edge = i in (0, len(grid) - 1)
-    if np.isfinite(crit_zero) and crit_zero < float(vals[i]):
-        best, at_edge = 0.0, False
+    below: dict[float, float] = {}
+    if i == 0:  # the grid's lower edge: look below it, down to no offset at all
+        below = {o: crit(o) for o in (0.1 * grid[0], 0.3 * grid[0], 0.6 * grid[0])}
+    below[0.0] = crit_zero
+    finite = {o: v for o, v in below.items() if np.isfinite(v)}
+    if finite and min(finite.values()) < float(vals[i]):
+        best = min(finite, key=finite.__getitem__)
+        at_edge = False
     info = {
         "method": "auto",
         "criterion": "mean unexplained fraction of per-pixel OffEI fits",
-        "pixels": int(pix.size),
         "windows": int(sp_a.shape[0]),
         "grid": grid.round(3).tolist(),
         "criterion_values": np.round(vals, 6).tolist(),
         "criterion_at_zero": round(float(crit_zero), 6),
         "at_grid_edge": bool(at_edge),
     }
-    if sp_a.shape[0] == 0:
-        raise RecordingError("no windows to estimate the log offset from")
     return best, info

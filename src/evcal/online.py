@@ -40,6 +40,7 @@ frame wait in a bounded pending buffer until the frame that closes their interva
 from __future__ import annotations
 
 import json
+import math
 from collections import deque
 from dataclasses import asdict, dataclass, field, replace
 from typing import Any
@@ -59,6 +60,7 @@ from .calibration import (
 )
 from .errors import CalibrationError, ConfigError, ErrorReason, StateError
 from .events import EVENTS_DTYPE, SensorSize
+from .jsonable import to_jsonable
 from .recording import Recording
 from .solver import (
     NormalEquations,
@@ -85,8 +87,10 @@ _SCALARS: dict[str, tuple[str, Any]] = {
     "n_late_events": ("n_late_events", int), "n_sessions": ("n_sessions", int),
     "base": ("_base", int), "next_open": ("_next_open", int),
     "cum_events": ("_cum_events", int), "removals": ("_removals", int),
-    "since_resolve": ("_since_resolve", int), "frame_cap": ("_frame_cap", _opt_int)}
-_OPTIONAL_SCALARS = frozenset({"n_sessions"})  # absent from states of earlier versions
+    "since_resolve": ("_since_resolve", int), "frame_cap": ("_frame_cap", _opt_int),
+    "log_offset": ("log_offset", float), "next_offset_check": ("_next_offset_check", int)}
+# absent from the states of earlier versions
+_OPTIONAL_SCALARS = frozenset({"n_sessions", "log_offset", "next_offset_check"})
 _VALID = int(Reason.VALID)
 
 
@@ -199,7 +203,7 @@ class OnEIConfig:
     n_small: int | None = None
     n_large: int | None = None
     smoothing: float = 0.1
-    log_offset: float = 30.0
+    log_offset: float | str = 30.0  # DN, or "auto": estimated online from the buffer
     residual_correction: str | float = "auto"
     saturation_dn: tuple[float, float] = (0.0, 255.0)
     max_pending_events: int = 20_000_000
@@ -212,8 +216,10 @@ class OnEIConfig:
     def __post_init__(self) -> None:
         if not 0 < self.smoothing <= 1:
             raise ConfigError(f"smoothing={self.smoothing} must be in (0, 1]")
-        if self.log_offset < 0:
-            raise ConfigError(f"log_offset={self.log_offset} must be >= 0")
+        lo = self.log_offset
+        if not (lo == "auto" or (isinstance(lo, (int, float)) and not isinstance(lo, bool)
+                                 and lo >= 0)):
+            raise ConfigError(f"log_offset={lo!r} must be 'auto' or a number >= 0 (DN)")
         for name in ("n_small", "n_large", "max_buffer_frames"):
             v = getattr(self, name)
             if v is not None and v < 1:
@@ -278,6 +284,11 @@ class OnlineCalibrator:
         self._frame_cap: int | None = None
         self._reset_buffer()
         self.estimate = LowPassEstimate(n)  # what calibration() reports
+        auto = self.config.log_offset == "auto"
+        # the offset of log(I + offset); NaN until estimated (log_offset="auto")
+        self.log_offset = math.nan if auto else float(self.config.log_offset)  # type: ignore[arg-type]
+        self.offset_info: dict[str, Any] = {"method": "auto" if auto else "given"}
+        self._next_offset_check = 0  # frame count of the next online re-estimate
         self.lam = 0.0
         self.n_updates = 0
         self.n_events = 0
@@ -385,7 +396,9 @@ class OnlineCalibrator:
         if self._frame_cap is None:
             self._frame_cap = self.config.frame_cap(self.sensor, img.dtype.itemsize)
         self._push(t_us, img.ravel().copy())
-        formed = self._close_small_buffers()
+        if math.isnan(self.log_offset) or self.n_frames >= self._next_offset_check > 0:
+            self._check_offset()
+        formed = (not math.isnan(self.log_offset)) and self._close_small_buffers()
         self._drop_overflow()
         if self._removals >= self.config.rebuild_every:
             self._rebuild()
@@ -443,11 +456,86 @@ class OnlineCalibrator:
         self._frames.append(_Frame(t_us, image, self._acc.last_p.copy(), self._cum_events,
                                    idx, f_on, f_off))
 
-    def _close_small_buffers(self) -> bool:
-        """Form the equations of the small buffers that hold ``n_small`` events at the newest
-        frame (usually one)."""
-        k = self._base + len(self._frames) - 1
-        newest = self._frames[-1]
+    # -- the log offset, online ----------------------------------------------------------------
+
+    AUTO_WINDOW = 5  # frame intervals per window of the offset criterion (OffEI's default d)
+
+    def _check_offset(self) -> None:
+        """Estimate the offset from the buffer (``log_offset="auto"``): first once it holds
+        ``2 d + 1`` frames, then again after 4x, 16x, ... as many frames; a changed estimate
+        (by more than 10 % in ``log(1 + o)``) rebuilds the equations from the buffer's raw
+        frames (the smoothed estimate goes on from there)."""
+        first = math.isnan(self.log_offset)
+        if first and len(self._frames) < 2 * self.AUTO_WINDOW + 1:
+            return
+        found = self._offset_from_buffer()
+        if found is None:
+            if not first:
+                self._next_offset_check = self.n_frames * 4
+            return
+        o, info = found
+        self._next_offset_check = self.n_frames * 4
+        info.update(frames_seen=self.n_frames, previous=None if first else self.log_offset)
+        self.offset_info = info
+        if first:
+            self.log_offset = o
+            self._form_all()
+        elif abs(math.log1p(o) - math.log1p(self.log_offset)) > 0.1:
+            self.log_offset = o
+            self._rebuild()
+
+    def _offset_from_buffer(self) -> tuple[float, dict[str, Any]] | None:
+        """The criterion of ``--log-offset auto`` on the frames and interval counts the large
+        buffer holds (busiest pixels, windows of ``AUTO_WINDOW`` intervals)."""
+        from .offline import offset_from_windows  # noqa: PLC0415 - offline imports solver only
+
+        frames = list(self._frames)
+        d = min(self.AUTO_WINDOW, len(frames) - 3)
+        limits = self.config.limits
+        busy = np.flatnonzero(self._counts >= max(limits.min_events, 2 * d))
+        if d < 1 or busy.size < 10:
+            return None
+        rng = np.random.default_rng(0)
+        pix = np.sort(rng.choice(busy, size=min(10_000, busy.size), replace=False))
+        pos = np.full(self.sensor.n_pixels, -1, np.int64)
+        pos[pix] = np.arange(pix.size)
+        on = np.zeros((len(frames), pix.size), np.int64)
+        off = np.zeros((len(frames), pix.size), np.int64)
+        for i, f in enumerate(frames):  # loop over buffered frames, vectorised over pixels
+            m = pos[f.idx]
+            sel = m >= 0
+            on[i, m[sel]] = f.on[sel]
+            off[i, m[sel]] = f.off[sel]
+        con, coff = np.cumsum(on, 0), np.cumsum(off, 0)
+        ks = np.arange(d, len(frames))
+        sp = ((con[ks] - coff[ks]) - (con[ks - d] - coff[ks - d])).astype(np.float64)
+        se = ((con[ks] + coff[ks]) - (con[ks - d] + coff[ks - d])).astype(np.float64)
+        last = np.stack([f.last_p[pix] for f in frames]).astype(np.float64)
+        img = np.stack([f.image[pix] for f in frames]).astype(np.float64)
+        sat = self.config.saturation_dn
+        ok = usable(img, sat)
+        w = (ok[ks] & ok[ks - d]).astype(np.float64)
+        o, info = offset_from_windows(sp, se, last[ks] - last[ks - d], img[ks - d], img[ks], w)
+        info.update(pixels=int(pix.size), window_frames=int(d), source="OnEI buffer")
+        return o, info
+
+    def _form_all(self) -> None:
+        """Form every small buffer the buffer holds (once the offset became known)."""
+        self._ne = NormalEquations(self.sensor.n_pixels)
+        self.n_equations = 0
+        self._removals = 0
+        for f in self._frames:
+            f.closes_at = -1
+        self._next_open = self._base
+        for k in range(self._base + 1, self._base + len(self._frames)):
+            self._close_small_buffers(k)
+
+    def _close_small_buffers(self, k: int | None = None) -> bool:
+        """Form the equations of the small buffers that hold ``n_small`` events at frame
+        ``k`` (default the newest; usually one)."""
+        if k is None:
+            k = self._base + len(self._frames) - 1
+        newest = self._frames[k - self._base]
         formed = False
         while self._next_open < k:
             j = self._next_open
@@ -500,10 +588,12 @@ class OnlineCalibrator:
         qk = fk.last_p[idx].astype(np.float64)
         qj = fj.last_p[idx].astype(np.float64)
         raw_j, raw_k = fj.image[idx], fk.image[idx]
-        off_log = self.config.log_offset
-        dl = log_intensity(raw_k, off_log) - log_intensity(raw_j, off_log)
+        off_log = self.log_offset
         sat = self.config.saturation_dn
         w = (usable(raw_j, sat) & usable(raw_k, sat)).astype(np.float64)
+        with np.errstate(invalid="ignore"):  # -inf - -inf at black pixels with offset 0
+            dl = log_intensity(raw_k, off_log) - log_intensity(raw_j, off_log)
+        dl = np.where(w > 0, dl, 0.0)  # clipped pixels weigh nothing (and never NaN)
         return idx, on - off, on + off, qk - qj, np.abs(qk) - np.abs(qj), dl, w
 
     def _apply(self, j: int, k: int, sign: float) -> None:
@@ -547,7 +637,7 @@ class OnlineCalibrator:
         shape = self.sensor.shape
         return Calibration(
             **self.estimate.maps(shape),
-            log_offset=self.config.log_offset,
+            log_offset=self.log_offset,
             method="onei",
             n_events=self._counts.reshape(shape).copy(),
             diagnostics=self.diagnostics(),
@@ -555,7 +645,8 @@ class OnlineCalibrator:
 
     def diagnostics(self) -> OnEIDiagnostics:
         """The figures of :meth:`status` and the configuration, as typed diagnostics."""
-        return OnEIDiagnostics(config=json.loads(self.config.to_json()), **self.status())
+        return OnEIDiagnostics(config=json.loads(self.config.to_json()),
+                               log_offset_estimation=dict(self.offset_info), **self.status())
 
     def status(self) -> dict[str, Any]:
         return {
@@ -575,6 +666,7 @@ class OnlineCalibrator:
             "n_small": self.n_small,
             "n_large": self.n_large,
             "last_frame_t_us": self.last_frame_t_us,
+            "log_offset": self.log_offset,
         }
 
     @property
@@ -602,6 +694,7 @@ class OnlineCalibrator:
                    "last_event_t_us": self.last_event_t_us,
                    "last_frame_t_us": self.last_frame_t_us}
         scalars.update({key: getattr(self, attr) for key, (attr, _) in _SCALARS.items()})
+        scalars["offset_info"] = to_jsonable(self.offset_info)
         img_dtype = frames[0].image.dtype if frames else np.dtype(np.uint8)
         out: dict[str, np.ndarray] = {
             "format": np.array(STATE_FORMAT),
@@ -666,6 +759,8 @@ class OnlineCalibrator:
             for key, (attr, conv) in _SCALARS.items():
                 if key in s or key not in _OPTIONAL_SCALARS:
                     setattr(self, attr, conv(s[key]))
+            if isinstance(s.get("offset_info"), dict):
+                self.offset_info = s["offset_info"]
             self._guard.last_event_t_us = s["last_event_t_us"]
             self._guard.last_frame_t_us = s["last_frame_t_us"]
         except KeyError as exc:

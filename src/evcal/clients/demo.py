@@ -105,8 +105,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     _say(f"{rec.n_events} events, {len(rec.frames)} frames")
 
     ep = endpoint(free_port())
-    onei_cfg = OnEIConfig(n_small=args.n_small, n_large=args.n_large,
-                          log_offset=float(cfg.log_offset))
+    # the service is not told the offset: it estimates it per camera, as it would live
+    onei_cfg = OnEIConfig(n_small=args.n_small, n_large=args.n_large, log_offset="auto")
     config = ServiceConfig(on_full="block", onei=onei_cfg, status_period_s=0.2)
     stop = threading.Event()
     ready = threading.Event()
@@ -148,7 +148,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"evcal demo: the service failed: {failure[0]}", file=sys.stderr)
         return 1
     _say(f"live calibration after {status['updates']} updates, median latency "
-         f"{status['latency_ms']['median']:.1f} ms; computing the offline reference")
+         f"{status['latency_ms']['median']:.1f} ms, log offset estimated online "
+         f"{live.log_offset:.1f} (true {cfg.log_offset:g}); computing the offline reference")
 
     from evcal.calibration import Calibration
 

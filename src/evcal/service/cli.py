@@ -63,10 +63,25 @@ def build_parser(prog: str = "evcal serve") -> argparse.ArgumentParser:
     g.add_argument("--n-large", type=int, default=None,
                    help="events in the sliding buffer (default: scaled with the sensor)")
     g.add_argument("--smoothing", type=float, default=None)
-    g.add_argument("--log-offset", type=float, default=None,
-                   help="offset of log(I + offset) in frame units (DN)")
+    g.add_argument("--log-offset", type=_offset_arg, default="auto",
+                   help="offset of log(I + offset) in frame units (DN), or 'auto' (default): "
+                        "estimated per camera from its first frames and events with the "
+                        "criterion of `evcal calibrate --log-offset auto`, re-checked as data "
+                        "accumulate")
     p.add_argument("-v", "--verbose", action="count", default=0)
     return p
+
+
+def _offset_arg(text: str) -> float | str:
+    if text == "auto":
+        return text
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not 'auto' or a number") from None
+    if not v >= 0:
+        raise argparse.ArgumentTypeError(f"{text!r} must be >= 0")
+    return v
 
 
 def config_from_args(args: argparse.Namespace) -> ServiceConfig:

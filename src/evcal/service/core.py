@@ -97,7 +97,8 @@ class ServiceConfig:
     # a camera none of whose messages was ever accepted is dropped after this long idle, and
     # at once when a new camera needs its slot (junk ids cannot lock real cameras out)
     probation_s: float = 10.0
-    onei: OnEIConfig = field(default_factory=OnEIConfig)
+    # the service estimates each camera's log offset unless told (OnEI's own default is 30)
+    onei: OnEIConfig = field(default_factory=lambda: OnEIConfig(log_offset="auto"))
 
     def __post_init__(self) -> None:
         if self.on_full not in ON_FULL:
