@@ -172,6 +172,10 @@ class Diagnostics:
         cls = _DIAGNOSTICS.get(method, Diagnostics)
         names = {f.name for f in fields(cls)} - {"extra"} - set(cls._not_saved)
         kwargs: dict[str, Any] = {k: v for k, v in values.items() if k in names}
+        for f in fields(cls):  # JSON carries non-finite floats as text ("nan")
+            v = kwargs.get(f.name)
+            if isinstance(v, str) and "float" in str(f.type) and v in ("nan", "inf", "-inf"):
+                kwargs[f.name] = float(v)
         if "warnings" in kwargs:
             kwargs["warnings"] = tuple(str(w) for w in kwargs["warnings"])
         extra = {k: v for k, v in values.items() if k not in names}
