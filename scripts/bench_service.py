@@ -369,7 +369,15 @@ def stress(minutes: float, n_cameras: int) -> dict:
             for r in reps:
                 r.send_signal(signal.SIGINT)
             outs = [r.communicate(timeout=120)[1] for r in reps]
-            time.sleep(3.0)
+            # the service may still be working through its queues: wait until every camera's
+            # queue is empty and its counters stop moving
+            last: list[dict] = []
+            for _ in range(120):
+                now = [status(t, f"stress/cam{c}") for c in range(n_cameras)]
+                if now == last and all(st.get("queue_messages", 0) == 0 for st in now):
+                    break
+                last = now
+                time.sleep(1.0)
             per_cam = []
             for c, err in enumerate(outs):
                 m = re.search(r"sent (\d+) events in (\d+) messages and (\d+) frames", err)
