@@ -136,3 +136,26 @@ def test_public_api_is_at_package_level():
                 if rel.startswith(("service/transport", "clients/", "cli")):
                     continue  # network and command-line failures, not input errors
                 assert issubclass(cls, evcal.EvcalError), f"{mod}.{node.name}"
+
+
+def test_the_core_is_strictly_typed_and_lint_clean():
+    """``mypy`` (strict on the core, configured in pyproject.toml) and ``ruff check src`` pass:
+    part of the test command, so CI checks them with everything else."""
+    root = SRC.parents[1]
+    if not (root / "pyproject.toml").is_file():
+        pytest.skip("not running from a source checkout")
+    pytest.importorskip("mypy")
+    res = subprocess.run([sys.executable, "-m", "mypy"], cwd=root, capture_output=True,
+                         text=True, timeout=600)
+    assert res.returncode == 0, res.stdout[-4000:] + res.stderr[-2000:]
+    assert "Success" in res.stdout
+    if __import__("shutil").which("ruff") or _has_module("ruff"):
+        res = subprocess.run([sys.executable, "-m", "ruff", "check", "src"], cwd=root,
+                             capture_output=True, text=True, timeout=300)
+        assert res.returncode == 0, res.stdout[-4000:]
+
+
+def _has_module(name: str) -> bool:
+    import importlib.util
+
+    return importlib.util.find_spec(name) is not None

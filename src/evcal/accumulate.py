@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from dataclasses import dataclass
+from typing import Any
 
 import numba
 import numpy as np
@@ -20,7 +21,8 @@ from .stream import frame_intervals
 
 
 @numba.njit(cache=True, nogil=True)
-def _accumulate(x, y, p, width, on, off, last_p):  # pragma: no cover - compiled
+def _accumulate(x: np.ndarray, y: np.ndarray, p: np.ndarray, width: int, on: np.ndarray,
+                off: np.ndarray, last_p: np.ndarray) -> Any:  # pragma: no cover - compiled
     for i in range(x.size):
         k = np.int64(y[i]) * width + np.int64(x[i])
         if p[i] > 0:

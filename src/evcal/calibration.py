@@ -187,6 +187,10 @@ class Diagnostics:
     def with_warning(self, text: str) -> Diagnostics:
         return replace(self, warnings=(*self.warnings, text))
 
+    def updated(self, **changes: Any) -> Diagnostics:
+        """The same diagnostics with some fields changed (the method's own fields)."""
+        return replace(self, **changes)
+
 
 @dataclass(frozen=True, kw_only=True)
 class UniformDiagnostics(Diagnostics):

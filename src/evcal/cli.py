@@ -51,7 +51,8 @@ def _offset_arg(text: str) -> float | str:
     try:
         v = float(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"--log-offset {text!r}: expected 'auto' or a number") from None
+        raise argparse.ArgumentTypeError(
+            f"--log-offset {text!r}: expected 'auto' or a number") from None
     if v < 0:
         raise argparse.ArgumentTypeError(f"--log-offset {v} must be >= 0")
     return v
@@ -82,7 +83,8 @@ def cmd_info(args: argparse.Namespace) -> int:
         "n_frames": len(rec.frames),
         "event_rate_hz": round(n / dur, 1) if dur > 0 else 0.0,
         "on_fraction": round(float((rec.events["p"] > 0).mean()), 4) if n else None,
-        "frame_rate_hz": round((len(rec.frames) - 1) / ((rec.frames.t_us[-1] - rec.frames.t_us[0]) * 1e-6), 3)
+        "frame_rate_hz": round((len(rec.frames) - 1)
+                               / ((rec.frames.t_us[-1] - rec.frames.t_us[0]) * 1e-6), 3)
         if len(rec.frames) > 1 else None,
         "frame_dtype": str(rec.frames.images.dtype),
     }
@@ -217,7 +219,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
 # -- delegated subcommands --------------------------------------------------------------------
 
 
-def _delegate(module: str, func: str = "main", extra: str = "service") -> Callable[[list[str]], int]:
+def _delegate(module: str, func: str = "main", extra: str = "service"
+              ) -> Callable[[list[str]], int]:
     def run(argv: list[str]) -> int:
         import importlib  # noqa: PLC0415
 

@@ -8,7 +8,7 @@ does (``evcal calibrate --method`` takes its keys).
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from types import MappingProxyType
 from typing import Any
 
@@ -62,7 +62,8 @@ def _log_offset(rec: Recording, opts: CalibrateOptions) -> tuple[float, dict[str
 def _run_offei(rec: Recording, opts: CalibrateOptions) -> Calibration:
     from .offline import OffEIConfig, offei  # noqa: PLC0415
 
-    kw = {} if opts.window_frames is None else {"window_frames": opts.window_frames}
+    kw: dict[str, Any] = {} if opts.window_frames is None else {
+        "window_frames": opts.window_frames}
     return offei(rec, OffEIConfig(log_offset=opts.log_offset, **kw))
 
 
@@ -70,10 +71,11 @@ def _run_onei(rec: Recording, opts: CalibrateOptions) -> Calibration:
     from .online import OnEIConfig, onei  # noqa: PLC0415
 
     off, info = _log_offset(rec, opts)
-    kw = {k: v for k, v in (("n_small", opts.n_small), ("n_large", opts.n_large),
-                            ("smoothing", opts.smoothing)) if v is not None}
+    kw: dict[str, Any] = {k: v for k, v in (("n_small", opts.n_small),
+                                            ("n_large", opts.n_large),
+                                            ("smoothing", opts.smoothing)) if v is not None}
     cal = onei(rec, OnEIConfig(log_offset=off, **kw))
-    return cal.replace(diagnostics=replace(cal.diagnostics, log_offset_estimation=info))
+    return cal.replace(diagnostics=cal.diagnostics.updated(log_offset_estimation=info))
 
 
 def _run_offe(rec: Recording, opts: CalibrateOptions) -> Calibration:
@@ -87,14 +89,14 @@ def _run_brandli(rec: Recording, opts: CalibrateOptions) -> Calibration:
 
     off, info = _log_offset(rec, opts)
     cal = brandli(rec, BrandliConfig(log_offset=off))
-    return cal.replace(diagnostics=replace(cal.diagnostics, log_offset_estimation=info))
+    return cal.replace(diagnostics=cal.diagnostics.updated(log_offset_estimation=info))
 
 
 def _run_di(rec: Recording, opts: CalibrateOptions) -> Calibration:
     off, info = _log_offset(rec, opts)
     cal = Calibration.uniform(rec.sensor.shape, DEFAULT_CONTRAST, DEFAULT_BIAS, method="di",
                               log_offset=off)
-    return cal.replace(diagnostics=replace(cal.diagnostics, log_offset_estimation=info))
+    return cal.replace(diagnostics=cal.diagnostics.updated(log_offset_estimation=info))
 
 
 ESTIMATORS: Mapping[str, Estimator] = MappingProxyType({e.name: e for e in (

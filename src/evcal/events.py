@@ -13,6 +13,7 @@ Invariants (hold everywhere in the package):
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -64,7 +65,7 @@ def empty_events() -> np.ndarray:
     return np.zeros(0, dtype=EVENTS_DTYPE)
 
 
-def make_events(t_us, x, y, p) -> np.ndarray:
+def make_events(t_us: Any, x: Any, y: Any, p: Any) -> np.ndarray:
     """Pack columns into an :data:`EVENTS_DTYPE` array.
 
     ``p`` may be given as {0, 1} or {-1, +1}; it is stored as {-1, +1}. Only the packing is done
@@ -141,4 +142,5 @@ def validate_events(
 
 def pixel_index(events: np.ndarray, width: int) -> np.ndarray:
     """Flat pixel index ``y * width + x`` (int64)."""
-    return events["y"].astype(np.int64) * width + events["x"]
+    result: np.ndarray = events["y"].astype(np.int64) * width + events["x"]
+    return result

@@ -79,7 +79,8 @@ class OffEIConfig:
             raise ValueError(f"log_offset={self.log_offset!r} must be 'auto' or a number >= 0")
 
 
-def _window_terms(s_j: Snapshot, s_k: Snapshot):
+def _window_terms(s_j: Snapshot, s_k: Snapshot
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """``(P, E, Q, A)`` of the window between two snapshots (float64 flat maps)."""
     on = (s_k.on - s_j.on).astype(np.float64)
     off = (s_k.off - s_j.off).astype(np.float64)
@@ -187,7 +188,7 @@ def _unexplained_fraction(sp: np.ndarray, se: np.ndarray, dl: np.ndarray, w: np.
     return float(np.nanmean(frac))
 
 
-def estimate_log_offset(rec: Recording, cfg: OffEIConfig) -> tuple[float, dict]:
+def estimate_log_offset(rec: Recording, cfg: OffEIConfig) -> tuple[float, dict[str, Any]]:
     """The offset ``o`` for which ``log(I + o)`` is best explained by the events.
 
     For each candidate on a log-spaced grid the per-pixel OffEI fit is solved on a sample of

@@ -95,7 +95,7 @@ _VALID = int(Reason.VALID)
 
 
 @numba.njit(cache=True, nogil=True)
-def _sparse_sum(idx, on, off, scratch):  # pragma: no cover - compiled
+def _sparse_sum(idx: np.ndarray, on: np.ndarray, off: np.ndarray, scratch: np.ndarray) -> Any:
     """Per-pixel sums of sparse ``(idx, on, off)`` entries: ``(pixels, on, off)`` with each
     pixel once, in order of first appearance; ``scratch`` (2, n) is zero before and after."""
     touched = np.empty(idx.size, np.int32)
@@ -120,8 +120,10 @@ def _sparse_sum(idx, on, off, scratch):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True)
-def _low_pass(c_new, b_new, se_c_new, se_b_new, ok, reason_new, smoothing, c, b, se_c, se_b,
-              seen, n_solved, reason):  # pragma: no cover - compiled
+def _low_pass(c_new: np.ndarray, b_new: np.ndarray, se_c_new: np.ndarray, se_b_new: np.ndarray,
+              ok: np.ndarray, reason_new: np.ndarray, smoothing: float, c: np.ndarray,
+              b: np.ndarray, se_c: np.ndarray, se_b: np.ndarray, seen: np.ndarray,
+              n_solved: np.ndarray, reason: np.ndarray) -> Any:  # pragma: no cover - compiled
     """Fold one solve into the smoothed estimate, in place (OnEI's low-pass with start-up
     correction). New values pass through float32, as they did through a Calibration."""
     for i in range(c.size):
@@ -286,7 +288,8 @@ class OnlineCalibrator:
         self.estimate = LowPassEstimate(n)  # what calibration() reports
         auto = self.config.log_offset == "auto"
         # the offset of log(I + offset); NaN until estimated (log_offset="auto")
-        self.log_offset = math.nan if auto else float(self.config.log_offset)  # type: ignore[arg-type]
+        given = self.config.log_offset
+        self.log_offset = float(given) if not isinstance(given, str) else math.nan
         self.offset_info: dict[str, Any] = {"method": "auto" if auto else "given"}
         self._next_offset_check = 0  # frame count of the next online re-estimate
         self.lam = 0.0
@@ -573,7 +576,7 @@ class OnlineCalibrator:
             second.on = second.off = np.zeros(0, np.int32)
             self._next_open = max(self._next_open, self._base)
 
-    def _terms(self, j: int, k: int):
+    def _terms(self, j: int, k: int) -> tuple[np.ndarray, ...]:
         """Sparse ``(idx, P, E, Q, A, dL, w)`` of the small buffer from frame j to frame k."""
         frames = [self._frames[i - self._base] for i in range(j + 1, k + 1)]
         fj, fk = self._frames[j - self._base], self._frames[k - self._base]

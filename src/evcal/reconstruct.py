@@ -55,7 +55,8 @@ def _integrate(log_start: np.ndarray, events: np.ndarray, contrast: np.ndarray,
                bias: np.ndarray) -> np.ndarray:
     h, w = log_start.shape
     sp, se = _sums(events, h, w)
-    return log_start + contrast.astype(np.float64) * sp + bias.astype(np.float64) * se
+    result: np.ndarray = log_start + contrast.astype(np.float64) * sp + bias.astype(np.float64) * se
+    return result
 
 
 def integrate(log_start: np.ndarray, events: np.ndarray, cal: Calibration) -> np.ndarray:
@@ -152,7 +153,7 @@ def select_pairs(
         raise ValueError("give events_per_image or frames_per_image")
     if frames_per_image is not None and int(frames_per_image) < 1:
         raise ValueError(f"frames_per_image={frames_per_image} must be >= 1")
-    if frames_per_image is None and int(events_per_image) < 1:
+    if frames_per_image is None and events_per_image is not None and int(events_per_image) < 1:
         raise ValueError(f"events_per_image={events_per_image} must be >= 1")
     n = int(ft.size)
     if n < 2:
@@ -162,6 +163,7 @@ def select_pairs(
         step = int(frames_per_image)
         ks = np.arange(k0, n - step, step)
         return [(int(k), int(k) + step) for k in ks]
+    assert events_per_image is not None  # checked above
     need = int(events_per_image)
     # cum[i]: events before frame i; events in [t_k, t_j) = cum[j] - cum[k] (non-decreasing)
     cum = frame_cuts(et, ft)

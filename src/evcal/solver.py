@@ -16,6 +16,7 @@ workflow's fits (:mod:`evcal.gap.stats`) all solve through here.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numba
 import numpy as np
@@ -36,7 +37,8 @@ def log_intensity(image: np.ndarray, log_offset: float) -> np.ndarray:
     with np.errstate(divide="ignore"):
         if image.dtype == np.uint8:
             lut = np.log(np.arange(256, dtype=np.float64) + log_offset)
-            return lut[image]
+            result: np.ndarray = lut[image]
+            return result
         img = np.asarray(image, np.float64)
         return np.log(np.maximum(img, 0.0) + log_offset)
 
@@ -70,10 +72,10 @@ class NormalEquations:
     n_pixels: int
 
     def __post_init__(self) -> None:
-        # one (16, n) block: a row per cross product, each row a flat map
+        # one (16, n) block: a row per cross product, each row a flat map (views)
         self.m = np.zeros((len(_TERMS), self.n_pixels), np.float64)
-        for i, name in enumerate(_TERMS):
-            setattr(self, name, self.m[i])
+        (self.pp, self.pe, self.pq, self.pa, self.ee, self.eq, self.ea, self.qq, self.qa,
+         self.aa, self.py, self.ey, self.qy, self.ay, self.yy, self.n_eq) = self.m
 
     def add(self, p: np.ndarray, e: np.ndarray, q: np.ndarray, a: np.ndarray, dl: np.ndarray,
             w: np.ndarray | float = 1.0, idx: np.ndarray | slice = slice(None),
@@ -139,7 +141,8 @@ class NormalEquations:
 
 
 @numba.njit(cache=True, nogil=True)
-def _add_sparse(m, idx, p, e, q, a, dl, w, sign):  # pragma: no cover - compiled
+def _add_sparse(m: np.ndarray, idx: np.ndarray, p: np.ndarray, e: np.ndarray, q: np.ndarray,
+                a: np.ndarray, dl: np.ndarray, w: np.ndarray, sign: float) -> Any:
     for i in range(idx.size):
         k = idx[i]
         ws = sign * w[i]
@@ -186,7 +189,7 @@ class SolveLimits:
 
 
 @numba.njit(inline="always")
-def _pixel_fit(m, i, lam, min_decorrelation):  # pragma: no cover - compiled
+def _pixel_fit(m: np.ndarray, i: int, lam: float, min_decorrelation: float) -> Any:
     """``(a11, a12, a22, r1, r2, c, b, ok, safe_det)`` of pixel ``i``: the system of
     :meth:`NormalEquations.system` and its 2x2 solve (defaults where rank deficient)."""
     l2 = 2 * lam
@@ -206,9 +209,10 @@ def _pixel_fit(m, i, lam, min_decorrelation):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _solve_pixels(m, n_events, lam, overlap, min_events, min_equations, min_decorrelation,
-                  min_contrast, max_contrast, max_bias_ratio, extra_reason
-                  ):  # pragma: no cover - compiled
+def _solve_pixels(m: np.ndarray, n_events: np.ndarray, lam: float, overlap: float,
+                  min_events: int, min_equations: float, min_decorrelation: float,
+                  min_contrast: float, max_contrast: float, max_bias_ratio: float,
+                  extra_reason: np.ndarray) -> Any:  # pragma: no cover - compiled
     """One pass of :func:`solve_normal_equations` over the pixels: the same operations in the
     same order as the numpy formulas it replaced, so bit-identical results; written with
     selects rather than branches so that it vectorises."""
@@ -325,8 +329,9 @@ def solve_normal_equations(
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _lambda_terms(m, n_events, min_events, min_decorrelation, min_contrast, max_contrast,
-                  max_bias_ratio):  # pragma: no cover - compiled
+def _lambda_terms(m: np.ndarray, n_events: np.ndarray, min_events: int,
+                  min_decorrelation: float, min_contrast: float, max_contrast: float,
+                  max_bias_ratio: float) -> Any:  # pragma: no cover - compiled
     """Per pixel, the plain fit (``lam = 0``) of :func:`correction_lambda`: the trust mask,
     the residual's ``Q`` cross product and ``c Q^2`` of :meth:`NormalEquations.
     residual_lambda` (the same operations in the same order as the numpy version)."""

@@ -8,6 +8,8 @@ pixels): it is both far from the others and measured well enough to say so. The 
 
 from __future__ import annotations
 
+from typing import Any
+
 import numba
 import numpy as np
 
@@ -58,7 +60,7 @@ def classify(
     return out
 
 
-def _all_float64(*arrays: object) -> bool:
+def _all_float64(*arrays: Any) -> bool:
     shape = np.shape(arrays[0])
     return all(isinstance(a, np.ndarray) and a.dtype == np.float64 and a.shape == shape
                for a in arrays)
@@ -84,11 +86,13 @@ def _classify_f64(contrast: np.ndarray, bias: np.ndarray, stderr_contrast: np.nd
                  np.ascontiguousarray(np.ravel(stderr_contrast)),
                  np.ascontiguousarray(np.ravel(stderr_bias)), v, float(z_measurement), limits,
                  n_valid >= 10)
-    return out.reshape(shape)
+    result: np.ndarray = out.reshape(shape)
+    return result
 
 
 @numba.njit(cache=True, nogil=True)
-def _label(c, b, se_c, se_b, valid, z, limits, significant):  # pragma: no cover - compiled
+def _label(c: np.ndarray, b: np.ndarray, se_c: np.ndarray, se_b: np.ndarray, valid: np.ndarray,
+           z: np.ndarray, limits: np.ndarray, significant: np.ndarray) -> Any:
     n = c.size
     out = np.empty(n, np.uint8)
     b_low, b_high, c_low, c_high = limits[0], limits[1], limits[2], limits[3]

@@ -16,9 +16,11 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 
+from ..calibration import Calibration
 from ..errors import CalibrationError
 from ..offline import OffEIConfig, estimate_log_offset, offei
 from ..recording import Frames, Recording
@@ -81,7 +83,7 @@ def estimate_read_noise(frames: Frames) -> float:
     return float(1.4826 * np.median(np.abs(d - np.median(d))) / np.sqrt(2))
 
 
-def _shrink(cal, offset: float) -> tuple[np.ndarray, np.ndarray]:
+def _shrink(cal: Calibration, offset: float) -> tuple[np.ndarray, np.ndarray]:
     c = cal.contrast.astype(np.float64)
     b = cal.bias.astype(np.float64)
     v = cal.valid
@@ -128,7 +130,8 @@ def latent_frames(frames: Frames, read_noise_dn: float) -> np.ndarray:
     still = (np.abs(imgs[2:] - mid) < tol) & (np.abs(imgs[:-2] - mid) < tol)
     out = imgs.copy()
     out[1:-1] = np.where(still, (imgs[2:] + mid + imgs[:-2]) / 3.0, mid)
-    return out
+    result: np.ndarray = out
+    return result
 
 
 def _times(frames: Frames, internal_rate_hz: float) -> np.ndarray:
@@ -174,7 +177,8 @@ def _bins(meas: Observation, ok: np.ndarray, n_bins: int) -> np.ndarray:
     count = (meas.on + meas.off).sum(0).astype(np.float64)
     edges = np.unique(np.quantile(count[ok], np.linspace(0, 1, n_bins + 1)))
     edges[0], edges[-1] = -np.inf, np.inf
-    return np.clip(np.searchsorted(edges, count, side="right") - 1, 0, edges.size - 2)
+    result: np.ndarray = np.clip(np.searchsorted(edges, count, side="right") - 1, 0, edges.size - 2)
+    return result
 
 
 def anchor(model: Model, rec: Recording, meas: Observation, seed: int,
@@ -237,7 +241,7 @@ def anchor(model: Model, rec: Recording, meas: Observation, seed: int,
 # ------------------------------------------------------------------------------ candidates
 
 
-def _hot_excess(meas: Observation, sims: list[Observation]):
+def _hot_excess(meas: Observation, sims: list[Observation]) -> Any:
     n = meas.n_pixels
     dur = (meas.frame_t_us[-1] - meas.frame_t_us[0]) * 1e-6
     cm = np.bincount(meas.pix, minlength=n).astype(np.float64)
@@ -247,7 +251,8 @@ def _hot_excess(meas: Observation, sims: list[Observation]):
     return cm, cs, ex, z, dur
 
 
-def _fit_refractory(meas, sims, model, rec):
+def _fit_refractory(meas: Observation, sims: list[Observation], model: Model,
+                    rec: Recording) -> Effect | None:
     cm, cs, ex, z, dur = _hot_excess(meas, sims)
     keep = cm <= np.quantile(cm, 0.99)
     iei_m, _ = _iei(meas)
@@ -268,7 +273,7 @@ def _fit_refractory(meas, sims, model, rec):
     return Refractory(period_us=round(p, 1), mode=mode)
 
 
-def _static_excess(meas, sims, pol):
+def _static_excess(meas: Observation, sims: list[Observation], pol: int) -> Any:
     st = _static(meas)
     if st.sum() < 50:
         return None
@@ -281,7 +286,8 @@ def _static_excess(meas, sims, pol):
     return (cnt_m - cnt_s)[keep], i_mid[keep], ws[keep]
 
 
-def _fit_leak(meas, sims, model, rec):
+def _fit_leak(meas: Observation, sims: list[Observation], model: Model,
+              rec: Recording) -> Effect | None:
     on = _static_excess(meas, sims, +1)
     off = _static_excess(meas, sims, -1)
     if on is None or off is None:
@@ -292,7 +298,8 @@ def _fit_leak(meas, sims, model, rec):
     return Leak(rate_hz=round(float(rate), 4))
 
 
-def _fit_shot_noise(meas, sims, model, rec):
+def _fit_shot_noise(meas: Observation, sims: list[Observation], model: Model,
+                    rec: Recording) -> Effect | None:
     ref = ShotNoise().ref_dn
     rates = []
     for pol in (+1, -1):
@@ -308,7 +315,8 @@ def _fit_shot_noise(meas, sims, model, rec):
     return ShotNoise(rate_hz=round(rate, 4))
 
 
-def _fit_hot_pixels(meas, sims, model, rec):
+def _fit_hot_pixels(meas: Observation, sims: list[Observation], model: Model,
+                    rec: Recording) -> Effect | None:
     # hot pixels fire when the scene is still: compare per-pixel counts in still windows
     st = _static(meas)
     t_still = (st * meas.window_s[:, None]).sum(0)
@@ -345,7 +353,8 @@ def _threshold_slope(obs: Observation) -> float:
     return float(((x - xm) * (y - ym)).sum() / max(((x - xm) ** 2).sum(), 1e-12))
 
 
-def _fit_threshold_noise(meas, sims, model, rec):
+def _fit_threshold_noise(meas: Observation, sims: list[Observation], model: Model,
+                         rec: Recording) -> Effect | None:
     sm = _threshold_slope(meas)
     ss = np.nanmean([_threshold_slope(s) for s in sims])
     d = sm - ss
@@ -378,7 +387,8 @@ def _filter_fit_error(obs: Observation, cutoff_hz: float, offset: float) -> floa
     return float((res[m] ** 2).sum() / max(tss, 1e-12))
 
 
-def _fit_bandwidth(meas, sims, model, rec):
+def _fit_bandwidth(meas: Observation, sims: list[Observation], model: Model,
+                   rec: Recording) -> Effect | None:
     grid = np.geomspace(2.0, 2000.0, 19)
     err = np.array([_filter_fit_error(meas, g, model.log_offset) for g in grid])
     i = int(np.argmin(err))
@@ -394,7 +404,8 @@ def _fit_bandwidth(meas, sims, model, rec):
     return Bandwidth(cutoff_hz=round(f, 3))
 
 
-def _fit_log_offset(meas, sims, model, rec):
+def _fit_log_offset(meas: Observation, sims: list[Observation], model: Model,
+                    rec: Recording) -> Effect | None:
     cfg = OffEIConfig(window_frames=max(1, min(5, len(rec.frames) // 4)))
     try:
         o, _ = estimate_log_offset(rec, cfg)
@@ -560,7 +571,8 @@ def _jitter_curves(meas: Observation, sims: list[Observation], q_hat: int
     return np.asarray(g_iei), np.asarray(g_spill)
 
 
-def _fit_timestamp_jitter(meas, sims, model, rec):
+def _fit_timestamp_jitter(meas: Observation, sims: list[Observation], model: Model,
+                          rec: Recording) -> Effect | None:
     """Quantum from the residues of the timestamps; sigma by jittering the simulated events on
     a grid (no re-simulation) and matching two statistics.
 
@@ -607,4 +619,5 @@ def fit_candidate(name: str, meas: Observation, sims: list[Observation], model: 
     """Moment estimate of effect ``name`` from measured and simulated observations; ``None``
     when the data show none of it (e.g. no excess of events where the effect would add them).
     """
-    return FITTERS[name](meas, sims, model, rec)
+    result: Effect | None = FITTERS[name](meas, sims, model, rec)
+    return result

@@ -40,6 +40,7 @@ timestamp_quantum              fraction of timestamps divisible by 10, 100, 1000
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -86,7 +87,7 @@ class Observation:
     t_us: np.ndarray  # event times in range
     pix: np.ndarray  # event pixels in range
     p: np.ndarray
-    extra: dict = field(default_factory=dict)
+    extra: dict[str, Any] = field(default_factory=dict)
 
     @property
     def n_windows(self) -> int:
@@ -163,9 +164,10 @@ def fit_from_sums(spp: np.ndarray, spe: np.ndarray, see: np.ndarray, spy: np.nda
     return c, b, ok
 
 
-def _fit(obs: Observation) -> dict:
+def _fit(obs: Observation) -> dict[str, Any]:
     if "fit" in obs.extra:
-        return obs.extra["fit"]
+        cached: dict[str, Any] = obs.extra["fit"]
+        return cached
     P = (obs.on - obs.off).astype(np.float64)
     E = (obs.on + obs.off).astype(np.float64)
     dL = obs.log_i[1:] - obs.log_i[:-1]
@@ -226,7 +228,8 @@ def _edge_labels(edges: np.ndarray, unit: str, fmt: str = "{:.3g}") -> list[str]
 
 def _iei(obs: Observation) -> tuple[np.ndarray, np.ndarray]:
     if "iei" in obs.extra:
-        return obs.extra["iei"]
+        cached: tuple[np.ndarray, np.ndarray] = obs.extra["iei"]
+        return cached
     order = np.argsort(obs.pix, kind="stable")
     ps, ts, pp = obs.pix[order], obs.t_us[order], obs.p[order]
     same = ps[1:] == ps[:-1]
@@ -258,7 +261,8 @@ def _static(obs: Observation) -> np.ndarray:
     either side (a short pause of a moving texture is not still: sub-quantum changes there
     still make events that frames cannot show)."""
     if "static" in obs.extra:
-        return obs.extra["static"]
+        result: np.ndarray = obs.extra["static"]
+        return result
     dl = np.abs(obs.log_i[1:] - obs.log_i[:-1]) < STATIC_DL
     st = dl.copy()
     for k in range(1, STATIC_HALF_WIDTH + 1):
@@ -268,10 +272,12 @@ def _static(obs: Observation) -> np.ndarray:
         st[-k:] = False
     st &= obs.usable
     obs.extra["static"] = st
-    return st
+    result_272: np.ndarray = st
+    return result_272
 
 
-def _static_bins(obs: Observation, n_bins: int = 4):
+def _static_bins(obs: Observation, n_bins: int = 4
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     st = _static(obs)
     i_mid = 0.5 * (obs.intensity[1:] + obs.intensity[:-1])
     ws = np.broadcast_to(obs.window_s[:, None], st.shape)

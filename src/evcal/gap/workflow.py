@@ -87,7 +87,7 @@ class Step:
 @dataclass
 class GapResult:
     recording_info: dict[str, Any]
-    measured: dict
+    measured: dict[str, Any]
     initial: Evaluation
     final: Evaluation
     steps: list[Step] = field(default_factory=list)

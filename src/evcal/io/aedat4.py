@@ -32,7 +32,8 @@ def _gray(pixels: np.ndarray) -> np.ndarray:
         return np.asarray(pixels[:, :, 0], np.uint8)
     if pixels.ndim == 3 and pixels.shape[2] >= 3:
         luma = pixels[:, :, :3].astype(np.float64) @ _LUMA
-        return np.clip(np.rint(luma), 0, 255).astype(np.uint8)
+        result: np.ndarray = np.clip(np.rint(luma), 0, 255).astype(np.uint8)
+        return result
     if pixels.ndim == 3 and pixels.shape[2] == 2:  # gray + alpha
         return np.asarray(pixels[:, :, 0], np.uint8)
     raise ValueError(f"pixels of shape {pixels.shape} are not an image")
@@ -122,7 +123,7 @@ def read_aedat4(path: str | os.PathLike[str], *, sensor: SensorSize | None = Non
     images: list[np.ndarray] = []
     k = -1
     try:
-        for k, packet in enumerate(decoder):
+        for k, packet in enumerate(decoder):  # noqa: B007 - k names the packet on error
             sid = packet.get("stream_id")
             if sid == ev_id and "events" in packet:
                 if packet["events"].size:
@@ -161,6 +162,8 @@ def read_aedat4(path: str | os.PathLike[str], *, sensor: SensorSize | None = Non
         "streams": {str(i): dict(s) for i, s in streams.items()},
     }
     try:
-        return Recording(sensor=found, events=events, frames=frames, metadata=metadata)
+        return Recording(sensor=found, events=events,
+                         frames=frames if frames is not None else Frames.empty(0, 0),
+                         metadata=metadata)
     except RecordingError as exc:
         raise RecordingError(f"{path}: {exc}") from None

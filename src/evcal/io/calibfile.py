@@ -46,7 +46,7 @@ def calibration_npz_arrays(cal: Calibration, names: Any = None, *,
     """
     arrays: dict[str, np.ndarray] = {k: np.asarray(v, MAP_SPECS[k].dtype)
                                      for k, v in cal.maps(names).items()}
-    arrays["log_offset"] = np.float64(cal.log_offset)  # type: ignore[assignment]
+    arrays["log_offset"] = np.array(cal.log_offset, np.float64)
     arrays["method"] = np.array(str(cal.method))
     params = cal.diagnostics.to_dict() | dict(extra or {})
     arrays["params_json"] = np.array(dumps(params))
@@ -57,7 +57,8 @@ def calibration_npz_bytes(cal: Calibration, names: Any = None, *,
                           extra: Mapping[str, Any] | None = None) -> bytes:
     """:func:`calibration_npz_arrays` as the bytes of a compressed ``.npz`` (in memory)."""
     buf = io.BytesIO()
-    np.savez_compressed(buf, **calibration_npz_arrays(cal, names, extra=extra))
+    arrays: dict[str, Any] = calibration_npz_arrays(cal, names, extra=extra)
+    np.savez_compressed(buf, **arrays)
     return buf.getvalue()
 
 

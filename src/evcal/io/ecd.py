@@ -139,7 +139,8 @@ def _load_gray(file: Path) -> np.ndarray:
         return np.asarray(im.convert("L"), dtype=np.uint8)
 
 
-def _read_frames(folder: Path, sensor: SensorSize | None) -> tuple[Frames, SensorSize] | None:
+def _read_frames(folder: Path, sensor: SensorSize | None
+                 ) -> tuple[Frames, SensorSize | None] | None:
     images_txt = folder / "images.txt"
     if not images_txt.is_file():
         return None
@@ -156,7 +157,7 @@ def _read_frames(folder: Path, sensor: SensorSize | None) -> tuple[Frames, Senso
         return None
     images = []
     ref = "the sensor is"  # what a frame's size is compared with, for the error message
-    for i, ((k, _, rel), file) in enumerate(zip(entries, files)):
+    for i, ((k, _, rel), file) in enumerate(zip(entries, files, strict=False)):
         try:
             img = _load_gray(file)
         except (OSError, ValueError) as exc:
@@ -225,7 +226,7 @@ def _diagnose(block: bytes, first_line: int, path: Path, cause: str) -> Recordin
                 f"{path} line {n}: {len(tokens)} columns, expected 4 ({EVENTS_COLUMNS}): "
                 f"{content[:80].decode(errors='replace')!r}{hint}"
             )
-        for name, tok in zip(("t", "x", "y", "p"), tokens):
+        for name, tok in zip(("t", "x", "y", "p"), tokens, strict=False):
             if not _is_float(tok.decode(errors="replace")):
                 return RecordingError(f"{path} line {n}: column {name} is not a number: "
                                       f"{tok[:40].decode(errors='replace')!r}")
@@ -390,7 +391,9 @@ def read_ecd(folder: str | os.PathLike[str], *, sensor: SensorSize | None = None
     metadata["sensor_source"] = source
     events = (read_events_txt(events_txt, sensor, sensor_source=source)
               if events_txt.is_file() else np.zeros(0, EVENTS_DTYPE))
-    return Recording(sensor=sensor, events=events, frames=frames, metadata=metadata)
+    return Recording(sensor=sensor, events=events,
+                         frames=frames if frames is not None else Frames.empty(0, 0),
+                         metadata=metadata)
 
 
 # ----------------------------------------------------------------------------- writer
@@ -411,7 +414,8 @@ def _digits(values: np.ndarray, *, width: int | None = None, strip: bool = True)
         lead = np.cumsum(d != 0, axis=1) == 0
         lead[:, -1] = False  # 0 is written "0"
         chars[lead] = 0
-    return chars
+    result: np.ndarray = chars
+    return result
 
 
 def _col(n: int, text: str) -> np.ndarray:
@@ -439,7 +443,8 @@ def format_events_txt(events: np.ndarray) -> bytes:
         np.where(events["p"] > 0, ord("1"), ord("0")).astype(np.uint8)[:, None], _col(n, "\n"),
     ]
     mat = np.concatenate(parts, axis=1)
-    return mat[mat != 0].tobytes()
+    result: bytes = mat[mat != 0].tobytes()
+    return result
 
 
 def _seconds_text(t_us: int) -> str:

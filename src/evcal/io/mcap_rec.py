@@ -368,6 +368,7 @@ def read_mcap(path: str | os.PathLike[str], *, sensor: SensorSize | None = None)
     metadata["source"] = str(path)
     try:
         return Recording(sensor=found, events=concat_events([events[s] for s in seqs]),
-                         frames=fr, metadata=metadata)
+                         frames=fr if fr is not None else Frames.empty(0, 0),
+                         metadata=metadata)
     except RecordingError as exc:
         raise RecordingError(f"{path}: {exc}") from None

@@ -150,6 +150,8 @@ def read_npz(path: str | os.PathLike[str], *, sensor: SensorSize | None = None) 
     metadata["format"] = "npz"
     metadata["source"] = str(path)
     try:
-        return Recording(sensor=found, events=events, frames=frames, metadata=metadata)
+        return Recording(sensor=found, events=events,
+                         frames=frames if frames is not None else Frames.empty(0, 0),
+                         metadata=metadata)
     except RecordingError as exc:
         raise RecordingError(f"{path}: {exc}") from None

@@ -35,7 +35,7 @@ from ..jsonable import dumps
 
 WIRE_VERSION = 1
 MAX_SIZE = 65535  # largest height or width accepted (uint16 coordinates)
-FRAME_DTYPES = {"uint8": np.dtype("u1"), "float32": np.dtype("<f4")}
+FRAME_DTYPES: dict[str, np.dtype[Any]] = {"uint8": np.dtype("u1"), "float32": np.dtype("<f4")}
 
 _EVENT_KEYS = frozenset({"version", "height", "width", "seq", "n", "t_us", "x", "y", "p"})
 _FRAME_KEYS = frozenset(
@@ -167,7 +167,8 @@ def encode_events(events: np.ndarray, *, height: int, width: int, seq: int) -> b
                            "n": int(events.shape[0])}
     for name, dt in _COLUMNS:
         msg[name] = np.ascontiguousarray(events[name], dtype=dt).tobytes()
-    return msgpack.packb(msg, use_bin_type=True)
+    result: bytes = msgpack.packb(msg, use_bin_type=True)
+    return result
 
 
 def decode_events(buf: bytes | bytearray | memoryview) -> tuple[np.ndarray, dict[str, Any]]:
@@ -267,7 +268,8 @@ def encode_frame(t_us: int, image: np.ndarray, *, exposure_us: int, seq: int) ->
         "exposure_us": int(exposure_us), "dtype": names[dt],
         "data": np.ascontiguousarray(image, dtype=dt).tobytes(),
     }
-    return msgpack.packb(msg, use_bin_type=True)
+    result: bytes = msgpack.packb(msg, use_bin_type=True)
+    return result
 
 
 def decode_frame(
@@ -354,8 +356,7 @@ def encode_calibration(cal: Calibration, *, t_us: int, seq: int,
         raise WireError(f"cannot encode calibration: t_us must be an integer, got {t_us!r}")
     log_offset = float(cal.log_offset)  # finite: Calibration checks it
     # memoryviews: msgpack copies each map once into the message (no intermediate bytes)
-    maps = {name: memoryview(np.ascontiguousarray(a, dtype=CALIBRATION_MAP_DTYPES[name]
-                                                  ).reshape(-1))
+    maps = {name: np.ascontiguousarray(a, dtype=CALIBRATION_MAP_DTYPES[name]).reshape(-1).data
             for name, a in maps_in.items()}
     msg = {
         "version": WIRE_VERSION, "height": int(h), "width": int(w), "seq": seq,
@@ -364,7 +365,8 @@ def encode_calibration(cal: Calibration, *, t_us: int, seq: int,
         "params_json": dumps(cal.diagnostics.to_dict()),
         "maps": maps,
     }
-    return msgpack.packb(msg, use_bin_type=True)
+    result: bytes = msgpack.packb(msg, use_bin_type=True)
+    return result
 
 
 def decode_calibration_maps(

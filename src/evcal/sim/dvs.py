@@ -9,6 +9,8 @@ segment crosses the level. This is the model the estimators assume; the non-idea
 
 from __future__ import annotations
 
+from typing import Any
+
 import numba
 import numpy as np
 
@@ -16,7 +18,8 @@ from ..events import EVENTS_DTYPE, empty_events
 
 
 @numba.njit(cache=True, nogil=True)
-def _count_crossings(l0, l1, ref, th_on, th_off):  # pragma: no cover - compiled
+def _count_crossings(l0: np.ndarray, l1: np.ndarray, ref: np.ndarray, th_on: np.ndarray,
+                     th_off: np.ndarray) -> Any:  # pragma: no cover - compiled
     n = 0
     for i in range(l0.size):
         d = l1[i] - ref[i]
@@ -28,7 +31,8 @@ def _count_crossings(l0, l1, ref, th_on, th_off):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True)
-def _crossings(l0, l1, ref, th_on, th_off, frac, idx, pol):  # pragma: no cover - compiled
+def _crossings(l0: np.ndarray, l1: np.ndarray, ref: np.ndarray, th_on: np.ndarray,
+               th_off: np.ndarray, frac: np.ndarray, idx: np.ndarray, pol: np.ndarray) -> Any:
     """Fill ``frac`` (0..1 within the step), ``idx`` (pixel), ``pol``; update ``ref``."""
     n = 0
     for i in range(l0.size):
@@ -72,7 +76,8 @@ class IdealDvs:
         contrast = np.asarray(contrast, np.float64)
         bias = np.asarray(bias, np.float64)
         if contrast.shape != bias.shape or contrast.ndim != 2:
-            raise ValueError(f"contrast {contrast.shape} and bias {bias.shape} must be equal [H, W]")
+            raise ValueError(f"contrast {contrast.shape} and bias {bias.shape} must be equal "
+                             "[H, W]")
         th_on = contrast + bias
         th_off = contrast - bias
         if (th_on <= 0).any() or (th_off <= 0).any():

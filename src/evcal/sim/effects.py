@@ -270,6 +270,7 @@ def effect_set(effects: Iterable[Effect] | Mapping[str, Effect] | None) -> dict[
     return out
 
 
-def describe(effects: Iterable[Effect] | Mapping[str, Effect] | None) -> dict[str, dict]:
+def describe(effects: Iterable[Effect] | Mapping[str, Effect] | None
+             ) -> dict[str, dict[str, Any]]:
     """``{name: parameters}`` (JSON-ready)."""
     return {name: e.parameters() for name, e in effect_set(effects).items()}

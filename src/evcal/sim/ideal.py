@@ -81,7 +81,8 @@ def draw_maps(cfg: SimConfig, rng: np.random.Generator) -> tuple[np.ndarray, np.
 
 def frame_times_us(cfg: SimConfig) -> np.ndarray:
     n = int(np.floor(cfg.duration_s * cfg.frame_rate_hz)) + 1
-    return np.rint(np.arange(n) * 1e6 / cfg.frame_rate_hz).astype(np.int64)
+    result: np.ndarray = np.rint(np.arange(n) * 1e6 / cfg.frame_rate_hz).astype(np.int64)
+    return result
 
 
 def internal_times_us(cfg: SimConfig) -> np.ndarray:
@@ -94,7 +95,8 @@ def internal_times_us(cfg: SimConfig) -> np.ndarray:
 
 def to_frame(intensity: np.ndarray, quantise: bool) -> np.ndarray:
     if quantise:
-        return np.clip(np.rint(intensity), 0, 255).astype(np.uint8)
+        result: np.ndarray = np.clip(np.rint(intensity), 0, 255).astype(np.uint8)
+        return result
     return intensity.astype(np.float32)
 
 

@@ -25,6 +25,7 @@ event (``run_steps(..., shortcut=False)`` runs the search everywhere, for tests)
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numba
 import numpy as np
@@ -35,7 +36,7 @@ TWO_PI = 2.0 * math.pi
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _next_u01(state, i):  # pragma: no cover - compiled
+def _next_u01(state: np.ndarray, i: int) -> Any:  # pragma: no cover - compiled
     x = state[i]
     x ^= x >> np.uint64(12)
     x ^= x << np.uint64(25)
@@ -47,14 +48,14 @@ def _next_u01(state, i):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _normal(state, i):  # pragma: no cover - compiled
+def _normal(state: np.ndarray, i: int) -> Any:  # pragma: no cover - compiled
     u1 = _next_u01(state, i)
     u2 = _next_u01(state, i)
     return math.sqrt(-2.0 * math.log(1.0 - u1)) * math.cos(TWO_PI * u2)
 
 
 @numba.njit(cache=True, nogil=True)
-def _grow(buf, n):  # pragma: no cover - compiled
+def _grow(buf: np.ndarray, n: int) -> Any:  # pragma: no cover - compiled
     out = np.empty(max(2 * buf.size, n + 1024), buf.dtype)
     out[: buf.size] = buf
     return out
@@ -73,8 +74,10 @@ _MAX_KEYS = 1 << 20
 
 
 @numba.njit(cache=True, nogil=True)
-def _sort_step(t_f, t_i, pix, pol, lab, start, n, t0, dt, key, order, bkt, tmp_i, tmp_p,
-               tmp_o, tmp_l):  # pragma: no cover - compiled
+def _sort_step(t_f: np.ndarray, t_i: np.ndarray, pix: np.ndarray, pol: np.ndarray,
+               lab: np.ndarray, start: np.ndarray, n: int, t0: float, dt: float,
+               key: np.ndarray, order: np.ndarray, bkt: np.ndarray, tmp_i: np.ndarray,
+               tmp_p: np.ndarray, tmp_o: np.ndarray, tmp_l: np.ndarray) -> Any:
     """Stable sort of the events ``start..n`` of one step by ``t_f`` (all in ``[t0, t0 +
     dt]``): a counting sort on buckets of a microsecond (coarser for steps longer than
     ``key`` allows), then insertion within each bucket; a merge sort where one bucket holds
@@ -132,12 +135,17 @@ def _sort_step(t_f, t_i, pix, pol, lab, start, n, t0, dt, key, order, bkt, tmp_i
 
 
 @numba.njit(cache=True, nogil=True)
-def _search(
-    j0, n_slow, slow_idx, k, intensity, times, log_offset, lf, lf_ok, i_prev, hi_i, lo_i, ref_i,
-    ref, th_on_nom, th_off_nom, th_on, th_off, dead_until, last_fire, leak_debt, rng_state,
-    u_shot, th_sigma, refr_us, refr_delay, shot_rate_hz, shot_ref_dn, bw_cutoff_hz, bw_ref_dn,
-    bw_min_hz, t_f, t_i, pix, pol, lab, n,
-):  # pragma: no cover - compiled
+def _search(j0: np.ndarray, n_slow: np.ndarray, slow_idx: np.ndarray, k: int,
+            intensity: np.ndarray, times: np.ndarray, log_offset: np.ndarray, lf: np.ndarray,
+            lf_ok: np.ndarray, i_prev: np.ndarray, hi_i: np.ndarray, lo_i: np.ndarray,
+            ref_i: np.ndarray, ref: np.ndarray, th_on_nom: np.ndarray, th_off_nom: np.ndarray,
+            th_on: np.ndarray, th_off: np.ndarray, dead_until: np.ndarray,
+            last_fire: np.ndarray, leak_debt: np.ndarray, rng_state: np.ndarray,
+            u_shot: np.ndarray, th_sigma: np.ndarray, refr_us: np.ndarray,
+            refr_delay: np.ndarray, shot_rate_hz: np.ndarray, shot_ref_dn: np.ndarray,
+            bw_cutoff_hz: np.ndarray, bw_ref_dn: np.ndarray, bw_min_hz: np.ndarray,
+            t_f: np.ndarray, t_i: np.ndarray, pix: np.ndarray, pol: np.ndarray,
+            lab: np.ndarray, n: int) -> Any:  # pragma: no cover - compiled
     """The exact crossing search of step ``k`` for the pixels ``slow_idx[j0:n_slow]``;
     returns ``(n, j)``, ``j < n_slow`` when the buffers have no room for pixel
     ``slow_idx[j]`` (nothing of it done: grow them and call again from ``j``)."""
@@ -288,46 +296,46 @@ def _search(
 
 @numba.njit(cache=True, nogil=True)
 def run_steps(
-    intensity,  # [K, N] float32: intensity (DN) at times[1..K]
-    times,  # [K + 1] int64 us: times[0] is the previous sample (the state's time)
-    log_offset,
+    intensity: Any,  # [K, N] float32: intensity (DN) at times[1..K]
+    times: Any,  # [K + 1] int64 us: times[0] is the previous sample (the state's time)
+    log_offset: Any,
     # per-pixel state (updated in place)
-    lf,  # log intensity seen by the comparator at times[0] (where lf_ok)
-    lf_ok,  # uint8: lf is up to date (else it is log(i_prev + log_offset), not yet computed)
-    i_prev,  # float32 intensity (DN) at times[0]
-    hi_i,  # float32 intensity-domain bounds: below exp(ref + th_on), above exp(ref - th_off)
-    lo_i,
-    ref_i,  # ref when hi_i, lo_i were computed (leak moves ref down between events)
-    ref,
-    th_on_nom,
-    th_off_nom,
-    th_on,
-    th_off,
-    dead_until,  # us (float), drop mode
-    last_fire,  # us (float), delay mode
-    leak_rate,  # Hz per pixel (0: no leak)
-    leak_debt,  # log units of drift not yet paid out as a labelled leak event
-    rng_state,  # uint64 per pixel
+    lf: Any,  # log intensity seen by the comparator at times[0] (where lf_ok)
+    lf_ok: Any,  # uint8: lf is up to date (else it is log(i_prev + log_offset), not yet computed)
+    i_prev: Any,  # float32 intensity (DN) at times[0]
+    hi_i: Any,  # float32 intensity-domain bounds: below exp(ref + th_on), above exp(ref - th_off)
+    lo_i: Any,
+    ref_i: Any,  # ref when hi_i, lo_i were computed (leak moves ref down between events)
+    ref: Any,
+    th_on_nom: Any,
+    th_off_nom: Any,
+    th_on: Any,
+    th_off: Any,
+    dead_until: Any,  # us (float), drop mode
+    last_fire: Any,  # us (float), delay mode
+    leak_rate: Any,  # Hz per pixel (0: no leak)
+    leak_debt: Any,  # log units of drift not yet paid out as a labelled leak event
+    rng_state: Any,  # uint64 per pixel
     # effect parameters (0 disables)
-    th_sigma,
-    refr_us,
-    refr_delay,
-    leak_light_exp,
-    leak_ref_dn,
-    shot_rate_hz,
-    shot_ref_dn,
-    bw_cutoff_hz,
-    bw_ref_dn,
-    bw_min_hz,
+    th_sigma: Any,
+    refr_us: Any,
+    refr_delay: Any,
+    leak_light_exp: Any,
+    leak_ref_dn: Any,
+    shot_rate_hz: Any,
+    shot_ref_dn: Any,
+    bw_cutoff_hz: Any,
+    bw_ref_dn: Any,
+    bw_min_hz: Any,
     # output, appended from n on (grown as needed; the grown arrays are returned)
-    t_f,
-    t_i,
-    pix,
-    pol,
-    lab,
-    n,
-    shortcut=True,  # False: every pixel runs the exact search (for tests of the shortcut)
-):  # pragma: no cover - compiled
+    t_f: Any,
+    t_i: Any,
+    pix: Any,
+    pol: Any,
+    lab: Any,
+    n: Any,
+    shortcut: bool = True,  # False: every pixel runs the exact search (for tests of the shortcut)
+) -> Any:  # pragma: no cover - compiled
     """Events of ``K`` steps appended to ``(t_float_us, t_us, pixel, polarity, label)`` from
     ``n`` on; returns the arrays and the new ``n``. The events of each step are sorted by time
     (stable), all but ``t_float_us``, which stays in emission order; in delay mode, whose
@@ -468,7 +476,8 @@ def run_steps(
 
 
 @numba.njit(cache=True, nogil=True)
-def fill_events(t_out, x_out, y_out, p_out, t_us, pix, pol, width):  # pragma: no cover
+def fill_events(t_out: np.ndarray, x_out: np.ndarray, y_out: np.ndarray, p_out: np.ndarray,
+                t_us: np.ndarray, pix: np.ndarray, pol: np.ndarray, width: int) -> Any:
     """The fields of an events array (views) from times, flat pixel indices and polarities."""
     # y = q // width by a float reciprocal (an integer division per event costs more than the
     # rest): (q + 0.5) / width is at least 0.5 / width from an integer, far above the error

@@ -67,8 +67,10 @@ def _aps_frame(source: Source, t_us: int, aps: ApsConfig, rng: np.random.Generat
     if aps.read_noise_dn > 0:
         img = img + rng.normal(0.0, aps.read_noise_dn, img.shape)
     if aps.quantise:
-        return np.clip(np.rint(img), 0, 255).astype(np.uint8)
-    return np.maximum(img, 0.0).astype(np.float32)
+        result: np.ndarray = np.clip(np.rint(img), 0, 255).astype(np.uint8)
+        return result
+    result_72: np.ndarray = np.maximum(img, 0.0).astype(np.float32)
+    return result_72
 
 
 def _resized(buf: np.ndarray, size: int, n: int) -> np.ndarray:

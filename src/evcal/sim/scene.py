@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property
+from typing import Any
 
 import numba
 import numpy as np
@@ -45,7 +46,8 @@ def load_scene(name_or_image: str | np.ndarray, *, min_dn: float = 8.0, max_dn: 
     if hi <= lo:
         raise ValueError("scene image is constant: nothing for events to see")
     img = np.clip((img - lo) / (hi - lo), 0.0, 1.0)
-    return (min_dn + (max_dn - min_dn) * img).astype(np.float32)
+    result: np.ndarray = (min_dn + (max_dn - min_dn) * img).astype(np.float32)
+    return result
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -73,7 +75,8 @@ class Trajectory:
         # drawn once per trajectory (a generator per pose would cost more than the pose)
         return np.random.default_rng(self.seed).uniform(0, 2 * np.pi, size=12)
 
-    def pose(self, t_s: np.ndarray | float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def pose(self, t_s: np.ndarray | float
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """``(tx_px, ty_px, rot_rad, log_zoom)`` at times ``t_s`` (seconds)."""
         t = np.asarray(t_s, np.float64) * self.speed
         ph = self._phases
@@ -115,7 +118,8 @@ class Renderer:
 
     def render(self, t_s: float) -> np.ndarray:
         """Scene intensity (DN, float32 ``[H, W]``) seen at time ``t_s``."""
-        return self.render_many([t_s])[0]
+        result: np.ndarray = self.render_many([t_s])[0]
+        return result
 
     def render_many(self, t_s: np.ndarray | list[float], out: np.ndarray | None = None
                     ) -> np.ndarray:
@@ -133,7 +137,8 @@ class Renderer:
 
 
 @numba.njit(cache=True, nogil=True)
-def _render_poses(scene, params, cx, cy, out):  # pragma: no cover - compiled
+def _render_poses(scene: np.ndarray, params: np.ndarray, cx: np.ndarray, cy: np.ndarray,
+                  out: np.ndarray) -> Any:  # pragma: no cover - compiled
     """Bilinear samples of ``scene`` for each pose ``params[k] = (s, cos, sin, tx, ty)`` into
     ``out[k]``: the arithmetic (and its order) of :func:`bilinear` on the coordinates of
     :meth:`Renderer._pose_params`, so the floats are those of the numpy version. Per row, the
@@ -206,4 +211,5 @@ def bilinear(img: np.ndarray, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
     d = flat[i00 + w + 1]
     top = a + (b - a) * fx
     bot = c + (d - c) * fx
-    return (top + (bot - top) * fy).astype(np.float32)
+    result: np.ndarray = (top + (bot - top) * fy).astype(np.float32)
+    return result

@@ -19,6 +19,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numba
 import numpy as np
@@ -92,7 +93,8 @@ class MovingScene:
         self.illumination = illumination
 
     def __call__(self, t_s: float) -> np.ndarray:
-        return self.render_block([t_s])[0]
+        result: np.ndarray = self.render_block([t_s])[0]
+        return result
 
     def render_block(self, t_s: np.ndarray | list[float], out: np.ndarray | None = None
                      ) -> np.ndarray:
@@ -113,8 +115,9 @@ def _resize(img: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
         return img.astype(np.float32)
     from skimage.transform import resize  # noqa: PLC0415 - only when sizes differ
 
-    return resize(img.astype(np.float32), shape, order=1, preserve_range=True,
+    result: np.ndarray = resize(img.astype(np.float32), shape, order=1, preserve_range=True,
                   anti_aliasing=True).astype(np.float32)
+    return result
 
 
 class FrameInterpolator:
@@ -128,7 +131,7 @@ class FrameInterpolator:
                  t_origin_us: int | None = None, gain: float = 1.0):
         if len(frames) == 0:
             raise ValueError("frame source needs at least one frame")
-        shape = tuple(shape) if shape is not None else frames.shape
+        shape = (int(shape[0]), int(shape[1])) if shape is not None else frames.shape
         self.images = np.stack([_resize(np.asarray(f, np.float32), shape) * np.float32(gain)
                                 for f in frames.images])
         self.t_us = frames.t_us.astype(np.int64)
@@ -136,7 +139,7 @@ class FrameInterpolator:
         self._t_rel_s = (self.t_us - self.t_origin_us) * 1e-6
 
     @classmethod
-    def from_folder(cls, path: str | os.PathLike[str], shape: tuple[int, int], **kw
+    def from_folder(cls, path: str | os.PathLike[str], shape: tuple[int, int], **kw: Any
                     ) -> FrameInterpolator:
         """Frames of an Event Camera Dataset-style folder (``images.txt`` + images)."""
         from ..io import read_ecd  # noqa: PLC0415
@@ -151,13 +154,16 @@ class FrameInterpolator:
     def __call__(self, t_s: float) -> np.ndarray:
         tr = self._t_rel_s
         if t_s <= tr[0]:
-            return self.images[0]
+            result: np.ndarray = self.images[0]
+            return result
         if t_s >= tr[-1]:
-            return self.images[-1]
+            result_160: np.ndarray = self.images[-1]
+            return result_160
         k = int(np.searchsorted(tr, t_s, side="right")) - 1
         w = float((t_s - tr[k]) / (tr[k + 1] - tr[k]))
         a, b = self.images[k], self.images[k + 1]
-        return a + np.float32(w) * (b - a)
+        result_165: np.ndarray = a + np.float32(w) * (b - a)
+        return result_165
 
     def render_block(self, t_s: np.ndarray | list[float], out: np.ndarray | None = None
                      ) -> np.ndarray:
@@ -183,7 +189,7 @@ class FrameInterpolator:
 
 
 @numba.njit(cache=True, nogil=True)
-def _lerp_frames(images, k, w, out):  # pragma: no cover - compiled
+def _lerp_frames(images: np.ndarray, k: np.ndarray, w: np.ndarray, out: np.ndarray) -> Any:
     """``out[j] = a + w[j] (b - a)`` in float32 with ``a, b`` frames ``k[j], k[j] + 1`` (the
     first or last frame where ``k[j]`` is -1 or -2), as :meth:`FrameInterpolator.__call__`."""
     n_f = images.shape[0]
