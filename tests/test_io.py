@@ -210,8 +210,12 @@ def test_open_recording_errors(tmp_path: Path) -> None:
     with pytest.raises(RecordingError, match="no such file or directory"):
         open_recording(tmp_path / "nothing.mcap")
     (tmp_path / "x.h5").write_bytes(b"\x00")
-    with pytest.raises(RecordingError, match=r"unknown recording kind '\.h5'"):
+    with pytest.raises(RecordingError, match=r"unknown recording format .* suffix '\.h5'.* "
+                                             r"evcal reads .*AEDAT4"):
         open_recording(tmp_path / "x.h5")
+    (tmp_path / "old.aedat").write_bytes(b"#!AER-DAT2.0\r\n")
+    with pytest.raises(RecordingError, match="another version than 4.0"):
+        open_recording(tmp_path / "old.aedat")
     (tmp_path / "empty").mkdir()
     with pytest.raises(RecordingError, match="no events.txt or images.txt"):
         open_recording(tmp_path / "empty")
@@ -698,3 +702,20 @@ def test_npz_bad_inputs(tmp_path: Path) -> None:
         np.savez(f, events=rec.events, sensor=np.array([30, 20]))
     with pytest.raises(RecordingError, match="outside the 20x30 sensor"):
         read_npz(tmp_path / "outside.npz")
+
+
+def test_recordings_are_recognised_by_content(tmp_path: Path) -> None:
+    rec = _recording()
+    for suffix in (".mcap", ".npz"):
+        path = write_recording(rec, tmp_path / f"r{suffix}")
+        misnamed = path.rename(tmp_path / f"r{suffix}.bin")  # a name that says nothing
+        back = open_recording(misnamed)
+        assert back.n_events == rec.n_events
+        upper = misnamed.rename(tmp_path / f"R{suffix.upper()}")  # or shouts its suffix
+        assert open_recording(upper).n_events == rec.n_events
+
+
+def test_a_misnamed_real_aedat4_opens(shared_data: Path, tmp_path: Path) -> None:
+    road = shared_data / "davis346_road" / "road.aedat4"
+    (tmp_path / "road.AEDAT").write_bytes(road.read_bytes())
+    assert open_recording(tmp_path / "road.AEDAT").sensor.width == 346
