@@ -79,10 +79,15 @@ def test_every_effect_has_a_hidden_case() -> None:
     assert set(CASES) == set(EFFECT_NAMES)
 
 
-@pytest.mark.parametrize("name", list(CASES))
-def test_hidden_effect_is_named_first_and_fitted(name: str) -> None:
+# every case on two seeds: its own and that + 100 (a rule, not a pick). Measured on the second
+# seeds: all eight named first, parameter errors 1-30 % (bandwidth 29.9 %, the closest).
+@pytest.mark.parametrize(("name", "seed"), [
+    *[(name, SEEDS[name]) for name in CASES],
+    *[pytest.param(name, SEEDS[name] + 100, marks=pytest.mark.slow) for name in CASES],
+])
+def test_hidden_effect_is_named_first_and_fitted(name: str, seed: int) -> None:
     truth = CASES[name][0]
-    res = _run(name, SEEDS[name], 1)
+    res = _run(name, seed, 1)
     assert res.named_effects[:1] == [name], (
         f"named {res.named_effects}; candidates: {res.steps[0].candidates if res.steps else {}}")
     assert res.final.gap <= 0.5 * res.initial.gap
@@ -108,14 +113,17 @@ def test_spill_residual_of_moved_events_equals_a_fresh_observation() -> None:
     assert (updated[-2:] > _SpillResidual(obs).stat().values[-2:]).all()
 
 
-def test_nothing_hidden_names_nothing() -> None:
-    res = _run("none", 59, 2)
+@pytest.mark.parametrize("seed", [59, pytest.param(159, marks=pytest.mark.slow)])
+def test_nothing_hidden_names_nothing(seed: int) -> None:
+    res = _run("none", seed, 2)
     assert res.named_effects == []
     assert res.initial.gap < 3.0
 
 
-def test_two_hidden_effects_are_both_named() -> None:
-    res = _run("two", 61, 2)
+@pytest.mark.parametrize("seed", [61, pytest.param(161, marks=pytest.mark.slow)])
+def test_two_hidden_effects_are_both_named(seed: int) -> None:
+    # measured on seed 161: shot noise 1.09 Hz (true 1.2), dark 37.2 DN (true 35)
+    res = _run("two", seed, 2)
     assert sorted(res.named_effects) == sorted(e.name for e in TWO_EFFECTS)
     assert res.final.gap <= 0.5 * res.initial.gap
     for e in TWO_EFFECTS:

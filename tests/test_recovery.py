@@ -53,7 +53,8 @@ def test_residual_correction_removes_the_contrast_bias(sim, offei_cal):
     # a plain least squares over-estimates c by a few percent; the correction removes most of it
     assert bias_plain > 0.004
     assert abs(bias_corr) < 0.4 * bias_plain
-    assert 0.03 < offei_cal.diagnostics.residual_lambda < 0.3
+    # measured 0.110 on seeds 0, 3, 7 and 11 (this scene and motion): within 20 %
+    assert 0.09 < offei_cal.diagnostics.residual_lambda < 0.13
 
 
 def test_invalid_pixels_keep_defaults_and_say_why(offei_cal):
@@ -68,8 +69,11 @@ def test_invalid_pixels_keep_defaults_and_say_why(offei_cal):
 def test_standard_errors_are_calibrated(sim, offei_cal):
     v = offei_cal.valid
     z = (offei_cal.contrast[v] - sim.truth["contrast"][v]) / offei_cal.stderr_contrast[v]
-    # overlapping windows make the errors correlated; the stated errors stay within 2x
-    assert 0.5 < float(np.std(z)) < 2.0
+    zb = (offei_cal.bias[v] - sim.truth["bias"][v]) / offei_cal.stderr_bias[v]
+    # measured on seeds 0, 3, 7: std(z) 1.06 for c (the stated errors are right within 6 %),
+    # 0.55 for b (b's stated error is conservative, about 1.8x the actual one)
+    assert 0.9 < float(np.std(z)) < 1.25
+    assert 0.45 < float(np.std(zb)) < 0.7
 
 
 def test_log_offset_auto_recovers_the_simulated_offset(sim):

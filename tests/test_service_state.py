@@ -35,7 +35,7 @@ def test_snapshots_survive_kill_9_of_the_writer(tmp_path):
     seen = set()
     for k in range(8):
         p = subprocess.Popen([sys.executable, "-c", WRITER, str(tmp_path), str(k)])
-        time.sleep(0.4 + random.random() * 0.4)
+        time.sleep(0.4 + random.Random(k).random() * 0.4)  # seeded: a repeatable run
         p.kill()
         p.wait(10)
         for f in tmp_path.iterdir():
