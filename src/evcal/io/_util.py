@@ -46,10 +46,13 @@ def load_npz_arrays(path: str | Path, error: type[Exception], what: str = ""
     if not path.is_file():
         raise error(f"{path}: no such file")
     try:
-        with np.load(path, allow_pickle=False) as z:
+        # the file is ours to close: np.load leaks its own handle when the archive is damaged
+        with open(path, "rb") as f:
+            z = np.load(f, allow_pickle=False)
             if not hasattr(z, "files"):
                 raise error(f"{path}: a single .npy array, not an .npz archive")
-            return {k: z[k] for k in z.files}
+            with z:
+                return {k: z[k] for k in z.files}
     except error:
         raise
     except Exception as exc:  # zipfile, zlib, OS and format errors of a damaged archive
