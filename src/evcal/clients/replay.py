@@ -158,7 +158,13 @@ def replay(t: Transport, rec: Recording, camera: str, *, prefix: str = "evcal",
         if not loop or (max_loops is not None and loop_i >= max_loops):
             break
     # confirm delivery through the service's status queryable before the session closes
-    t.flush(status_key)
+    # (a busy service answers late: keep asking for up to 30 s; closing the session earlier
+    # would drop what is still queued for sending)
+    for _ in range(6 if before is not None else 1):  # no service: nobody to ask twice
+        if t.flush(status_key, timeout_s=5.0, linger_s=0.0):
+            break
+    else:
+        time.sleep(0.5)
     stats.seconds = time.monotonic() - wall0
     after = _status(t, status_key)
     if after is not None:
