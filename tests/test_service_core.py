@@ -507,8 +507,7 @@ def test_compiled_solve_is_bit_identical_to_the_numpy_formulas(seed, lam):
     for overlap in (0.5, 1.0, 3.7):
         sol = solve_pixels(ne, n_events, limits=limits, overlap=overlap, residual_lambda=lam)
         want, _ = _reference_solve(ne, n_events, limits, overlap, lam)
-        got = (sol.contrast, sol.bias, sol.valid, sol.reason, sol.stderr_contrast,
-               sol.stderr_bias)
+        got = (sol.c, sol.b, sol.valid, sol.reason, sol.se_c, sol.se_b)
         for g, w in zip(got, want, strict=True):
             np.testing.assert_array_equal(g, w)
         assert 0.2 < sol.valid.mean() < 0.9  # the cases are mixed

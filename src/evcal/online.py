@@ -161,7 +161,7 @@ class LowPassEstimate:
         self.reason = np.full(n_pixels, Reason.NO_EVENTS, np.uint8)
 
     def fold(self, new: PixelSolution, smoothing: float) -> None:
-        _low_pass(new.contrast, new.bias, new.stderr_contrast, new.stderr_bias, new.valid,
+        _low_pass(new.c, new.b, new.se_c, new.se_b, new.valid,
                   new.reason, float(smoothing), self.c, self.b, self.se_c, self.se_b,
                   self.seen, self.n_solved, self.reason)
 

@@ -257,14 +257,16 @@ def _solve_pixels(m: np.ndarray, n_events: np.ndarray, lam: float, overlap: floa
 
 @dataclass(frozen=True)
 class PixelSolution:
-    """The per-pixel solve as flat maps (float64 ``c``, ``b`` and standard errors)."""
+    """The per-pixel solve as flat float64 maps: ``c``, ``b``, their standard errors
+    ``se_c``, ``se_b`` (inf where invalid), ``reason`` codes and ``valid`` (reason 0); the
+    calibration maps are built from it by :func:`solve_normal_equations`."""
 
-    contrast: np.ndarray
-    bias: np.ndarray
+    c: np.ndarray
+    b: np.ndarray
     valid: np.ndarray
     reason: np.ndarray
-    stderr_contrast: np.ndarray
-    stderr_bias: np.ndarray
+    se_c: np.ndarray
+    se_b: np.ndarray
 
 
 def solve_pixels(
@@ -312,14 +314,14 @@ def solve_normal_equations(
     sol = solve_pixels(ne, n_events, limits=limits, overlap=overlap,
                        extra_reason=extra_reason, residual_lambda=residual_lambda)
 
-    special = classify(sol.contrast, sol.bias, sol.stderr_contrast, sol.stderr_bias, sol.valid)
+    special = classify(sol.c, sol.b, sol.se_c, sol.se_b, sol.valid)
     return Calibration(
-        contrast=sol.contrast.reshape(shape),
-        bias=sol.bias.reshape(shape),
+        contrast=sol.c.reshape(shape),
+        bias=sol.b.reshape(shape),
         valid=sol.valid.reshape(shape),
         reason=sol.reason.reshape(shape),
-        stderr_contrast=sol.stderr_contrast.reshape(shape),
-        stderr_bias=sol.stderr_bias.reshape(shape),
+        stderr_contrast=sol.se_c.reshape(shape),
+        stderr_bias=sol.se_b.reshape(shape),
         special=special.reshape(shape),
         log_offset=float(log_offset),
         method=method,

@@ -159,8 +159,8 @@ def fit_from_sums(spp: np.ndarray, spe: np.ndarray, see: np.ndarray, spy: np.nda
     sol = solve_pixels(ne, np.floor(np.ravel(n_ev)).astype(np.int64),
                        limits=SolveLimits(min_events=MIN_FIT_EVENTS, min_equations=0.0))
     ok = sol.valid.reshape(np.shape(spp))
-    c = np.where(ok, sol.contrast.reshape(ok.shape), np.nan)
-    b = np.where(ok, sol.bias.reshape(ok.shape), np.nan)
+    c = np.where(ok, sol.c.reshape(ok.shape), np.nan)
+    b = np.where(ok, sol.b.reshape(ok.shape), np.nan)
     return c, b, ok
 
 
