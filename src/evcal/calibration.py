@@ -11,7 +11,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field, fields, replace
 from enum import IntEnum
 from types import MappingProxyType
-from typing import Any, ClassVar
+from typing import Any, ClassVar, cast
 
 import numpy as np
 
@@ -164,7 +164,8 @@ class Diagnostics:
             out[f.name] = getattr(self, f.name)
         if not self.warnings:
             out.pop("warnings", None)
-        return to_jsonable(out)  # type: ignore[no-any-return]
+        # to_jsonable of a mapping is a dict with str keys
+        return cast("dict[str, Any]", to_jsonable(out))
 
     @staticmethod
     def from_dict(method: str, values: Mapping[str, Any]) -> Diagnostics:
