@@ -6,6 +6,7 @@ Synthetic random streams (no simulator): these tests are about bookkeeping, not 
 
 from __future__ import annotations
 
+import json
 from dataclasses import replace
 
 import numpy as np
@@ -15,6 +16,7 @@ from evcal.bench import random_recording
 from evcal.errors import CalibrationError
 from evcal.events import EventError, SensorSize, make_events
 from evcal.online import OnEIConfig, OnlineCalibrator, onei
+from evcal.solver import NormalEquations, log_intensity, usable
 
 SENSOR = SensorSize(20, 30)
 
@@ -142,3 +144,115 @@ def test_the_log_offset_is_estimated_online(true_offset, seed):
     assert auto.diagnostics.log_offset_estimation["method"] == "auto"
     assert auto.valid.mean() > 0.95
     assert c_rmse(auto) <= 1.3 * c_rmse(told), (c_rmse(auto), c_rmse(told))
+
+
+def _reference_equations(state: dict) -> tuple[NormalEquations, np.ndarray]:
+    """The normal equations and per-pixel counts of a state, recomputed from scratch: every
+    small buffer the large buffer holds added once with ``NormalEquations.add`` (the
+    definition of OnEI's sums, as the first implementation computed them)."""
+    s = json.loads(str(state["scalars"]))
+    sat = OnEIConfig.from_json(s["config"]).saturation_dn
+    meta, images, last_p = state["fr_meta"], state["fr_images"], state["fr_last_p"]
+    n = images.shape[1]
+    bounds = np.concatenate([[0], np.cumsum(meta[:, 2])])
+    on = np.zeros((len(meta), n))
+    off = np.zeros((len(meta), n))
+    for i in range(len(meta)):
+        sl = slice(bounds[i], bounds[i + 1])
+        on[i, state["fr_idx"][sl]] = state["fr_on"][sl]
+        off[i, state["fr_idx"][sl]] = state["fr_off"][sl]
+    ne = NormalEquations(n)
+    for j, closes_at in enumerate(meta[:, 4]):
+        if closes_at < 0:
+            continue
+        k = int(closes_at) - s["base"]
+        e_on, e_off = on[j + 1 : k + 1].sum(0), off[j + 1 : k + 1].sum(0)
+        idx = np.flatnonzero(e_on + e_off)
+        raw_j, raw_k = images[j][idx], images[k][idx]
+        w = usable(raw_j, sat) & usable(raw_k, sat)
+        with np.errstate(invalid="ignore"):
+            dl = log_intensity(raw_k, s["log_offset"]) - log_intensity(raw_j, s["log_offset"])
+        qj, qk = last_p[j][idx].astype(float), last_p[k][idx].astype(float)
+        ne.add(e_on[idx] - e_off[idx], e_on[idx] + e_off[idx], qk - qj,
+               np.abs(qk) - np.abs(qj), np.where(w, dl, 0.0), w.astype(float), idx=idx)
+    return ne, (on[1:] + off[1:]).sum(0)
+
+
+@pytest.mark.parametrize(("sensor", "float_frames"), [(SensorSize(20, 30), False),
+                                                      (SensorSize(20, 30), True),
+                                                      (SensorSize(96, 100), False)])
+def test_incremental_sums_equal_a_recomputation(sensor, float_frames):
+    """The sums OnEI keeps incrementally (sliding sums of intervals, queued equations added
+    block by block) equal the equations of the buffer recomputed from scratch, through busy
+    (dense) and quiet (sparse) intervals, a hot pixel (its counts overflow the packed byte),
+    lost events, a frame cap, a new session and a restart from the saved state."""
+    n = sensor.n_pixels
+    rng = np.random.default_rng(3)
+    n_frames = 90
+    t_f = np.arange(n_frames) * 40_000
+    per_frame = np.where(np.arange(n_frames) % 17 < 9, 2 * n, n // 8)  # busy, then quiet
+    chunks = []
+    for k in range(n_frames):
+        m = int(per_frame[k])
+        pix = np.concatenate([rng.integers(0, n, m), np.full(300, 7)])  # pixel 7 is hot
+        t = np.sort(rng.integers(t_f[k] - 40_000 + 1, t_f[k], pix.size))
+        chunks.append(make_events(t, pix % sensor.width, pix // sensor.width,
+                                  rng.choice([-1, 1], pix.size)))
+    base = rng.integers(20, 230, n)
+    images = np.clip(base + rng.integers(-30, 31, (n_frames, n)), 0, 255).astype(np.uint8)
+    images[:, :5] = 255  # saturated pixels weigh nothing
+    if float_frames:
+        images = images.astype(np.float32) * np.float32(0.9)
+    cfg = OnEIConfig(n_small=3 * n, n_large=14 * n, max_buffer_frames=25, rebuild_every=10**6)
+    cal = OnlineCalibrator(sensor, cfg)
+    checked = 0
+    for k in range(n_frames):
+        if k == 55:
+            cal.new_session()
+        if k in (30, 31, 70):
+            cal.mark_gap()
+        if k == 62:
+            cal = OnlineCalibrator.from_state(cal.state_dict())
+        cal.feed_events(chunks[k])
+        cal.feed_frame(int(t_f[k]), images[k].reshape(sensor.shape))
+        if k % 6 == 5:
+            state = cal.state_dict()
+            ref, counts = _reference_equations(state)
+            for name, v in ref.arrays().items():
+                scale = max(1.0, float(np.abs(v).max()))
+                np.testing.assert_allclose(state[f"ne_{name}"], v, rtol=1e-9,
+                                           atol=1e-12 * scale, err_msg=name)
+            np.testing.assert_array_equal(state["counts"], counts)
+            assert json.loads(str(state["scalars"]))["n_equations"] == int(
+                (state["fr_meta"][:, 4] >= 0).sum())
+            checked += int(ref.n_eq.max() > 0)
+    assert checked >= 8
+    assert cal.n_updates > 10
+    assert cal.status()["gaps"] == 3
+    assert cal.status()["sessions"] == 1
+
+
+def test_open_interval_counts_survive_a_restart():
+    """The counts of the interval not yet closed by a frame (kept packed, one byte per pixel,
+    with spills) are saved as the ON/OFF maps of the state format and restored exactly."""
+    sensor = SensorSize(4, 5)
+    cal = OnlineCalibrator(sensor, OnEIConfig(n_small=100, n_large=1000, max_pending_events=5))
+    img = np.full(sensor.shape, 100, np.uint8)
+    cal.feed_frame(1000, img)
+    x = np.array([1] * 20 + [2] * 3 + [3])
+    p = np.array([1] * 12 + [-1] * 8 + [1, -1, -1] + [1])
+    for t0 in (1100, 3100):
+        cal.feed_events(make_events(np.arange(t0, t0 + x.size), x, np.zeros_like(x), p))
+    cal.feed_events(make_events([5000], [0], [0], [1]))  # overflows: the rest is folded
+    assert cal.status()["folded_late_events"] == 2 * x.size
+    state = cal.state_dict()
+    np.testing.assert_array_equal(state["acc_on"][:4], [0, 24, 2, 2])
+    np.testing.assert_array_equal(state["acc_off"][:4], [0, 16, 4, 0])
+    assert list(state["acc_last_p"][:4]) == [0, -1, -1, 1]
+    b = OnlineCalibrator.from_state(state)
+    for key in ("acc_on", "acc_off", "acc_last_p", "counts"):
+        np.testing.assert_array_equal(b.state_dict()[key], state[key])
+    for c in (cal, b):
+        c.feed_frame(6000, img)
+    np.testing.assert_array_equal(cal.state_dict()["fr_on"], b.state_dict()["fr_on"])
+    np.testing.assert_array_equal(cal.state_dict()["counts"][:4], [1, 40, 6, 2])

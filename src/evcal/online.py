@@ -16,13 +16,27 @@ Measured at 240x180, 10 s, paper buffer sizes (``tests/test_recovery.py``, seed 
 RMSE 0.0268 with the disjoint split and smoothing 0.2, 0.0119 with this one and smoothing 0.1
 (OffEI: 0.0093); bias RMSE 0.0038 (OffEI: 0.0031).
 
-State, bounded whatever the rates: per buffered frame its raw image and the polarity of each
-pixel's last event (dense, 1 + itemsize bytes per pixel; at most ``max_buffer_frames``), and
-per interval the sparse ON/OFF counts of the pixels that fired (at most ``n_large`` events'
-worth). The per-pixel normal equations (:class:`~evcal.solver.NormalEquations`) are updated
+The per-pixel normal equations (:class:`~evcal.solver.NormalEquations`' sums) are updated
 incrementally: a small buffer's equation is added when it closes and subtracted, recomputed
 bit-identically from the same stored data, when the frame that opened it leaves the large
 buffer; every ``rebuild_every`` removals they are rebuilt from the buffer to shed rounding.
+Per frame the cost is that of the frame's events and pixels, not of the buffer's: two sliding
+sums hold the counts of the small buffer closing next and of the one leaving (each interval
+enters and leaves each sum once); an equation is queued as those counts, its polarity
+regressors and its two frame values (``PENDING_SLOTS`` at most), and the queue is added to the
+normal equations at the next solve, block by block in cache, each block then solved at once
+(:mod:`evcal._onei_kernels`; the same operations in the same order as adding the equations
+one by one, and :mod:`evcal.solver`'s own per-pixel kernels).
+
+State, bounded whatever the rates. Per buffered frame (at most ``max_buffer_frames``): its raw
+image and the polarity of each pixel's last event (itemsize + 1 bytes per pixel), and the ON/OFF
+counts of the interval that ended at it, sparse (12 bytes per pixel that fired) or, when more
+than 2/3 of the pixels fired, dense (8 bytes per pixel): at most 12 bytes per event of the
+buffer (``n_large`` events' worth, but for an interval holding more on its own). Per pixel
+besides: the normal equations 128 B, the queued equations 72 B (8-bit frames; 120 B for
+others), the sliding sums 16 B, the open interval (packed counts, spills, last polarities)
+10 B, the buffer's counts 8 B, the smoothed estimate 42 B and the residual-lambda terms 16 B:
+292 B per pixel, 292 MB per megapixel (340 MB for frames other than 8-bit).
 
 After every ``n_small`` new events (once a new equation closed) the per-pixel system is
 re-solved and the estimate low-pass filtered: ``est <- (1 - smoothing) est + smoothing new`` on
@@ -48,7 +62,21 @@ from typing import Any
 import numba
 import numpy as np
 
-from .accumulate import Accumulator
+from ._onei_kernels import (
+    BLOCK,
+    COUNT_BITS,
+    COUNT_MAX,
+    LAST_SHIFT,
+    add_dense,
+    append_masked,
+    apply_blocks,
+    close_interval,
+    drop_dense,
+    drop_interval,
+    fill_slot,
+    fold_events,
+    scatter_interval,
+)
 from .calibration import (
     DEFAULT_BIAS,
     DEFAULT_CONTRAST,
@@ -66,9 +94,9 @@ from .solver import (
     NormalEquations,
     PixelSolution,
     SolveLimits,
-    correction_lambda,
+    _lambda_terms,
+    _solve_pixels,
     log_intensity,
-    solve_pixels,
     usable,
 )
 from .special import classify
@@ -92,31 +120,8 @@ _SCALARS: dict[str, tuple[str, Any]] = {
 # absent from the states of earlier versions
 _OPTIONAL_SCALARS = frozenset({"n_sessions", "log_offset", "next_offset_check"})
 _VALID = int(Reason.VALID)
-
-
-@numba.njit(cache=True, nogil=True)
-def _sparse_sum(idx: np.ndarray, on: np.ndarray, off: np.ndarray, scratch: np.ndarray) -> Any:
-    """Per-pixel sums of sparse ``(idx, on, off)`` entries: ``(pixels, on, off)`` with each
-    pixel once, in order of first appearance; ``scratch`` (2, n) is zero before and after."""
-    touched = np.empty(idx.size, np.int32)
-    n_touched = 0
-    for i in range(idx.size):
-        k = idx[i]
-        if scratch[0, k] == 0 and scratch[1, k] == 0:
-            touched[n_touched] = k
-            n_touched += 1
-        scratch[0, k] += on[i]
-        scratch[1, k] += off[i]
-    out_idx = touched[:n_touched].copy()
-    s_on = np.empty(n_touched, np.float64)
-    s_off = np.empty(n_touched, np.float64)
-    for j in range(n_touched):
-        k = out_idx[j]
-        s_on[j] = scratch[0, k]
-        s_off[j] = scratch[1, k]
-        scratch[0, k] = 0.0
-        scratch[1, k] = 0.0
-    return out_idx, s_on, s_off
+PENDING_SLOTS = 6  # equations queued before they are added to the normal equations
+_OPEN, _DROP = 0, 1  # the two sliding sums: the small buffer closing next, the one leaving
 
 
 @numba.njit(cache=True, nogil=True)
@@ -263,15 +268,28 @@ class _Frame:
     image: np.ndarray  # flat, as received
     last_p: np.ndarray  # int8 flat: polarity of each pixel's last event before the frame
     cum_events: int  # events folded since the calibrator started, up to this frame
-    idx: np.ndarray  # int32: pixels with events in the interval ending here
-    on: np.ndarray  # int32 ON counts at idx
-    off: np.ndarray  # int32 OFF counts at idx
+    idx: np.ndarray  # int32: pixels with events in the interval ending here (sparse)
+    on: np.ndarray  # int32 ON counts at idx (dense: of every pixel)
+    off: np.ndarray  # int32 OFF counts at idx (dense: of every pixel)
     opens: bool = True  # a small buffer may open here (False after a gap)
     closes_at: int = -1  # absolute frame number closing the small buffer opened here
+    dense: bool = False  # on, off are full maps (more than 2/3 of the pixels fired)
 
     @property
     def n_events(self) -> int:
         return int(self.on.sum() + self.off.sum())
+
+    def sparse(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(idx, on, off)`` of the interval, sparse."""
+        if not self.dense:
+            return self.idx, self.on, self.off
+        idx = np.flatnonzero((self.on | self.off) != 0).astype(np.int32)
+        return idx, self.on[idx], self.off[idx]
+
+    def forget_interval(self) -> None:
+        self.idx = np.zeros(0, np.int32)
+        self.on = self.off = np.zeros(0, np.int32)
+        self.dense = False
 
 
 class OnlineCalibrator:
@@ -282,8 +300,23 @@ class OnlineCalibrator:
         self.config = config or OnEIConfig()
         self.n_small, self.n_large = self.config.sizes(sensor)
         n = sensor.n_pixels
-        self._scratch = np.zeros((2, n), np.float64)  # zero between uses
+        self._n_blocks = -(-n // BLOCK)
         self._frame_cap: int | None = None
+        # equations queued for the normal equations, per slot: the pixel counts (ON, OFF),
+        # the polarity regressors (Q, A) and the two 8-bit frame values (kind True) or dL;
+        # zeros, so that what is never used takes no memory
+        k = PENDING_SLOTS
+        self._slot_sums = np.zeros((k, 2, n), np.int32)
+        self._slot_qa = np.zeros((k, 2, n), np.int8)
+        self._slot_raw = np.zeros((k, 2, n), np.uint8)
+        self._slot_dl = np.zeros((k, n), np.float64)
+        self._slot_kind = np.zeros(k, bool)
+        self._dl_buf = np.zeros(BLOCK, np.float64)  # one block's dL while it is updated
+        self._lut = np.zeros(256)  # log_intensity of the 8-bit values at self._lut_offset
+        self._lut_offset = math.nan
+        self._no_reason = np.zeros(BLOCK, np.uint8)  # solve_pixels' extra_reason, per block
+        self._lam_terms = np.empty((2, n), np.float64)  # the masked residual-lambda terms
+        self._usable = self._usable_range()
         self._reset_buffer()
         self.estimate = LowPassEstimate(n)  # what calibration() reports
         auto = self.config.log_offset == "auto"
@@ -305,9 +338,21 @@ class OnlineCalibrator:
     def _reset_buffer(self) -> None:
         """Empty the large buffer, the pending events and the normal equations."""
         n = self.sensor.n_pixels
-        self._acc = Accumulator(self.sensor)  # counts of the interval since the latest frame
-        self._ne = NormalEquations(n)
-        self._counts = np.zeros(n, np.int64)  # events per pixel inside the large buffer
+        # the interval since the latest frame: packed counts (_onei_kernels), the counts that
+        # spilled out of them (ON, OFF), and each pixel's latest polarity (Accumulator's maps)
+        self._code = np.zeros(n, np.uint8)
+        self._spill = np.zeros((2, n), np.int32)
+        self._spilled = False
+        self._last_p = np.zeros(n, np.int8)
+        # the normal equations, blocked (_onei_kernels); pixels past n are padding
+        self._m = np.zeros((self._n_blocks, 16 * BLOCK), np.float64)
+        self._counts_pad = np.zeros(self._n_blocks * BLOCK, np.int64)
+        self._counts = self._counts_pad[:n]  # events per pixel inside the large buffer
+        # sliding sums (ON, OFF) over the intervals (lo, hi] of the small buffer closing next
+        # (_OPEN) and of the one leaving the buffer (_DROP); lo >= self._base always
+        self._wins = np.zeros((2, 2, n), np.int32)
+        self._win_range = [[0, 0], [0, 0]]
+        self._queued: list[tuple[int, float]] = []  # (slot, sign) not yet in self._m
         self._frames: deque[_Frame] = deque()
         self._base = 0  # absolute number of self._frames[0]
         self._next_open = 0  # absolute number of the oldest frame whose small buffer is open
@@ -432,23 +477,30 @@ class OnlineCalibrator:
     def _fold(self, events: np.ndarray) -> None:
         if not events.size:
             return
-        self._acc.add(events)
+        if fold_events(events["x"], events["y"], events["p"], self.sensor.width, self._code,
+                       self._spill[0], self._spill[1]):
+            self._spilled = True
         if not self._frames:
-            self._acc.reset_counts()  # before the first frame only the last polarity matters
+            self._close_interval(keep=False)  # before the first frame only polarities matter
+
+    def _close_interval(self, *, keep: bool, add_open: bool = False) -> tuple[Any, ...]:
+        """``(idx, on, off, n_events, dense)`` of the interval since the latest frame (empty
+        unless ``keep``; then also counted in the buffer, and in the open sliding sum when
+        ``add_open``); the latest polarities are folded into ``self._last_p``."""
+        out = close_interval(self._code, self._spill[0], self._spill[1], self._spilled,
+                             self._last_p, keep, self._counts, self._wins[_OPEN], add_open)
+        self._spilled = False
+        return tuple(out)
 
     def _push(self, t_us: int, image: np.ndarray) -> None:
-        on, off = self._acc.on, self._acc.off
-        if self._frames:
-            idx = np.flatnonzero((on | off) != 0).astype(np.int32)
-            f_on, f_off = on[idx].copy(), off[idx].copy()
-        else:
-            idx = np.zeros(0, np.int32)
-            f_on = f_off = np.zeros(0, np.int32)
-        n_new = int(f_on.sum() + f_off.sum())
-        self._cum_events += n_new
-        self._since_resolve += n_new
-        self._counts[idx] += (f_on + f_off).astype(np.int64)
-        self._acc.reset_counts()
+        new = self._base + len(self._frames)  # absolute number of this frame
+        keep = bool(self._frames)
+        add_open = keep and self._win_range[_OPEN][1] == new - 1
+        idx, f_on, f_off, n_new, dense = self._close_interval(keep=keep, add_open=add_open)
+        if add_open:
+            self._win_range[_OPEN][1] = new
+        self._cum_events += int(n_new)
+        self._since_resolve += int(n_new)
         if self._gap and self._frames:
             # the interval just closed lost events: close no small buffer across it
             for f in self._frames:
@@ -456,8 +508,8 @@ class OnlineCalibrator:
                     f.opens = False
             self._next_open = self._base + len(self._frames)
         self._gap = False
-        self._frames.append(_Frame(t_us, image, self._acc.last_p.copy(), self._cum_events,
-                                   idx, f_on, f_off))
+        self._frames.append(_Frame(t_us, image, self._last_p.copy(), self._cum_events,
+                                   idx, f_on, f_off, dense=bool(dense)))
 
     # -- the log offset, online ----------------------------------------------------------------
 
@@ -505,6 +557,10 @@ class OnlineCalibrator:
         on = np.zeros((len(frames), pix.size), np.int64)
         off = np.zeros((len(frames), pix.size), np.int64)
         for i, f in enumerate(frames):  # loop over buffered frames, vectorised over pixels
+            if f.dense:
+                on[i] = f.on[pix]
+                off[i] = f.off[pix]
+                continue
             m = pos[f.idx]
             sel = m >= 0
             on[i, m[sel]] = f.on[sel]
@@ -524,9 +580,8 @@ class OnlineCalibrator:
 
     def _form_all(self) -> None:
         """Form every small buffer the buffer holds (once the offset became known)."""
-        self._ne = NormalEquations(self.sensor.n_pixels)
+        self._clear_equations()
         self.n_equations = 0
-        self._removals = 0
         for f in self._frames:
             f.closes_at = -1
         self._next_open = self._base
@@ -549,7 +604,7 @@ class OnlineCalibrator:
             if newest.cum_events - fj.cum_events < self.n_small:
                 break
             fj.closes_at = k
-            self._apply(j, k, +1.0)
+            self._queue(j, k, +1.0, _OPEN)
             self.n_equations += 1
             self._next_open += 1
             formed = True
@@ -564,64 +619,181 @@ class OnlineCalibrator:
             if in_buffer <= self.n_large and len(self._frames) <= cap:
                 break
             # drop the oldest interval: its opening frame and the small buffer it opened
+            base = self._base
             if first.closes_at >= 0:
-                self._apply(self._base, first.closes_at, -1.0)
+                self._queue(base, first.closes_at, -1.0, _DROP)
                 self.n_equations -= 1
                 self._removals += 1
-            self._counts[second.idx] -= (second.on + second.off).astype(np.int64)
+            # the interval ending at the new first frame leaves the buffer: uncount it, and
+            # slide the sums that hold it past it while its counts are still here
+            sub = np.array([lo <= base < hi for lo, hi in self._win_range])
+            if second.dense:
+                drop_dense(self._counts, self._wins, sub, second.on, second.off)
+            else:
+                drop_interval(self._counts, self._wins, sub, second.idx, second.on, second.off)
+            for rng in self._win_range:
+                if rng[0] <= base:
+                    rng[0], rng[1] = base + 1, max(rng[1], base + 1)
             self._frames.popleft()
             self._base += 1
-            # the new first frame's interval lies outside the buffer now
-            second.idx = np.zeros(0, np.int32)
-            second.on = second.off = np.zeros(0, np.int32)
+            second.forget_interval()
             self._next_open = max(self._next_open, self._base)
 
-    def _terms(self, j: int, k: int) -> tuple[np.ndarray, ...]:
-        """Sparse ``(idx, P, E, Q, A, dL, w)`` of the small buffer from frame j to frame k."""
-        frames = [self._frames[i - self._base] for i in range(j + 1, k + 1)]
-        fj, fk = self._frames[j - self._base], self._frames[k - self._base]
-        if len(frames) == 1:
-            idx = frames[0].idx
-            on = frames[0].on.astype(np.float64)
-            off = frames[0].off.astype(np.float64)
-        else:
-            idx, on, off = _sparse_sum(np.concatenate([f.idx for f in frames]),
-                                       np.concatenate([f.on for f in frames]),
-                                       np.concatenate([f.off for f in frames]), self._scratch)
-        qk = fk.last_p[idx].astype(np.float64)
-        qj = fj.last_p[idx].astype(np.float64)
-        raw_j, raw_k = fj.image[idx], fk.image[idx]
-        off_log = self.log_offset
-        sat = self.config.saturation_dn
-        w = (usable(raw_j, sat) & usable(raw_k, sat)).astype(np.float64)
-        with np.errstate(invalid="ignore"):  # -inf - -inf at black pixels with offset 0
-            dl = log_intensity(raw_k, off_log) - log_intensity(raw_j, off_log)
-        dl = np.where(w > 0, dl, 0.0)  # clipped pixels weigh nothing (and never NaN)
-        return idx, on - off, on + off, qk - qj, np.abs(qk) - np.abs(qj), dl, w
+    # -- the normal equations ------------------------------------------------------------------
 
-    def _apply(self, j: int, k: int, sign: float) -> None:
-        idx, p, e, q, a, dl, w = self._terms(j, k)
-        self._ne.add(p, e, q, a, dl, w, idx=idx, sign=sign)
+    def _slide(self, w: int, lo: int, hi: int) -> None:
+        """Make sliding sum ``w`` the counts of the intervals ``(lo, hi]``: forward, interval by
+        interval (each interval enters and leaves a sum once), or afresh."""
+        rng, sums = self._win_range[w], self._wins[w]
+        cur_lo, cur_hi = rng
+        if cur_lo >= self._base and lo >= cur_lo and hi >= cur_hi:
+            for f in range(cur_lo + 1, min(lo, cur_hi) + 1):
+                self._scatter(sums, f, -1)
+            start = max(cur_hi, lo)
+        else:
+            if cur_hi > cur_lo:
+                sums.fill(0)
+            start = lo
+        for f in range(start + 1, hi + 1):
+            self._scatter(sums, f, +1)
+        rng[0], rng[1] = lo, hi
+
+    def _scatter(self, sums: np.ndarray, f: int, sign: int) -> None:
+        fr = self._frames[f - self._base]
+        if fr.dense:
+            add_dense(sums, fr.on, fr.off, sign)
+        else:
+            scatter_interval(sums, fr.idx, fr.on, fr.off, sign)
+
+    def _queue(self, j: int, k: int, sign: float, w: int) -> None:
+        """Queue ``sign`` times the equation of the small buffer from frame ``j`` to frame
+        ``k`` (OffEI's equation with its residual regressors), its counts from sliding sum
+        ``w``; the queue is added to the normal equations when full or when they are read."""
+        self._slide(w, j, k)
+        if len(self._queued) == PENDING_SLOTS:
+            self._apply_queued()
+        slot = len(self._queued)
+        fj, fk = self._frames[j - self._base], self._frames[k - self._base]
+        sums = self._wins[w]
+        if fj.image.dtype == np.uint8 and fk.image.dtype == np.uint8:
+            # log_intensity's own 8-bit table; the offset changes only with a rebuild, which
+            # empties the queue: a queued equation is always added with its own table
+            if not self._lut_offset == self.log_offset:
+                self._lut = log_intensity(np.arange(256, dtype=np.uint8), self.log_offset)
+                self._lut_offset = self.log_offset
+            first, last = self._usable
+            fill_slot(sums, fj.last_p, fk.last_p, fj.image, fk.image, first, last,
+                      self._slot_sums[slot], self._slot_qa[slot], self._slot_raw[slot])
+            self._slot_kind[slot] = True
+        else:  # other frame types: dL as _terms computed it (log_intensity's float path)
+            raw_j, raw_k = fj.image, fk.image
+            w_ok = usable(raw_j, self.config.saturation_dn) & usable(raw_k,
+                                                                     self.config.saturation_dn)
+            with np.errstate(invalid="ignore"):  # -inf - -inf at black pixels with offset 0
+                dl = log_intensity(raw_k, self.log_offset) - log_intensity(raw_j,
+                                                                           self.log_offset)
+            self._slot_dl[slot] = np.where(w_ok, dl, 0.0)  # clipped pixels weigh nothing
+            np.multiply(sums, w_ok, out=self._slot_sums[slot])
+            self._slot_qa[slot, 0] = fk.last_p - fj.last_p
+            self._slot_qa[slot, 1] = np.abs(fk.last_p) - np.abs(fj.last_p)
+            self._slot_kind[slot] = False
+        self._queued.append((slot, sign))
+
+    def _usable_range(self) -> tuple[int, int]:
+        """The 8-bit values that ``usable`` accepts, ``first .. last`` (an interval)."""
+        ok = np.flatnonzero(usable(np.arange(256, dtype=np.uint8), self.config.saturation_dn))
+        return (int(ok[0]), int(ok[-1])) if ok.size else (1, 0)
+
+    def _queued_arrays(self) -> tuple[np.ndarray, np.ndarray] | None:
+        if not self._queued:
+            return None
+        return (np.array([q[0] for q in self._queued], np.int64),
+                np.array([q[1] for q in self._queued], np.float64))
+
+    def _apply_blocks(self, queued: tuple[np.ndarray, np.ndarray] | None, b_start: int,
+                      b_stop: int) -> None:
+        if queued is None:
+            return
+        apply_blocks(self._m, self.sensor.n_pixels, b_start, b_stop, self._slot_sums,
+                     self._slot_qa, self._slot_raw, self._slot_dl, self._slot_kind, self._lut,
+                     *queued, self._dl_buf)
+
+    def _apply_queued(self) -> None:
+        """Add the queued equations to the normal equations (all blocks)."""
+        self._apply_blocks(self._queued_arrays(), 0, self._n_blocks)
+        self._queued.clear()
+
+    def _clear_equations(self) -> None:
+        self._queued.clear()
+        self._m.fill(0.0)
+        self._removals = 0
 
     def _rebuild(self) -> None:
         """Recompute the normal equations from the buffer (sheds accumulated rounding)."""
-        self._ne = NormalEquations(self.sensor.n_pixels)
+        self._clear_equations()
         for i, f in enumerate(self._frames):
             if f.closes_at >= 0:
-                self._apply(self._base + i, f.closes_at, +1.0)
-        self._removals = 0
+                self._queue(self._base + i, f.closes_at, +1.0, _DROP)
+        self._apply_queued()
+
+    def _normal_equations(self) -> NormalEquations:
+        """The normal equations as :class:`~evcal.solver.NormalEquations` (a copy)."""
+        self._apply_queued()
+        n = self.sensor.n_pixels
+        ne = NormalEquations(n)
+        rows = self._m.reshape(self._n_blocks, 16, BLOCK).transpose(1, 0, 2)
+        ne.m[:] = rows.reshape(16, -1)[:, :n]
+        return ne
 
     def _resolve(self) -> None:
-        cfg = self.config
-        self.lam = correction_lambda(self._ne, cfg.residual_correction, cfg.limits, self._counts)
+        """Solve every pixel and fold the solution into the estimate: block by block, each
+        block updated with the queued equations and solved while in cache. The same kernels
+        and sums as ``correction_lambda`` and ``solve_pixels`` on the whole sensor."""
+        cfg, lim, est = self.config, self.config.limits, self.estimate
+        n, m, counts = self.sensor.n_pixels, self._m, self._counts_pad
+        queued = self._queued_arrays()
+        setting = cfg.residual_correction
+        if setting == "auto":  # correction_lambda: fit without the correction, one step
+            res_q, cq = self._lam_terms
+            end = 0
+            for b in range(self._n_blocks):
+                s = b * BLOCK
+                self._apply_blocks(queued, b, b + 1)
+                mask, rq_b, cq_b = _lambda_terms(
+                    m[b].reshape(16, BLOCK), counts[s : s + BLOCK], int(lim.min_events),
+                    float(lim.min_decorrelation), float(lim.min_contrast),
+                    float(lim.max_contrast), float(lim.max_bias_ratio))
+                end = append_masked(mask, rq_b, cq_b, min(BLOCK, n - s), res_q, cq, end)
+            queued = None
+            self._queued.clear()
+            lam = 0.0
+            if end:
+                den = float(cq[:end].sum())
+                lam = 0.0 if den <= 0 else 0.0 + float(res_q[:end].sum()) / den
+                lam = float(np.clip(lam, 0.0, 0.5))
+        else:
+            lam = 0.0 if setting == "off" else float(setting)
         # consecutive small buffers share their events: divide the degrees of freedom by
         # the number of small buffers each event lies in
         overlap = max(1.0, self.n_equations * self.n_small / max(self.buffer_events, 1))
-        new = solve_pixels(self._ne, self._counts, limits=cfg.limits, overlap=overlap,
-                           residual_lambda=self.lam)
-        # low-pass with a start-up correction: a pixel's first 1/smoothing solutions are
-        # averaged with equal weights (the first one is not trusted more than the later ones)
-        self.estimate.fold(new, cfg.smoothing)
+        smoothing = float(cfg.smoothing)
+        for b in range(self._n_blocks):
+            s = b * BLOCK
+            e = min(s + BLOCK, n)
+            self._apply_blocks(queued, b, b + 1)
+            c, b_new, reason, se_c, se_b = _solve_pixels(
+                m[b].reshape(16, BLOCK), counts[s : s + BLOCK], lam, float(overlap),
+                int(lim.min_events), float(lim.min_equations), float(lim.min_decorrelation),
+                float(lim.min_contrast), float(lim.max_contrast), float(lim.max_bias_ratio),
+                self._no_reason)
+            # low-pass with a start-up correction: a pixel's first 1/smoothing solutions are
+            # averaged with equal weights (the first one is not trusted more than the later)
+            r = reason[: e - s]
+            _low_pass(c, b_new, se_c, se_b, r == _VALID, r, smoothing, est.c[s:e],
+                      est.b[s:e], est.se_c[s:e], est.se_b[s:e], est.seen[s:e],
+                      est.n_solved[s:e], est.reason[s:e])
+        self._queued.clear()
+        self.lam = lam
         self.n_updates += 1
 
     # -- output ------------------------------------------------------------------------------
@@ -680,15 +852,25 @@ class OnlineCalibrator:
 
     # -- persistence -------------------------------------------------------------------------
 
+    def _open_interval_maps(self) -> dict[str, np.ndarray]:
+        """The interval since the latest frame as ``Accumulator``'s maps (state format)."""
+        code = self._code.astype(np.int32)
+        last = code >> LAST_SHIFT
+        return {"acc_on": ((code >> COUNT_BITS) & COUNT_MAX) + self._spill[0],
+                "acc_off": (code & COUNT_MAX) + self._spill[1],
+                "acc_last_p": np.where(last == 1, 1, np.where(last == 2, -1, self._last_p)
+                                       ).astype(np.int8)}
+
     def state_dict(self) -> dict[str, np.ndarray]:
         """Everything needed to resume, as numpy arrays (``np.savez``-able)."""
         frames = list(self._frames)
         n = self.sensor.n_pixels
+        sparse = [f.sparse() for f in frames]  # the format's intervals are sparse
 
-        def cat(name: str, dtype: Any) -> np.ndarray:
+        def cat(i: int) -> np.ndarray:
             if not frames:
-                return np.zeros(0, dtype)
-            return np.concatenate([getattr(f, name) for f in frames]).astype(dtype)
+                return np.zeros(0, np.int32)
+            return np.concatenate([sp[i] for sp in sparse]).astype(np.int32)
 
         pending = (np.concatenate(list(self._pending)) if self._pending
                    else np.zeros(0, EVENTS_DTYPE))
@@ -702,18 +884,18 @@ class OnlineCalibrator:
         out: dict[str, np.ndarray] = {
             "format": np.array(STATE_FORMAT),
             "scalars": np.array(json.dumps(scalars)),
-            "acc_on": self._acc.on, "acc_off": self._acc.off, "acc_last_p": self._acc.last_p,
+            **self._open_interval_maps(),
             "counts": self._counts, **self.estimate.state(),
             "pending": pending, "fr_images": (np.stack([f.image for f in frames]) if frames
                           else np.zeros((0, n), img_dtype)),
             "fr_last_p": (np.stack([f.last_p for f in frames]) if frames
                           else np.zeros((0, n), np.int8)),
-            "fr_meta": np.array([[f.t_us, f.cum_events, f.idx.size, int(f.opens), f.closes_at]
-                                 for f in frames], np.int64).reshape(-1, 5),
-            "fr_idx": cat("idx", np.int32), "fr_on": cat("on", np.int32),
-            "fr_off": cat("off", np.int32),
+            "fr_meta": np.array([[f.t_us, f.cum_events, sp[0].size, int(f.opens), f.closes_at]
+                                 for f, sp in zip(frames, sparse, strict=True)],
+                                np.int64).reshape(-1, 5),
+            "fr_idx": cat(0), "fr_on": cat(1), "fr_off": cat(2),
         }
-        for k, v in self._ne.arrays().items():
+        for k, v in self._normal_equations().arrays().items():
             out[f"ne_{k}"] = v
         return {k: np.array(v, copy=True) for k, v in out.items()}
 
@@ -731,9 +913,10 @@ class OnlineCalibrator:
             sensor = SensorSize(int(s["height"]), int(s["width"]))
             self = cls(sensor, OnEIConfig.from_json(s["config"]))
             n = sensor.n_pixels
-            _load_into(self._acc.on, state["acc_on"], "acc_on")
-            _load_into(self._acc.off, state["acc_off"], "acc_off")
-            _load_into(self._acc.last_p, state["acc_last_p"], "acc_last_p")
+            _load_into(self._spill[0], state["acc_on"], "acc_on")  # as spilled counts
+            _load_into(self._spill[1], state["acc_off"], "acc_off")
+            self._spilled = bool(self._spill.any())
+            _load_into(self._last_p, state["acc_last_p"], "acc_last_p")
             _load_into(self._counts, state["counts"], "counts")
             self.estimate.load(state)
             pending = np.asarray(state["pending"])
@@ -742,8 +925,15 @@ class OnlineCalibrator:
             if pending.size:
                 self._pending.append(pending)
             self._n_pending = int(pending.size)
-            self._ne = NormalEquations.from_arrays({k[3:]: v for k, v in state.items()
-                                                    if k.startswith("ne_")})
+            ne = NormalEquations.from_arrays({k[3:]: v for k, v in state.items()
+                                              if k.startswith("ne_")})
+            if ne.n_pixels != n:
+                raise StateError(f"state normal equations have {ne.n_pixels} pixels, "
+                                 f"expected {n}")
+            rows = np.zeros((16, self._n_blocks * BLOCK), np.float64)
+            rows[:, :n] = ne.m
+            self._m[:] = rows.reshape(16, self._n_blocks, BLOCK).transpose(1, 0, 2).reshape(
+                self._n_blocks, 16 * BLOCK)
             meta = np.asarray(state["fr_meta"], np.int64).reshape(-1, 5)
             images, last_p = state["fr_images"], state["fr_last_p"]
             if images.shape != (len(meta), n) or last_p.shape != (len(meta), n):
@@ -764,6 +954,7 @@ class OnlineCalibrator:
                     setattr(self, attr, conv(s[key]))
             if isinstance(s.get("offset_info"), dict):
                 self.offset_info = s["offset_info"]
+            self._win_range = [[self._base, self._base], [self._base, self._base]]
             self._guard.last_event_t_us = s["last_event_t_us"]
             self._guard.last_frame_t_us = s["last_frame_t_us"]
         except KeyError as exc:
