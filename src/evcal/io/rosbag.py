@@ -1,0 +1,721 @@
+"""ROS 1 and ROS 2 bags of event cameras, through ``rosbags``: events and intensity frames.
+
+What is read
+    - a ROS 2 bag: a folder with ``metadata.yaml`` (MCAP or sqlite3 storage; an empty
+      ``storage_identifier`` is told from the files' suffixes), or one ``.mcap`` / ``.db3``
+      file of it; a ROS 1 bag (``#ROSBAG V2.0``);
+    - events from ``event_camera_msgs/msg/EventPacket`` (encodings ``libcaer_cmp``,
+      ``libcaer``, ``evt3``, ``mono``, decoded by :mod:`evcal.io._evcodecs`; its predecessor
+      ``event_array_msgs/msg/EventArray`` has the same fields and is read alike),
+      ``dvs_msgs/msg/EventArray`` and ``prophesee_event_msgs/msg/EventArray``;
+    - frames from ``sensor_msgs/msg/Image`` (``mono8``, ``mono16``, ``rgb8``, ``bgr8``).
+
+The message types are registered in a ``rosbags`` typestore from their ``.msg`` text
+(:data:`MSG_DEFINITIONS`); a ROS 1 bag's md5 sums and a ROS 2 bag's type hashes (where the
+bag records them) are checked against them, so a bag of another definition is refused instead
+of decoded into garbage. The event arrays of ``dvs_msgs`` / ``prophesee_event_msgs`` are read
+straight from the serialised bytes with numpy (CDR or ROS 1 layout), not one Python object per
+event.
+
+Times (integer µs)
+    - EventPacket: ``libcaer_cmp``, ``libcaer`` and ``mono`` give ``time_base`` (ns) plus the
+      packet's sensor time, i.e. host-aligned time as the driver set it; ``evt3`` gives the
+      camera's own µs since it started (24-bit, unwrapped across packets), ``time_base`` is
+      not used;
+    - ``dvs_msgs`` / ``prophesee_event_msgs``: each event's ``ts``, floored to µs;
+    - frames: ``header.stamp``, floored to µs; the exposure is unknown (0).
+
+The sensor size is the event messages' ``width x height`` (else the frames', else ``sensor``).
+Events are sorted by time (stable); how many were out of order is
+``metadata["reordered_events"]``. EventPacket ``seq`` gaps are lost messages: counted in
+``metadata["lost_messages"]`` with a warning, not an error. Events outside the sensor are
+dropped as the reference decoders do, counted in ``metadata["dropped_events"]`` with a
+warning.
+
+Frame conversion to gray: ``mono8`` as is (uint8); ``mono16`` to float32 on the 8-bit scale
+(value / 257, so 65535 -> 255.0); ``rgb8`` / ``bgr8`` to uint8 ITU-R BT.601 luma
+(0.299 R + 0.587 G + 0.114 B, rounded), as for AEDAT4 frames.
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from ..errors import ErrorReason
+from ..events import EVENTS_DTYPE, SensorSize
+from ..recording import Frames, Recording, RecordingError
+from ._evcodecs import PacketDecoder, PayloadError, make_decoder
+from ._util import check_sensor_arg
+
+if TYPE_CHECKING:
+    from rosbags.interfaces import Connection
+    from rosbags.typesys.store import Typestore
+
+EVENT_PACKET = "event_camera_msgs/msg/EventPacket"
+EVENT_ARRAY_LEGACY = "event_array_msgs/msg/EventArray"
+DVS_EVENT_ARRAY = "dvs_msgs/msg/EventArray"
+PROPHESEE_EVENT_ARRAY = "prophesee_event_msgs/msg/EventArray"
+IMAGE = "sensor_msgs/msg/Image"
+
+# event_camera_msgs/msg/EventPacket.msg (ros-event-camera/event_camera_msgs)
+_EVENT_PACKET_MSG = """\
+std_msgs/Header header
+uint32 height
+uint32 width
+uint64 seq
+uint64 time_base
+string encoding
+bool is_bigendian
+uint8[] events
+"""
+# dvs_msgs (uzh-rpg/rpg_dvs_ros) and prophesee_event_msgs (prophesee-ai/prophesee_ros_wrapper)
+# share these two definitions; ``time`` is builtin_interfaces/msg/Time in ROS 2.
+_EVENT_MSG = """\
+uint16 x
+uint16 y
+time ts
+bool polarity
+"""
+_EVENT_ARRAY_MSG = """\
+std_msgs/Header header
+uint32 height
+uint32 width
+{pkg}/Event[] events
+"""
+MSG_DEFINITIONS: dict[str, str] = {
+    "dvs_msgs/msg/Event": _EVENT_MSG,
+    DVS_EVENT_ARRAY: _EVENT_ARRAY_MSG.format(pkg="dvs_msgs"),
+    "prophesee_event_msgs/msg/Event": _EVENT_MSG,
+    PROPHESEE_EVENT_ARRAY: _EVENT_ARRAY_MSG.format(pkg="prophesee_event_msgs"),
+    EVENT_PACKET: _EVENT_PACKET_MSG,
+    EVENT_ARRAY_LEGACY: _EVENT_PACKET_MSG,
+}
+EVENT_TYPES = (EVENT_PACKET, EVENT_ARRAY_LEGACY, DVS_EVENT_ARRAY, PROPHESEE_EVENT_ARRAY)
+FRAME_ENCODINGS = ("mono8", "mono16", "rgb8", "bgr8")
+
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+SQLITE_MAGIC = b"SQLite format 3\x00"
+ROS1_MAGIC = b"#ROSBAG V"
+
+_LUMA = np.array([0.299, 0.587, 0.114])
+
+
+class RosbagError(RecordingError):
+    """A bag that cannot be read as events and frames: what and where (topic, message)."""
+
+
+def typestore(ros_version: int) -> Typestore:
+    """The standard types of ROS 1 Noetic or ROS 2 Humble plus :data:`MSG_DEFINITIONS`."""
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    store = get_typestore(Stores.ROS1_NOETIC if ros_version == 1 else Stores.ROS2_HUMBLE)
+    types: dict[str, Any] = {}
+    for name, text in MSG_DEFINITIONS.items():
+        types.update(get_types_from_msg(text, name))
+    store.register(types)
+    return store
+
+
+def is_ros2_mcap(path: str | os.PathLike[str]) -> bool:
+    """True for an MCAP file of ROS 2 messages: profile ``ros2``, or else ``ros2msg`` /
+    ``ros2idl`` schemas or ``cdr`` channels (evcal's own MCAP has msgpack channels)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(8 + 1 + 8 + 4 + 16)
+            if not head.startswith(MCAP_MAGIC) or len(head) < 21 or head[8] != 0x01:
+                return False
+            n = int.from_bytes(head[17:21], "little")
+            if head[21:21 + n] == b"ros2":
+                return True
+            from mcap.reader import make_reader
+
+            f.seek(0)
+            summary = make_reader(f).get_summary()
+    except Exception:  # unreadable: the MCAP reader reports what is wrong
+        return False
+    if summary is None:
+        return False
+    return (any(s.encoding in ("ros2msg", "ros2idl") for s in summary.schemas.values())
+            or any(c.message_encoding == "cdr" for c in summary.channels.values()))
+
+
+def is_rosbag(path: str | os.PathLike[str]) -> str | None:
+    """``"rosbag1"``, ``"rosbag2"`` or None, from the content (a folder's metadata.yaml)."""
+    path = Path(path)
+    if path.is_dir():
+        return "rosbag2" if (path / "metadata.yaml").is_file() else None
+    if path.name == "metadata.yaml":
+        return "rosbag2"
+    try:
+        with open(path, "rb") as f:
+            head = f.read(16)
+    except OSError:
+        return None
+    if head.startswith(ROS1_MAGIC):
+        return "rosbag1"
+    if head.startswith(SQLITE_MAGIC):
+        return "rosbag2"
+    if head.startswith(MCAP_MAGIC) and is_ros2_mcap(path):
+        return "rosbag2"
+    return None
+
+
+# ------------------------------------------------------------------------------- opening
+
+
+@dataclass
+class _Bag:
+    path: Path
+    ros_version: int
+    storage: str
+    readers: list[Any] = field(default_factory=list)  # rosbags Readers, opened
+
+
+def _open_reader(reader: Any, where: Path) -> Any:
+    try:
+        reader.open()
+    except Exception as exc:  # rosbags ReaderError, sqlite3 and OS errors
+        raise RosbagError(f"{where}: cannot open as a ROS bag: {type(exc).__name__}: {exc}"
+                          ) from None
+    return reader
+
+
+def _ros2_folder(folder: Path) -> tuple[str, list[Path]]:
+    """A ROS 2 bag folder's storage (``mcap``/``sqlite3``, or ``""`` when metadata.yaml names
+    none) and its files, from metadata.yaml."""
+    from ruamel.yaml import YAML
+
+    try:
+        meta = YAML(typ="safe").load((folder / "metadata.yaml").read_text())
+        info = meta["rosbag2_bagfile_information"]
+        names = [str(n) for n in info["relative_file_paths"]]
+        storage = str(info.get("storage_identifier") or "")
+        compressed = str(info.get("compression_mode") or "").lower() not in ("", "none")
+    except Exception as exc:
+        raise RosbagError(f"{folder}: metadata.yaml is not a rosbag2 description "
+                          f"({type(exc).__name__}: {exc})") from None
+    files = [folder / Path(n).name for n in names]
+    missing = [str(f) for f in files if not f.is_file()]
+    if missing:
+        raise RosbagError(f"{folder}: files named in metadata.yaml are missing: {missing}")
+    if storage in ("mcap", "sqlite3"):
+        return storage, files
+    suffixes = {f.suffix for f in files}
+    if compressed or len(suffixes) != 1 or not suffixes <= {".mcap", ".db3"}:
+        raise RosbagError(f"{folder}: metadata.yaml names the storage {storage!r}, which evcal "
+                          f"cannot read, and files {names}")
+    return "", files
+
+
+def _open_bag(path: Path) -> _Bag:
+    from rosbags.rosbag1 import Reader as Reader1
+    from rosbags.rosbag2 import Reader as Reader2
+
+    if path.is_file() and path.name == "metadata.yaml":
+        path = path.parent
+    if path.is_dir():
+        if not (path / "metadata.yaml").is_file():
+            raise RosbagError(f"{path}: a folder without metadata.yaml is not a ROS 2 bag")
+        storage, files = _ros2_folder(path)
+        if storage:
+            return _Bag(path, 2, storage, [_open_reader(Reader2(path), path)])
+        # an empty storage_identifier (the shared EventPacket bag): told by the files' suffix,
+        # which the single-file reader goes by; files are read in metadata.yaml's order
+        bag = _Bag(path, 2, "mcap" if files[0].suffix == ".mcap" else "sqlite3")
+        try:
+            for file in files:
+                bag.readers.append(_open_reader(Reader2(file), file))
+        except BaseException:
+            _close(bag)
+            raise
+        return bag
+    try:
+        with open(path, "rb") as f:
+            head = f.read(16)
+    except OSError as exc:
+        raise RosbagError(f"{path}: cannot read: {exc}") from None
+    if head.startswith(ROS1_MAGIC):
+        return _Bag(path, 1, "rosbag1", [_open_reader(Reader1(path), path)])
+    for magic, suffix, storage in ((MCAP_MAGIC, ".mcap", "mcap"),
+                                   (SQLITE_MAGIC, ".db3", "sqlite3")):
+        if head.startswith(magic):
+            if path.suffix != suffix:
+                raise RosbagError(f"{path}: a ROS 2 {storage} file must be named *{suffix} "
+                                  "for the bag reader; rename it")
+            return _Bag(path, 2, storage, [_open_reader(Reader2(path), path)])
+    raise RosbagError(f"{path}: not a ROS bag (neither #ROSBAG, the MCAP magic, an SQLite "
+                      "database nor a folder with metadata.yaml)")
+
+
+def _close(bag: _Bag) -> None:
+    for reader in bag.readers:
+        try:
+            reader.close()
+        except Exception:  # closing after a failure: the first error is the one reported
+            pass
+
+
+# ------------------------------------------------------------------------------- topics
+
+
+def _topics(bag: _Bag) -> dict[str, set[str]]:
+    topics: dict[str, set[str]] = {}
+    for reader in bag.readers:
+        for conn in reader.connections:
+            topics.setdefault(conn.topic, set()).add(conn.msgtype)
+    return topics
+
+
+def _describe(topics: dict[str, set[str]]) -> str:
+    return ", ".join(f"{t} ({'/'.join(sorted(ty))})" for t, ty in sorted(topics.items())) \
+        or "none"
+
+
+def _choose(bag: _Bag, topics: dict[str, set[str]], given: str | None, accepted: tuple[str, ...],
+            option: str, kind: str) -> str | None:
+    candidates = sorted(t for t, types in topics.items() if types & set(accepted))
+    if given is not None:
+        if given not in topics:
+            raise RosbagError(f"{bag.path}: no topic {given!r} ({option}); the bag's topics: "
+                              f"{_describe(topics)}")
+        if given not in candidates:
+            raise RosbagError(f"{bag.path}: topic {given!r} ({option}) holds "
+                              f"{'/'.join(sorted(topics[given]))}, not {kind} "
+                              f"({', '.join(accepted)})")
+        return given
+    if len(candidates) > 1:
+        raise RosbagError(f"{bag.path}: {len(candidates)} {kind} topics "
+                          f"({', '.join(candidates)}); choose one with {option}=")
+    return candidates[0] if candidates else None
+
+
+def _check_definition(bag: _Bag, conn: Connection, store: Typestore) -> None:
+    """Refuse a bag whose recorded definition hash differs from the registered one."""
+    digest = conn.digest
+    if not digest or digest == "*":
+        return
+    if bag.ros_version == 1:
+        ours = store.generate_msgdef(conn.msgtype)[1]
+    else:
+        ours = store.hash_rihs01(conn.msgtype)
+    if digest != ours:
+        raise RosbagError(
+            f"{bag.path}: topic {conn.topic}: the bag's {conn.msgtype} has hash {digest}, the "
+            f"definition evcal decodes has {ours}: another message definition (fork or "
+            "version), refused rather than decoded wrongly", ErrorReason.MALFORMED)
+
+
+# ------------------------------------------------------------------------------- decoding
+
+
+def _stamp_ns(msg: Any) -> int:
+    return int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
+
+
+_ROS1_EVENT = np.dtype([("x", "<u2"), ("y", "<u2"), ("sec", "<u4"), ("nsec", "<u4"),
+                        ("p", "u1")])  # packed, 13 bytes
+_EVENT_COLUMNS = np.dtype([("x", "<u2"), ("y", "<u2"), ("sec", "<i8"), ("nsec", "<i8"),
+                           ("p", "u1")])
+
+
+def _cdr_event(order: str, first: bool) -> np.dtype:
+    # CDR aligns every primitive to its size, counted from the end of the 4-byte encapsulation
+    # header. The array starts 4-aligned (after its uint32 length): the first Event is
+    # x@0 y@2 sec@4 nanosec@8 polarity@12 (13 bytes), every later one starts 2 mod 4 and is
+    # x@0 y@2 (pad 2) sec@6 nanosec@10 polarity@14, 16 bytes with the pad before the next.
+    offsets = [0, 2, 4, 8, 12] if first else [0, 2, 6, 10, 14]
+    return np.dtype({"names": ["x", "y", "sec", "nsec", "p"],
+                     "formats": [order + "u2", order + "u2", order + "i4", order + "u4", "u1"],
+                     "offsets": offsets, "itemsize": 13 if first else 16})
+
+
+class _Cursor:
+    """Reads a serialised message's leading fields, with errors that say where it ended."""
+
+    def __init__(self, raw: bytes | memoryview, order: str, origin: int) -> None:
+        self.buf = bytes(raw)
+        self.order = order
+        self.origin = origin  # CDR alignment is counted from here
+        self.pos = origin
+
+    def align(self, n: int) -> None:
+        self.pos += (-(self.pos - self.origin)) % n
+
+    def u32(self, what: str, align: bool) -> int:
+        if align:
+            self.align(4)
+        if self.pos + 4 > len(self.buf):
+            raise PayloadError(f"the message ends ({len(self.buf)} bytes) inside {what}",
+                               ErrorReason.TRUNCATED)
+        value = int.from_bytes(self.buf[self.pos:self.pos + 4],
+                               "little" if self.order == "<" else "big")
+        self.pos += 4
+        return value
+
+    def skip(self, n: int, what: str) -> None:
+        if self.pos + n > len(self.buf):
+            raise PayloadError(f"the message ends ({len(self.buf)} bytes) inside {what} "
+                               f"({n} bytes from byte {self.pos})", ErrorReason.TRUNCATED)
+        self.pos += n
+
+
+def parse_event_array(raw: bytes | memoryview, ros_version: int
+                      ) -> tuple[int, int, int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``(height, width, stamp_ns, t_us, x, y, on)`` of a serialised dvs_msgs /
+    prophesee_event_msgs ``EventArray`` (ROS 1 or CDR), without a Python loop per event."""
+    if ros_version == 1:
+        cur = _Cursor(raw, "<", 0)
+        cur.u32("header.seq", False)
+        sec = cur.u32("header.stamp", False)
+        nsec = cur.u32("header.stamp", False)
+        cur.skip(cur.u32("header.frame_id", False), "header.frame_id")
+        height = cur.u32("height", False)
+        width = cur.u32("width", False)
+        n = cur.u32("the event count", False)
+        end = cur.pos + 13 * n
+        if end > len(cur.buf):
+            raise PayloadError(f"the message ends ({len(cur.buf)} bytes) inside event "
+                               f"{(len(cur.buf) - cur.pos) // 13} of {n} (13 bytes each from "
+                               f"byte {cur.pos})", ErrorReason.TRUNCATED)
+        if end != len(cur.buf):
+            raise PayloadError(f"{len(cur.buf) - end} bytes after the {n} events",
+                               ErrorReason.MALFORMED)
+        ev = np.frombuffer(cur.buf, _ROS1_EVENT, count=n, offset=cur.pos)
+        stamp = sec * 1_000_000_000 + nsec
+    else:
+        if len(raw) < 4 or bytes(raw[:1]) != b"\x00" or bytes(raw[1:2]) not in (b"\x00", b"\x01"):
+            raise PayloadError("not a CDR message (encapsulation header)", ErrorReason.MALFORMED)
+        order = "<" if bytes(raw[1:2]) == b"\x01" else ">"
+        cur = _Cursor(raw, order, 4)
+        sec = cur.u32("header.stamp", True)
+        sec = sec - (1 << 32) if sec >= 1 << 31 else sec  # int32 in ROS 2
+        nsec = cur.u32("header.stamp", True)
+        cur.skip(cur.u32("header.frame_id", True), "header.frame_id")
+        height = cur.u32("height", True)
+        width = cur.u32("width", True)
+        n = cur.u32("the event count", True)
+        end = cur.pos + (16 * n - 3 if n else 0)
+        if end > len(cur.buf):
+            got = 0 if len(cur.buf) < cur.pos + 13 else 1 + (len(cur.buf) - cur.pos - 14) // 16
+            raise PayloadError(f"the message ends ({len(cur.buf)} bytes) inside event {got} of "
+                               f"{n} (from byte {cur.pos})", ErrorReason.TRUNCATED)
+        if len(cur.buf) - end > 3:  # at most the padding to 4 bytes
+            raise PayloadError(f"{len(cur.buf) - end} bytes after the {n} events",
+                               ErrorReason.MALFORMED)
+        if n:
+            first = np.frombuffer(cur.buf, _cdr_event(order, True), count=1, offset=cur.pos)
+            # one zero byte past the end so that the last, 15-byte Event reads as 16
+            later = np.frombuffer(cur.buf + b"\x00", _cdr_event(order, False), count=n - 1,
+                                  offset=cur.pos + 14)
+            ev = np.concatenate([first.astype(_EVENT_COLUMNS), later.astype(_EVENT_COLUMNS)])
+        else:
+            ev = np.zeros(0, _EVENT_COLUMNS)
+        stamp = sec * 1_000_000_000 + nsec
+    t_us = ev["sec"].astype(np.int64) * 1_000_000 + ev["nsec"].astype(np.int64) // 1000
+    return (int(height), int(width), int(stamp), t_us, ev["x"].astype(np.uint16),
+            ev["y"].astype(np.uint16), ev["p"] != 0)
+
+
+def image_to_gray(msg: Any) -> np.ndarray:
+    """A ``sensor_msgs/msg/Image`` as a ``[y, x]`` gray image (see the module docstring)."""
+    h, w, step = int(msg.height), int(msg.width), int(msg.step)
+    enc = str(msg.encoding)
+    if enc not in FRAME_ENCODINGS:
+        raise PayloadError(f"image encoding {enc!r} is not one evcal reads "
+                           f"({', '.join(FRAME_ENCODINGS)})", ErrorReason.MALFORMED)
+    depth = {"mono8": 1, "mono16": 2, "rgb8": 3, "bgr8": 3}[enc]
+    data = np.asarray(msg.data, np.uint8)
+    if h < 1 or w < 1:
+        raise PayloadError(f"image of size {w}x{h}", ErrorReason.OUT_OF_RANGE)
+    if step < w * depth:
+        raise PayloadError(f"image step {step} is less than width {w} x {depth} bytes",
+                           ErrorReason.MALFORMED)
+    if data.size < h * step:
+        raise PayloadError(f"image data has {data.size} bytes, {h} rows of step {step} need "
+                           f"{h * step}", ErrorReason.TRUNCATED)
+    rows = data[:h * step].reshape(h, step)[:, :w * depth]
+    if enc == "mono8":
+        return np.ascontiguousarray(rows)
+    if enc == "mono16":
+        values = rows.copy().view(">u2" if msg.is_bigendian else "<u2")
+        result: np.ndarray = (values.astype(np.float32) / np.float32(257.0))
+        return result
+    rgb = rows.reshape(h, w, 3).astype(np.float64)
+    if enc == "bgr8":
+        rgb = rgb[:, :, ::-1]
+    luma: np.ndarray = np.clip(np.rint(rgb @ _LUMA), 0, 255).astype(np.uint8)
+    return luma
+
+
+@dataclass
+class _EventStream:
+    """What the event messages of one topic accumulated."""
+
+    msgtype: str
+    chunks: list[np.ndarray] = field(default_factory=list)
+    size: tuple[int, int] | None = None  # (height, width)
+    decoder: PacketDecoder | None = None
+    encoding: str | None = None
+    last_seq: int | None = None
+    lost: int = 0
+    seq_gaps: list[tuple[int, int]] = field(default_factory=list)
+    seq_back: int = 0
+    dropped: int = 0
+    triggers: int = 0
+
+
+def _packet_events(stream: _EventStream, msg: Any, where: str) -> np.ndarray:
+    if msg.is_bigendian:
+        raise RosbagError(f"{where}: is_bigendian payloads are not supported (the drivers "
+                          "write little-endian words)", ErrorReason.MALFORMED)
+    enc = str(msg.encoding)
+    if stream.decoder is None:
+        try:
+            stream.decoder = make_decoder(enc)
+        except PayloadError as exc:
+            raise RosbagError(f"{where}: {exc}", exc.reason) from None
+        stream.encoding = enc
+    elif enc != stream.encoding:
+        raise RosbagError(f"{where}: encoding {enc!r}, the topic's earlier messages are "
+                          f"{stream.encoding!r}", ErrorReason.MALFORMED)
+    seq = int(msg.seq)
+    if stream.last_seq is not None:
+        if seq > stream.last_seq + 1:
+            stream.lost += seq - stream.last_seq - 1
+            stream.seq_gaps.append((stream.last_seq, seq))
+        elif seq <= stream.last_seq:
+            stream.seq_back += 1
+    stream.last_seq = seq
+    try:
+        pk = stream.decoder.decode(msg.events, time_base=int(msg.time_base),
+                                   width=int(msg.width), height=int(msg.height),
+                                   stamp_ns=_stamp_ns(msg))
+    except PayloadError as exc:
+        raise RosbagError(f"{where} (seq {seq}): {exc}", exc.reason) from None
+    stream.dropped += pk.dropped
+    stream.triggers += int(pk.trigger_t_us.size)
+    return _columns(pk.t_us, pk.x, pk.y, pk.on)
+
+
+def _columns(t_us: np.ndarray, x: np.ndarray, y: np.ndarray, on: np.ndarray) -> np.ndarray:
+    ev = np.empty(t_us.shape[0], EVENTS_DTYPE)
+    ev["t_us"] = t_us
+    ev["x"] = x
+    ev["y"] = y
+    ev["p"] = np.where(on, 1, -1)
+    return ev
+
+
+def _sorted_events(chunks: list[np.ndarray]) -> tuple[np.ndarray, int]:
+    """Concatenated events sorted by time (stable) and how many were late."""
+    if not chunks:
+        return np.zeros(0, EVENTS_DTYPE), 0
+    events = np.concatenate(chunks)
+    t = events["t_us"]
+    if t.size > 1 and (t[1:] < t[:-1]).any():
+        late = int(np.count_nonzero(t[1:] < np.maximum.accumulate(t)[:-1]))
+        return events[np.argsort(t, kind="stable")], late
+    return events, 0
+
+
+def read_rosbag(path: str | os.PathLike[str], *, sensor: SensorSize | None = None,
+                events_topic: str | None = None, frames_topic: str | None = None) -> Recording:
+    """Read events and frames of a ROS 1 or ROS 2 bag (see the module docstring).
+
+    Parameters
+    ----------
+    path : path
+        A ROS 2 bag folder (or its ``metadata.yaml``), one ``.mcap`` / ``.db3`` file of a
+        ROS 2 bag, or a ROS 1 ``.bag``.
+    sensor : SensorSize, optional
+        Checked against the size the messages declare; needed only when no message does.
+    events_topic, frames_topic : str, optional
+        The topic to read when the bag holds several of that kind (else the one there is).
+
+    Returns
+    -------
+    Recording
+        ``metadata`` holds ``format`` ("rosbag1"/"rosbag2"), ``storage``, ``source``,
+        ``events_topic``, ``events_type``, ``encoding``, ``frames_topic``,
+        ``frame_encoding``, ``messages``, ``lost_messages``, ``seq_gaps``,
+        ``dropped_events``, ``reordered_events`` and ``trigger_events``.
+
+    Raises
+    ------
+    RosbagError
+        (a :class:`~evcal.recording.RecordingError`) for a bag that does not open, ambiguous
+        or missing topics, an unknown encoding, a truncated or malformed message (naming the
+        topic and the message index), or sizes that disagree.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise RosbagError(f"{path}: no such file or directory")
+    bag = _open_bag(path)
+    try:
+        return _read(bag, sensor, events_topic, frames_topic)
+    finally:
+        _close(bag)
+
+
+def _read(bag: _Bag, sensor: SensorSize | None, events_topic: str | None,
+          frames_topic: str | None) -> Recording:
+    store = typestore(bag.ros_version)
+    topics = _topics(bag)
+    ev_topic = _choose(bag, topics, events_topic, EVENT_TYPES, "events_topic", "event")
+    fr_topic = _choose(bag, topics, frames_topic, (IMAGE,), "frames_topic", "image")
+    if ev_topic is None and fr_topic is None:
+        raise RosbagError(f"{bag.path}: no event topic ({', '.join(EVENT_TYPES)}) and no "
+                          f"{IMAGE} topic; the bag's topics: {_describe(topics)}")
+    for topic in (ev_topic, fr_topic):
+        if topic is not None and len(topics[topic]) > 1:
+            raise RosbagError(f"{bag.path}: topic {topic} carries several types "
+                              f"({', '.join(sorted(topics[topic]))})")
+    ev_type = next(iter(topics[ev_topic])) if ev_topic is not None else None
+    stream = _EventStream(ev_type or "")
+    deser = store.deserialize_ros1 if bag.ros_version == 1 else store.deserialize_cdr
+    frame_t: list[int] = []
+    images: list[np.ndarray] = []
+    frame_size: tuple[int, int] | None = None
+    frame_enc: str | None = None
+    counts = {"events": 0, "frames": 0}
+    current = "the first message"
+    for reader in bag.readers:
+        conns = [c for c in reader.connections if c.topic in (ev_topic, fr_topic)]
+        for conn in conns:
+            _check_definition(bag, conn, store)
+        if not conns:
+            continue
+        try:
+            for conn, _t, raw in reader.messages(connections=conns):
+                if conn.topic == ev_topic:
+                    k = counts["events"]
+                    current = where = f"{bag.path}: topic {ev_topic} message {k}"
+                    counts["events"] += 1
+                    stream.chunks.append(_event_message(bag, stream, deser, raw, where))
+                else:
+                    k = counts["frames"]
+                    current = where = f"{bag.path}: topic {fr_topic} message {k}"
+                    counts["frames"] += 1
+                    msg = _deserialize(deser, raw, conn.msgtype, where)
+                    try:
+                        image = image_to_gray(msg)
+                    except PayloadError as exc:
+                        raise RosbagError(f"{where}: {exc}", exc.reason) from None
+                    if frame_size is not None and image.shape != frame_size:
+                        raise RosbagError(f"{where}: a {image.shape[1]}x{image.shape[0]} image, "
+                                          f"the earlier ones are {frame_size[1]}x"
+                                          f"{frame_size[0]}", ErrorReason.SENSOR_CHANGED)
+                    if frame_enc is not None and image.dtype != images[0].dtype:
+                        raise RosbagError(f"{where}: encoding {msg.encoding!r} after "
+                                          f"{frame_enc!r} images (frames of one dtype)")
+                    frame_size, frame_enc = image.shape, frame_enc or str(msg.encoding)
+                    frame_t.append(_stamp_ns(msg) // 1000)
+                    images.append(image)
+        except RecordingError:
+            raise
+        except Exception as exc:  # rosbags/sqlite/zstd errors of a damaged file
+            raise RosbagError(f"{bag.path}: reading failed after {current} "
+                              f"(truncated or corrupt bag?): {type(exc).__name__}: {exc}"
+                              ) from None
+
+    found: SensorSize | None = None
+    if stream.size is not None:
+        found = SensorSize(height=stream.size[0], width=stream.size[1])
+    elif frame_size is not None:
+        found = SensorSize(height=frame_size[0], width=frame_size[1])
+    if found is None:
+        if sensor is None:
+            raise RosbagError(f"{bag.path}: no message declares the sensor size (topic "
+                              f"{ev_topic or fr_topic}); give it with sensor=")
+        found = sensor
+    try:
+        found = check_sensor_arg(found, sensor, str(bag.path))
+    except RecordingError as exc:
+        raise RosbagError(str(exc), exc.reason) from None
+    if frame_size is not None and frame_size != found.shape:
+        raise RosbagError(f"{bag.path}: frames on {fr_topic} are {frame_size[1]}x"
+                          f"{frame_size[0]}, the sensor is {found}",
+                          ErrorReason.SENSOR_CHANGED)
+    events, reordered = _sorted_events(stream.chunks)
+    if stream.size is None and events.size:  # arrays that declared no size: cut to the sensor
+        keep = (events["x"] < found.width) & (events["y"] < found.height)
+        stream.dropped += int(events.size - np.count_nonzero(keep))
+        events = events[keep]
+    metadata: dict[str, Any] = {
+        "format": f"rosbag{bag.ros_version}", "storage": bag.storage, "source": str(bag.path),
+        "events_topic": ev_topic, "events_type": ev_type, "encoding": stream.encoding,
+        "frames_topic": fr_topic, "frame_encoding": frame_enc, "messages": counts,
+        "lost_messages": stream.lost, "seq_gaps": stream.seq_gaps[:100],
+        "seq_backwards": stream.seq_back, "dropped_events": stream.dropped,
+        "reordered_events": reordered, "trigger_events": stream.triggers,
+    }
+    decoder = stream.decoder
+    unit = getattr(decoder, "time_base_unit", None)
+    if unit is not None:
+        metadata["time_base_unit"] = unit
+    if stream.lost:
+        warnings.warn(f"{bag.path}: {stream.lost} EventPacket messages lost on {ev_topic} "
+                      f"({len(stream.seq_gaps)} seq gaps, first {stream.seq_gaps[0]})",
+                      RuntimeWarning, stacklevel=3)
+    if stream.dropped:
+        warnings.warn(f"{bag.path}: {stream.dropped} events outside the {found} sensor "
+                      f"dropped on {ev_topic}", RuntimeWarning, stacklevel=3)
+    frames = None
+    if images:
+        try:
+            frames = Frames(t_us=np.array(frame_t, np.int64), images=np.stack(images),
+                            exposure_us=np.zeros(len(images), np.int64))
+        except RecordingError as exc:
+            raise RosbagError(f"{bag.path}: topic {fr_topic}: {exc}", exc.reason) from None
+    try:
+        return Recording(sensor=found, events=events,
+                         frames=frames if frames is not None else Frames.empty(0, 0),
+                         metadata=metadata)
+    except RecordingError as exc:
+        raise RosbagError(f"{bag.path}: {exc}", exc.reason) from None
+
+
+def _deserialize(deser: Any, raw: bytes | memoryview, msgtype: str, where: str) -> Any:
+    try:
+        return deser(raw, msgtype)
+    except Exception as exc:  # rosbags SerdeError, struct/index errors of a cut message
+        raise RosbagError(f"{where}: cannot deserialise {len(raw)} bytes as {msgtype} "
+                          f"(truncated or another definition?): {type(exc).__name__}: {exc}",
+                          ErrorReason.TRUNCATED) from None
+
+
+def _event_message(bag: _Bag, stream: _EventStream, deser: Any, raw: bytes | memoryview,
+                   where: str) -> np.ndarray:
+    if stream.msgtype in (EVENT_PACKET, EVENT_ARRAY_LEGACY):
+        msg = _deserialize(deser, raw, stream.msgtype, where)
+        size = (int(msg.height), int(msg.width))
+        chunk = _packet_events(stream, msg, where)
+    else:
+        try:
+            h, w, _stamp, t_us, x, y, on = parse_event_array(raw, bag.ros_version)
+        except PayloadError as exc:
+            raise RosbagError(f"{where}: {stream.msgtype}: {exc}", exc.reason) from None
+        size = (h, w)
+        chunk = _columns(t_us, x, y, on)
+        if h and w:
+            keep = (x < w) & (y < h)
+            stream.dropped += int(keep.size - np.count_nonzero(keep))
+            chunk = chunk[keep]
+    if size == (0, 0) and stream.msgtype not in (EVENT_PACKET, EVENT_ARRAY_LEGACY):
+        return chunk  # an EventArray that does not declare its size
+    if not (0 < size[0] <= 65535 and 0 < size[1] <= 65535):
+        raise RosbagError(f"{where}: declares a {size[1]}x{size[0]} sensor",
+                          ErrorReason.OUT_OF_RANGE)
+    if stream.size is None:
+        stream.size = size
+    elif size != stream.size:
+        raise RosbagError(f"{where}: declares a {size[1]}x{size[0]} sensor, the topic's earlier "
+                          f"messages {stream.size[1]}x{stream.size[0]}",
+                          ErrorReason.SENSOR_CHANGED)
+    return chunk
