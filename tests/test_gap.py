@@ -34,6 +34,7 @@ from evcal.sim.effects import (
     ShotNoise,
     ThresholdNoise,
     TimestampJitter,
+    TimestampQuantisation,
 )
 from evcal.sim.ideal import SimConfig
 from evcal.sim.nonideal import simulate
@@ -69,9 +70,11 @@ CASES: dict[str, list[Effect]] = {
     "hot_pixels": [HotPixels(fraction=0.004, rate_hz=120.0)],
     "log_offset": [LogOffset(dark_dn=45.0)],
     "timestamp_jitter": [TimestampJitter(sigma_us=500.0)],
+    "timestamp_quantisation": [TimestampQuantisation(step_us=500.0)],
 }
 SEEDS = {"refractory": 23, "leak": 29, "shot_noise": 31, "bandwidth": 37,
-         "threshold_noise": 41, "hot_pixels": 43, "log_offset": 47, "timestamp_jitter": 53}
+         "threshold_noise": 41, "hot_pixels": 43, "log_offset": 47, "timestamp_jitter": 53,
+         "timestamp_quantisation": 59}
 TWO_EFFECTS: list[Effect] = [ShotNoise(rate_hz=1.2), LogOffset(dark_dn=35.0)]
 
 

@@ -213,6 +213,8 @@ class OffEIDiagnostics(Diagnostics):
     residual_correction: str | float = "auto"
     log_offset_estimation: Mapping[str, Any] = field(default_factory=dict)
     n_frames: int = 0
+    # evcal.gap.correct: the effects whose bias was removed and the gains/offsets applied
+    model_correction: Mapping[str, Any] = field(default_factory=dict)
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -109,9 +109,24 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     rec = _open(args.recording, args.sensor_size)
     from .estimators import calibrate  # noqa: PLC0415
 
-    cal = calibrate(rec, args.method, log_offset=args.log_offset,
-                    window_frames=args.window_frames, n_small=args.n_small,
-                    n_large=args.n_large, smoothing=args.smoothing)
+    if args.model is not None:
+        if args.method != "offei":
+            print("evcal calibrate: --model corrects OffEI: use it with --method offei",
+                  file=sys.stderr)
+            return 2
+        from .gap.correct import CorrectionConfig, load_model_effects, model_corrected  # noqa: PLC0415
+        from .offline import OffEIConfig  # noqa: PLC0415
+
+        effects = load_model_effects(args.model)
+        okw: dict[str, Any] = {"log_offset": args.log_offset}
+        if args.window_frames is not None:
+            okw["window_frames"] = args.window_frames
+        cal = model_corrected(rec, effects, OffEIConfig(**okw),
+                              CorrectionConfig(seed=args.seed))
+    else:
+        cal = calibrate(rec, args.method, log_offset=args.log_offset,
+                        window_frames=args.window_frames, n_small=args.n_small,
+                        n_large=args.n_large, smoothing=args.smoothing)
     for warning in cal.warnings:
         print(f"evcal calibrate: warning: {warning}", file=sys.stderr)
     save_calibration(cal, args.out)
@@ -129,6 +144,14 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         print(f"bias          median {s['bias_median']:+.4f}  "
               f"[p5 {s['bias_p05']:+.4f}, p95 {s['bias_p95']:+.4f}]")
     print("special       " + ", ".join(f"{k} {v}" for k, v in s["special_counts"].items()))
+    mc = getattr(cal.diagnostics, "model_correction", None)
+    if mc:
+        names = ", ".join(f"{k}({', '.join(f'{p}={v}' for p, v in ps.items())})"
+                          for k, ps in mc["effects"].items())
+        print(f"model         {names}")
+        print(f"correction    c / {mc['gain_median']:.4f} (median; "
+              f"{mc['gain_range'][0]:.4f}..{mc['gain_range'][1]:.4f} over {mc['cells']} "
+              f"cells), b shifted by {mc['bias_shift_median']:+.4f} (median)")
     print(f"wrote         {args.out}")
     return 0
 
@@ -284,6 +307,11 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--smoothing", type=float, default=None,
                     help="OnEI low-pass factor in (0, 1] (default 0.1)")
     sp.add_argument("--csv", metavar="DIR", help="also write scale.csv and bias.csv")
+    sp.add_argument("--model", metavar="REPORT.json", default=None,
+                    help="OffEI corrected for the bias of the effects named by 'evcal gap' "
+                         "(its report.json): the recording is simulated under that model and "
+                         "the fit's gain and offset removed (docs/GAP.md)")
+    sp.add_argument("--seed", type=int, default=0, help="seed of --model's simulations")
     sp.set_defaults(func=cmd_calibrate)
 
     sp = sub.add_parser("evaluate", help="reconstruction quality against DI")

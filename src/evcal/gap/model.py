@@ -34,6 +34,7 @@ from ..sim.effects import (
     ShotNoise,
     ThresholdNoise,
     TimestampJitter,
+    TimestampQuantisation,
 )
 from ..sim.ideal import SimConfig
 from ..sim.nonideal import simulate
@@ -70,6 +71,13 @@ class SimSettings:
     internal_rate_hz: float = 1000.0
     read_noise_dn: float = 0.0  # of the measured frames (estimated)
     dither: bool = True
+    # the latent intensity between frames: "linear" blend or "flow" (motion-compensated,
+    # evcal.gap.flow; needs OpenCV)
+    interpolation: str = "linear"
+
+    def __post_init__(self) -> None:
+        if self.interpolation not in ("linear", "flow"):
+            raise ValueError(f"interpolation={self.interpolation!r} must be 'linear' or 'flow'")
 
 
 def estimate_read_noise(frames: Frames) -> float:
@@ -153,7 +161,14 @@ def simulate_model(model: Model, rec: Recording, seed: int, settings: SimSetting
         # pixel, not per frame (per-frame dither would make still scenes fire)
         imgs = imgs + rng.uniform(-0.5, 0.5, imgs.shape[1:]).astype(np.float32)[None]
         imgs = np.maximum(imgs, 0.0)
-    src = FrameInterpolator(Frames(fr.t_us, imgs, fr.exposure_us), rec.sensor.shape)
+    latent = Frames(fr.t_us, imgs, fr.exposure_us)
+    if settings.interpolation == "flow":
+        from .flow import FlowInterpolator  # noqa: PLC0415
+
+        src: FrameInterpolator = FlowInterpolator(
+            latent, rec.sensor.shape, flow_images=fr.images.astype(np.float32))
+    else:
+        src = FrameInterpolator(latent, rec.sensor.shape)
     times = _times(fr, settings.internal_rate_hz)
     dur = max(times[-1] * 1e-6, 1e-3)
     h, w = rec.sensor.shape
@@ -255,10 +270,7 @@ def _fit_refractory(meas: Observation, sims: list[Observation], model: Model,
                     rec: Recording) -> Effect | None:
     cm, cs, ex, z, dur = _hot_excess(meas, sims)
     keep = cm <= np.quantile(cm, 0.99)
-    iei_m, _ = _iei(meas)
-    order = np.argsort(meas.pix, kind="stable")
-    ps = meas.pix[order]
-    pix_pairs = ps[1:][ps[1:] == ps[:-1]]
+    iei_m, _, pix_pairs = _iei(meas)
     iei_m = iei_m[keep[pix_pairs]]
     iei_s = np.concatenate([_iei(s)[0] for s in sims])
     if iei_m.size < 50 or iei_s.size < 50:
@@ -602,6 +614,39 @@ def _fit_timestamp_jitter(meas: Observation, sims: list[Observation], model: Mod
     return TimestampJitter(sigma_us=round(sigma, 2), quantum_us=int(q_hat))
 
 
+def _fit_timestamp_quantisation(meas: Observation, sims: list[Observation], model: Model,
+                                rec: Recording) -> Effect | None:
+    """Step and phase from the timestamps that many events share: a frame-driven simulator
+    gives the events of a step a few shared times (fractions of the step; the busiest pixel's
+    last event, and with ``scheme="end"`` every event, the step's end), so the most crowded
+    timestamps lie on a grid. The step is the most common spacing of the crowded timestamps,
+    the phase the residue of the most distinct timestamps (each step's end); the effect is
+    proposed only if many more measured events than simulated ones lie on that grid."""
+    t = meas.t_us
+    u, cnt = np.unique(t, return_counts=True)
+    if u.size < 50:
+        return None
+    top = u[cnt >= max(float(np.quantile(cnt, 0.95)), 3.0)]
+    d = np.diff(top)
+    d = d[(d > 0) & (d <= 1_000_000)]
+    if d.size < 10:
+        return None
+    step = int(np.bincount(d).argmax())
+    if step < 2:
+        return None
+    # every step with events has one at its end, whatever its n_max: the residue shared by
+    # the most distinct timestamps
+    phase = int(np.bincount(u % step, minlength=step).argmax())
+    on_grid = float(np.mean(t % step == phase))
+    sim_on_grid = float(np.mean([np.mean(s.t_us % step == phase) for s in sims])) \
+        if sims else 1.0 / step
+    if on_grid < 5 * sim_on_grid + 0.02:
+        return None
+    t0 = int(rec.frames.t_us[0])
+    return TimestampQuantisation(step_us=float(step), scheme="end" if on_grid > 0.9
+                                 else "spread", phase_us=float((phase - t0) % step))
+
+
 FITTERS = {
     "refractory": _fit_refractory,
     "leak": _fit_leak,
@@ -611,6 +656,7 @@ FITTERS = {
     "hot_pixels": _fit_hot_pixels,
     "log_offset": _fit_log_offset,
     "timestamp_jitter": _fit_timestamp_jitter,
+    "timestamp_quantisation": _fit_timestamp_quantisation,
 }
 
 

@@ -87,6 +87,9 @@ class Observation:
     t_us: np.ndarray  # event times in range
     pix: np.ndarray  # event pixels in range
     p: np.ndarray
+    # [n_w, N] bool: windows of pixels where the latent intensity between the frames is known
+    # well enough for timing statistics (all True unless given; see evcal.gap.flow.trusted)
+    trusted: np.ndarray | None = None
     extra: dict[str, Any] = field(default_factory=dict)
 
     @property
@@ -102,8 +105,14 @@ class Observation:
         return np.diff(self.frame_t_us) * 1e-6
 
 
-def observe(rec: Recording, *, saturation_dn: tuple[float, float] = (0.0, 255.0)) -> Observation:
+def observe(rec: Recording, *, saturation_dn: tuple[float, float] = (0.0, 255.0),
+            trusted: np.ndarray | None = None) -> Observation:
     """Window arrays of ``rec`` between its first and last frame.
+
+    ``trusted`` (``[n_frames - 1, n_pixels]`` bool) restricts the timing statistics (intervals
+    between a pixel's events, speed response, lag) to windows where the interpolation between
+    frames that a simulation of the recording is driven by can be trusted; the same mask is
+    given to the measurement and its simulations (it depends on the frames only).
 
     Raises
     ------
@@ -132,8 +141,12 @@ def observe(rec: Recording, *, saturation_dn: tuple[float, float] = (0.0, 255.0)
     lo, hi = saturation_dn
     ok = (inten > lo) & (inten < hi)
     usable = ok[1:] & ok[:-1]
+    if trusted is not None:
+        trusted = np.asarray(trusted, bool)
+        if trusted.shape != (n_w, npix):
+            raise GapError(f"trusted mask has shape {trusted.shape}, expected {(n_w, npix)}")
     return Observation((h, w), ft.copy(), on, off, log_i, inten, usable, ev["t_us"].copy(),
-                       pix, ev["p"].copy())
+                       pix, ev["p"].copy(), trusted)
 
 
 # ------------------------------------------------------------------------------ per-pixel fit
@@ -226,21 +239,30 @@ def _edge_labels(edges: np.ndarray, unit: str, fmt: str = "{:.3g}") -> list[str]
 # ------------------------------------------------------------------------------ statistics
 
 
-def _iei(obs: Observation) -> tuple[np.ndarray, np.ndarray]:
+def _iei(obs: Observation) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Intervals between consecutive events of a pixel (us), whether the pair's polarities
+    differ, and the pair's pixel; only pairs in trusted windows when the observation has a
+    trusted mask."""
     if "iei" in obs.extra:
-        cached: tuple[np.ndarray, np.ndarray] = obs.extra["iei"]
+        cached: tuple[np.ndarray, np.ndarray, np.ndarray] = obs.extra["iei"]
         return cached
     order = np.argsort(obs.pix, kind="stable")
     ps, ts, pp = obs.pix[order], obs.t_us[order], obs.p[order]
     same = ps[1:] == ps[:-1]
+    if obs.trusted is not None:  # both events of a pair in trusted windows of their pixel
+        win = np.clip(np.searchsorted(obs.frame_t_us, ts, side="right") - 1, 0,
+                      obs.n_windows - 1)
+        tr = obs.trusted[win, ps]
+        same &= tr[1:] & tr[:-1]
     iei = (ts[1:] - ts[:-1])[same].astype(np.float64)
     opp = (pp[1:] != pp[:-1])[same]
-    obs.extra["iei"] = (iei, opp)
-    return iei, opp
+    obs.extra["iei"] = (iei, opp, ps[1:][same])
+    result: tuple[np.ndarray, np.ndarray, np.ndarray] = obs.extra["iei"]
+    return result
 
 
 def stat_iei_distribution(obs: Observation) -> StatValue:
-    iei, _ = _iei(obs)
+    iei, _, _ = _iei(obs)
     lg = np.log10(np.maximum(iei, 1.0))
     h = np.histogram(lg, IEI_EDGES_LOG10)[0].astype(np.float64)
     frac = h / max(h.sum(), 1.0)
@@ -250,7 +272,7 @@ def stat_iei_distribution(obs: Observation) -> StatValue:
 
 
 def stat_iei_lower_edge(obs: Observation) -> StatValue:
-    iei, _ = _iei(obs)
+    iei, _, _ = _iei(obs)
     q = np.array([0.001, 0.01, 0.05])
     v = np.log10(np.maximum(np.quantile(iei, q), 1.0)) if iei.size else np.zeros(3)
     return StatValue("iei_lower_edge", v, [f"IEI quantile {x:g} (log10 us)" for x in q], 0.05)
@@ -378,7 +400,7 @@ def stat_stability(obs: Observation) -> StatValue:
 
 
 def stat_polarity_alternation(obs: Observation) -> StatValue:
-    iei, opp = _iei(obs)
+    iei, opp, _ = _iei(obs)
     short = iei < 2000
     v = np.array([opp.mean() if opp.size else 0.0,
                   opp[short].mean() if short.any() else 0.0])
@@ -404,6 +426,8 @@ def stat_speed_response(obs: Observation) -> StatValue:
     f = _fit(obs)
     adl = np.abs(f["dL"])
     m = obs.usable & (adl > 0.1)
+    if obs.trusted is not None:
+        m &= obs.trusted
     i_mid = 0.5 * (obs.intensity[1:] + obs.intensity[:-1])
     ie = _quantile_edges(i_mid[m], 2)
     se = _quantile_edges(adl[m] / obs.window_s[:, None].repeat(adl.shape[1], 1)[m], 2)
@@ -424,6 +448,8 @@ def stat_lag(obs: Observation) -> StatValue:
     f = _fit(obs)
     P, dL = f["P"], f["dL"]
     m = obs.usable[1:] & obs.usable[:-1] & (np.abs(dL[1:]) + np.abs(dL[:-1]) > 0.05)
+    if obs.trusted is not None:
+        m &= obs.trusted[1:] & obs.trusted[:-1]
     imean = obs.intensity.mean(0)
     edges = _quantile_edges(imean, 3)
     pb = np.clip(np.searchsorted(edges, imean, side="right") - 1, 0, edges.size - 2)

@@ -15,6 +15,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -43,6 +44,10 @@ class GapConfig:
     seed: int = 0
     n_seeds: int = 3
     internal_rate_hz: float = 1000.0
+    interpolation: str = "flow"  # between frames: "flow" (evcal.gap.flow) or "linear"
+    # timing statistics only in windows whose flow is consistent and at most this many pixels
+    # (evcal.gap.flow.trusted_windows); None: every window
+    trusted_max_px: float | None = math.inf
     penalty_per_parameter: float = 0.1
     min_improvement: float = 0.3
     min_relative_improvement: float = 0.25
@@ -136,11 +141,17 @@ class _Runner:
         self.rec = rec
         self.cfg = cfg
         self.tick = tick
-        self.meas = observe(rec)
+        self.trusted = None
+        if cfg.trusted_max_px is not None:
+            from .flow import trusted_windows  # noqa: PLC0415
+
+            self.trusted = trusted_windows(rec.frames, max_px=cfg.trusted_max_px)
+        self.meas = observe(rec, trusted=self.trusted)
         self.meas_stats = summarise(self.meas)
         self.meas_pop = population(self.meas)
         self.settings = SimSettings(internal_rate_hz=cfg.internal_rate_hz,
-                                    read_noise_dn=estimate_read_noise(rec.frames))
+                                    read_noise_dn=estimate_read_noise(rec.frames),
+                                    interpolation=cfg.interpolation)
         self.seeds = [cfg.seed * 1000 + k for k in range(cfg.n_seeds)]
         self.anchor_seed = cfg.seed * 1000 + 999
 
@@ -149,7 +160,8 @@ class _Runner:
         self.tick(f"{what}: anchor")
         sims = []
         for s in self.seeds:
-            sims.append(observe(simulate_model(model, self.rec, s, self.settings)))
+            sims.append(observe(simulate_model(model, self.rec, s, self.settings),
+                                trusted=self.trusted))
             self.tick(f"{what}: seed {s}")
         disc = discrepancy(self.meas_stats, [summarise(o) for o in sims])
         return Evaluation(model, sims, disc)

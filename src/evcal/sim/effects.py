@@ -204,6 +204,64 @@ class TimestampJitter(Effect):
 
 
 @dataclass(frozen=True, kw_only=True)
+class TimestampQuantisation(Effect):
+    """Timestamps assigned per simulation step rather than at the crossing (a property of
+    frame-driven simulators, not of a sensor): steps of ``step_us`` from the recording's
+    first time; ``scheme="spread"``: the i-th event (i = 1..n) of a pixel in a step gets
+    ``start + step_us i / n_max``, ``n_max`` the most events any pixel has in that step (v2e's
+    scheme, v2ecore/emulator.py ``generate_events``); ``scheme="end"``: every event of a step
+    gets its end."""
+
+    name: ClassVar[str] = "timestamp_quantisation"
+    primary: ClassVar[str] = "step_us"
+    step_us: float = 1000.0
+    scheme: str = "spread"
+    phase_us: float = 0.0  # step ends at t0 + phase_us + k step_us
+
+
+    def __post_init__(self) -> None:
+        _check(self.name, np.isfinite(self.step_us) and self.step_us >= 1,
+               "step_us must be finite and >= 1", self.step_us)
+        _check(self.name, self.scheme in ("spread", "end"), "scheme must be 'spread' or 'end'",
+               self.scheme)
+        _check(self.name, np.isfinite(self.phase_us), "phase_us must be finite", self.phase_us)
+
+
+def quantise_timestamps(t_us: np.ndarray, pix: np.ndarray, q: TimestampQuantisation,
+                        t0_us: int) -> np.ndarray:
+    """The times of events ``(t_us, pix)`` (sorted by time) under ``q``, integer us (steps end
+    at ``t0_us + q.phase_us + k q.step_us``); the order
+    of the events is kept (the result is sorted again by the caller where it needs to be)."""
+    t = np.asarray(t_us, np.int64)
+    n = t.size
+    if n == 0:
+        empty: np.ndarray = t.copy()
+        return empty
+    step = float(q.step_us)
+    origin = t0_us + float(q.phase_us) % step - step  # a grid point at or before t0
+    # a step is (start, end]: an event exactly at a step's end belongs to that step
+    k = np.maximum(np.ceil((t - origin) / step).astype(np.int64) - 1, 0)
+    start = origin + k * step
+    if q.scheme == "end":
+        ends: np.ndarray = np.rint(start + step).astype(np.int64)
+        return ends
+    order = np.lexsort((t, pix, k))
+    ks, ps = k[order], np.asarray(pix)[order]
+    new = np.ones(n, bool)
+    new[1:] = (ks[1:] != ks[:-1]) | (ps[1:] != ps[:-1])
+    starts = np.flatnonzero(new)
+    gid = np.cumsum(new) - 1
+    rank = np.arange(n) - starts[gid]  # 0-based rank of the event in its pixel's step
+    size = np.diff(np.append(starts, n))[gid]
+    kmin = int(ks.min())
+    n_max = np.zeros(int(ks.max()) - kmin + 1, np.int64)
+    np.maximum.at(n_max, ks - kmin, size)
+    out = np.empty(n, np.int64)
+    out[order] = np.rint(start[order] + step * (rank + 1) / n_max[ks - kmin]).astype(np.int64)
+    return out
+
+
+@dataclass(frozen=True, kw_only=True)
 class ApsConfig:
     """APS frame model: exposure (motion blur), read noise, 8-bit quantisation.
 
@@ -229,7 +287,7 @@ class ApsConfig:
 EFFECTS: dict[str, type[Effect]] = {
     cls.name: cls
     for cls in (Refractory, Leak, ShotNoise, Bandwidth, ThresholdNoise, HotPixels, LogOffset,
-                TimestampJitter)
+                TimestampJitter, TimestampQuantisation)
 }
 EFFECT_NAMES: tuple[str, ...] = tuple(EFFECTS)
 

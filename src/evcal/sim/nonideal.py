@@ -39,8 +39,10 @@ from .effects import (
     ShotNoise,
     ThresholdNoise,
     TimestampJitter,
+    TimestampQuantisation,
     describe,
     effect_set,
+    quantise_timestamps,
 )
 from .ideal import SimConfig, SimResult, draw_maps, frame_times_us, internal_times_us
 from .kernel import fill_events, run_steps
@@ -268,6 +270,11 @@ def simulate(
 
     if t_origin_us:
         t_int = t_int + int(t_origin_us)
+    tq = eff.get(TimestampQuantisation.name)
+    if isinstance(tq, TimestampQuantisation):
+        t_int = quantise_timestamps(t_int, pix, tq, int(times[0]) + int(t_origin_us))
+        order = np.argsort(t_int, kind="stable")
+        t_int, pix, pol, lab = t_int[order], pix[order], pol[order], lab[order]
     jit = eff.get(TimestampJitter.name)
     if isinstance(jit, TimestampJitter) and (jit.sigma_us > 0 or jit.quantum_us > 1):
         if jit.sigma_us > 0:
