@@ -240,6 +240,7 @@ def evaluate(
     log_offset: float | None = None,
     di_contrast: float = DEFAULT_CONTRAST,
     adapt_events_per_image: bool = True,
+    fill_invalid: bool = True,
 ) -> EvaluationResult:
     """Reconstruct frames from events with ``cal`` and with DI; score both against the frames.
 
@@ -257,9 +258,21 @@ def evaluate(
     calibration that does not say, e.g. a uniform one or OffE's) :data:`FALLBACK_LOG_OFFSET`
     = 30 is used, and ``result.log_offset_note`` says so.
 
+    Pixels the calibration marks invalid carry its defaults (c = 0.1, b = 0), a marker rather
+    than an estimate: with ``fill_invalid`` they are integrated with the median ``c`` and
+    ``b`` of its valid pixels instead (``params["filled_invalid_pixels"]`` counts them).
+
     Raises :class:`EvaluationError` when the recording has no frames or no pair can be formed.
     """
     frames = rec.frames
+    n_filled = 0
+    if fill_invalid and cal.valid.any() and not cal.valid.all():
+        v = cal.valid
+        n_filled = int((~v).sum())
+        cal = cal.replace(
+            contrast=np.where(v, cal.contrast, np.median(cal.contrast[v])).astype(
+                cal.contrast.dtype),
+            bias=np.where(v, cal.bias, np.median(cal.bias[v])).astype(cal.bias.dtype))
     if cal.shape != rec.sensor.shape:
         h, w = cal.shape
         raise EvaluationError(f"calibration is {w}x{h}, the recording's sensor is {rec.sensor}")
@@ -327,6 +340,7 @@ def evaluate(
             "di_contrast": di_contrast,
             "method": cal.method,
             "events_per_image_note": adapted,
+            "filled_invalid_pixels": n_filled,
         },
     )
 
