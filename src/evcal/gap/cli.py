@@ -29,6 +29,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sensor", default=None, help="WxH, for recordings that do not store it")
     p.add_argument("--candidates", default=",".join(EFFECT_NAMES),
                    help="comma-separated effects to try")
+    p.add_argument("--interpolation", choices=("flow", "linear"), default="flow",
+                   help="latent intensity between frames: motion-compensated (flow, default) "
+                        "or a linear blend")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     p.add_argument("--no-rrd", action="store_true", help="skip gap.rrd")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -46,6 +49,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         cands = tuple(c.strip() for c in args.candidates.split(",") if c.strip())
         cfg = GapConfig(max_effects=args.max_effects, seed=args.seed, n_seeds=args.n_seeds,
+                        interpolation=args.interpolation,
                         internal_rate_hz=args.internal_rate_hz, candidates=cands)
         sensor = SensorSize.parse(args.sensor) if args.sensor else None
     except ValueError as exc:
