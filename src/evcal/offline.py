@@ -185,7 +185,8 @@ def _unexplained_fraction(sp: np.ndarray, se: np.ndarray, dl: np.ndarray, w: np.
                           np.where(ok[:, None], aty, 0.0)[..., None])[..., 0]
     rss = yy - (sol * aty).sum(-1)
     frac = np.where(ok, np.maximum(rss, 0.0) / np.where(ok, yy, 1.0), np.nan)
-    return float(np.nanmean(frac))
+    finite = frac[np.isfinite(frac)]
+    return float(finite.mean()) if finite.size else float("nan")
 
 
 def estimate_log_offset(rec: Recording, cfg: OffEIConfig) -> tuple[float, dict[str, Any]]:
@@ -251,6 +252,14 @@ def offset_from_windows(sp_a: np.ndarray, se_a: np.ndarray, dq_a: np.ndarray,
     # 0 is a candidate of its own (frames in DN whose log the sensor sees, as v2e's); it is
     # off the log-spaced grid, so it wins only by beating the grid's best outright
     crit_zero = crit(0.0)
+    if not np.isfinite(vals).any() and not np.isfinite(crit_zero):
+        raise CalibrationError(
+            "the log offset cannot be estimated: no window has both a usable change of the "
+            f"frames and events to explain it ({int((w > 0).sum())} usable windows)")
+    if not np.isfinite(vals).any():
+        return 0.0, {"method": "auto", "windows": int(sp_a.shape[0]),
+                     "criterion_at_zero": round(float(crit_zero), 6),
+                     "note": "only offset 0 gives a finite criterion"}
     i = int(np.nanargmin(vals))
     best = float(grid[i])
     if 0 < i < len(grid) - 1:

@@ -574,7 +574,11 @@ class OnlineCalibrator:
         sat = self.config.saturation_dn
         ok = usable(img, sat)
         w = (ok[ks] & ok[ks - d]).astype(np.float64)
-        o, info = offset_from_windows(sp, se, last[ks] - last[ks - d], img[ks - d], img[ks], w)
+        try:
+            o, info = offset_from_windows(sp, se, last[ks] - last[ks - d], img[ks - d], img[ks],
+                                          w)
+        except CalibrationError:  # nothing to judge by yet (a still scene): ask again later
+            return None
         info.update(pixels=int(pix.size), window_frames=int(d), source="OnEI buffer")
         return o, info
 
