@@ -186,7 +186,10 @@ class _Runner:
                 gaps.append(best.gap)
                 evals.append((eff, best))
                 continue
-            e = eff.with_params(**{key: _cast(eff, key, v0 * f)})
+            try:
+                e = eff.with_params(**{key: _cast(eff, key, v0 * f)})
+            except ValueError:  # outside the parameter's range (e.g. sigma above 1)
+                return eff, best  # no three-point search: the moment estimate stands
             ev = self.evaluate(self.candidate_model(current, e), f"refine {eff.name}")
             gaps.append(ev.gap)
             evals.append((e, ev))
