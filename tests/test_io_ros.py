@@ -94,6 +94,12 @@ def test_shared_bag_through_evcal_info(shared_bag: Path, capsys: pytest.CaptureF
     assert info["n_events"] == SHARED_N
     assert info["t_first_us"] == SHARED_FIRST_US
     assert info["n_frames"] == 0
+    assert main(["info", str(shared_bag), "--json", "--events-topic",
+                 "/event_camera/events"]) == 0
+    assert json.loads(capsys.readouterr().out)["n_events"] == SHARED_N
+    assert main(["info", str(shared_bag), "--events-topic", "/nope"]) == 1
+    err = capsys.readouterr().err
+    assert "no topic '/nope'" in err and "/event_camera/events" in err
 
 
 def test_shared_bag_topic_option(shared_bag: Path) -> None:

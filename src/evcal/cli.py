@@ -39,10 +39,12 @@ def _sensor_arg(text: str | None) -> SensorSize | None:
         raise CliError(str(exc)) from None
 
 
-def _open(path: str, sensor: str | None = None):
+def _open(path: str, sensor: str | None = None, args: argparse.Namespace | None = None):
     from .io import open_recording  # noqa: PLC0415
 
-    return open_recording(path, sensor=_sensor_arg(sensor))
+    return open_recording(path, sensor=_sensor_arg(sensor),
+                          events_topic=getattr(args, "events_topic", None),
+                          frames_topic=getattr(args, "frames_topic", None))
 
 
 def _offset_arg(text: str) -> float | str:
@@ -72,7 +74,7 @@ def _positive_int(text: str) -> int:
 
 
 def cmd_info(args: argparse.Namespace) -> int:
-    rec = _open(args.recording, args.sensor_size)
+    rec = _open(args.recording, args.sensor_size, args)
     n = rec.n_events
     dur = rec.duration_s
     info: dict[str, Any] = {
@@ -106,7 +108,7 @@ def cmd_info(args: argparse.Namespace) -> int:
 def cmd_calibrate(args: argparse.Namespace) -> int:
     from .io import save_calibration, write_csv  # noqa: PLC0415
 
-    rec = _open(args.recording, args.sensor_size)
+    rec = _open(args.recording, args.sensor_size, args)
     from .estimators import calibrate  # noqa: PLC0415
 
     if args.model is not None:
@@ -163,7 +165,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     from .io import load_calibration  # noqa: PLC0415
     from .reconstruct import evaluate  # noqa: PLC0415
 
-    rec = _open(args.recording, args.sensor_size)
+    rec = _open(args.recording, args.sensor_size, args)
     cal = load_calibration(args.calibration)
     if cal.shape != rec.sensor.shape:
         raise CliError(f"calibration is {cal.shape[1]}x{cal.shape[0]}, the recording's sensor "
@@ -281,8 +283,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     def common(sp: argparse.ArgumentParser, recording: bool = True) -> None:
         if recording:
-            sp.add_argument("recording", help="ECD folder, .aedat4, .mcap or .npz")
+            sp.add_argument("recording", help="ECD folder, .aedat4, .mcap, .npz or a ROS 1/2 "
+                                              "bag (docs/FORMATS.md)")
             sp.add_argument("--sensor-size", metavar="WxH", help="sensor size, e.g. 240x180")
+            sp.add_argument("--events-topic", metavar="TOPIC", default=None,
+                            help="a bag's event topic, when it holds several")
+            sp.add_argument("--frames-topic", metavar="TOPIC", default=None,
+                            help="a bag's image topic, when it holds several")
         sp.add_argument("--quiet", action="store_true", help="no progress bar")
 
     sp = sub.add_parser("info", help="sensor size, duration, counts and event rate")
