@@ -269,3 +269,19 @@ def test_evaluate_errors(sim: SimResult) -> None:
         evaluate(rec, Calibration.uniform((2, 3)), frames_per_image=1)
     with pytest.raises(ValueError, match="log_offset=-1.0 must be"):
         evaluate(rec, cal, frames_per_image=1, log_offset=-1.0)
+
+
+def test_invalid_pixels_are_integrated_with_the_valid_median() -> None:
+    from evcal.calibration import Calibration  # noqa: PLC0415
+
+    cal = Calibration.uniform((2, 3), 0.1, 0.0, log_offset=0.0)
+    c = np.array([[0.2, 0.3, 0.1], [0.25, 0.1, 0.1]], np.float32)
+    b = np.array([[0.01, 0.03, 0.0], [0.02, 0.0, 0.0]], np.float32)
+    valid = np.array([[True, True, False], [True, False, False]])
+    cal = cal.replace(contrast=c, bias=b, valid=valid)
+    filled = cal.with_invalid_filled()
+    np.testing.assert_allclose(filled.contrast, [[0.2, 0.3, 0.25], [0.25, 0.25, 0.25]])
+    np.testing.assert_allclose(filled.bias, [[0.01, 0.03, 0.02], [0.02, 0.02, 0.02]])
+    assert filled.contrast.dtype == np.float32
+    assert cal.replace(valid=np.ones((2, 3), bool)).with_invalid_filled().contrast is c
+    assert cal.replace(valid=np.zeros((2, 3), bool)).with_invalid_filled().contrast is c

@@ -374,6 +374,20 @@ class Calibration:
     def replace(self, **changes: Any) -> Calibration:
         return replace(self, **changes)
 
+    def with_invalid_filled(self) -> Calibration:
+        """The same maps with each invalid pixel's ``c``, ``b`` (the defaults, a marker rather
+        than an estimate) replaced by the median of the valid pixels: what to integrate events
+        with where the calibration has no estimate. Unchanged when no pixel or every pixel is
+        valid."""
+        v = self.valid
+        if not v.any() or v.all():
+            return self
+        return replace(
+            self,
+            contrast=np.where(v, self.contrast, np.median(self.contrast[v])).astype(
+                self.contrast.dtype),
+            bias=np.where(v, self.bias, np.median(self.bias[v])).astype(self.bias.dtype))
+
     def with_warning(self, text: str) -> Calibration:
         """The same calibration with one more warning in its diagnostics."""
         return replace(self, diagnostics=self.diagnostics.with_warning(text))

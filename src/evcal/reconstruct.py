@@ -266,13 +266,10 @@ def evaluate(
     """
     frames = rec.frames
     n_filled = 0
-    if fill_invalid and cal.valid.any() and not cal.valid.all():
-        v = cal.valid
-        n_filled = int((~v).sum())
-        cal = cal.replace(
-            contrast=np.where(v, cal.contrast, np.median(cal.contrast[v])).astype(
-                cal.contrast.dtype),
-            bias=np.where(v, cal.bias, np.median(cal.bias[v])).astype(cal.bias.dtype))
+    if fill_invalid:
+        filled = cal.with_invalid_filled()
+        n_filled = 0 if filled is cal else int((~cal.valid).sum())
+        cal = filled
     if cal.shape != rec.sensor.shape:
         h, w = cal.shape
         raise EvaluationError(f"calibration is {w}x{h}, the recording's sensor is {rec.sensor}")
@@ -450,7 +447,7 @@ class StreamingEvaluator:
         sp, se = _sums(ev, *self.shape)
         di = Calibration.uniform(self.shape, self.di_contrast, 0.0, log_offset=cal.log_offset)
         out = {}
-        for name, c in (("calibrated", cal), ("di", di)):
+        for name, c in (("calibrated", cal.with_invalid_filled()), ("di", di)):
             L = start + c.contrast.astype(np.float64) * sp + c.bias.astype(np.float64) * se  # noqa: N806
             out[name] = to_intensity(L, cal.log_offset)
         return Reconstruction(t0, t_us, int(ev.size), out["calibrated"], out["di"], ref,

@@ -30,7 +30,7 @@ from __future__ import annotations
 import json
 import os
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -126,14 +126,10 @@ def _cell_medians(values: np.ndarray, ok: np.ndarray, cells: np.ndarray, coarse:
 
 
 def _covariates(rec: Recording, cal: Calibration) -> tuple[np.ndarray, np.ndarray]:
-    """Per pixel: event count (between the first and last frame) and median log intensity."""
-    h, w = rec.sensor.shape
+    """Per pixel: the events OffEI used (between the first and the last frame) and the median
+    log intensity."""
     fr = rec.frames
-    ev = rec.events
-    t0, t1 = int(fr.t_us[0]), int(fr.t_us[-1])
-    lo, hi = np.searchsorted(ev["t_us"], [t0, t1], side="left")
-    e = ev[lo:hi]
-    count = np.bincount(e["y"].astype(np.int64) * w + e["x"], minlength=h * w).astype(np.float64)
+    count = cal.n_events.astype(np.float64).ravel()
     off = cal.log_offset if np.isfinite(cal.log_offset) else 1.0
     light = np.median(np.log(fr.images.reshape(len(fr), -1).astype(np.float64) + max(off, 0.5)),
                       axis=0)
@@ -153,12 +149,12 @@ def model_corrected(rec: Recording, effects: Mapping[str, Effect] | list[Effect]
     base_cfg = offei_config or OffEIConfig()
     lo = eff.get(LogOffset.name)
     if isinstance(lo, LogOffset):
-        base_cfg = OffEIConfig(**{**base_cfg.__dict__, "log_offset": float(lo.dark_dn)})
+        base_cfg = replace(base_cfg, log_offset=float(lo.dark_dn))
     cal_m = offei(rec, base_cfg)
     if not eff:
         return cal_m.with_warning("model has no effects: nothing to correct")
     offset = float(cal_m.log_offset)
-    sim_cfg = OffEIConfig(**{**base_cfg.__dict__, "log_offset": offset})
+    sim_cfg = replace(base_cfg, log_offset=offset)
     settings = SimSettings(internal_rate_hz=cfg.internal_rate_hz,
                            read_noise_dn=estimate_read_noise(rec.frames),
                            interpolation=cfg.interpolation)

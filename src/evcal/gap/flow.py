@@ -161,21 +161,13 @@ class FlowInterpolator(FrameInterpolator):
     def render_block(self, t_s: np.ndarray | list[float], out: np.ndarray | None = None
                      ) -> np.ndarray:
         ts = np.asarray(t_s, np.float64).reshape(-1)
-        tr = self._t_rel_s
-        shape = (ts.size, *self.images.shape[1:])
-        if out is None:
-            out = np.empty(shape, np.float32)
-        elif out.shape != shape or out.dtype != np.float32 or not out.flags.c_contiguous:
-            raise ValueError(f"out has shape {out.shape} and dtype {out.dtype}; expected a "
-                             f"C-contiguous float32 array of shape {shape}")
-        for j, t in enumerate(ts):  # one warp per requested time, vectorised over pixels
-            if t <= tr[0]:
-                out[j] = self.images[0]
-            elif t >= tr[-1]:
-                out[j] = self.images[-1]
+        out = self._block_buffer(ts.size, out)
+        ks, ws = self._locate(ts)
+        for j in range(ts.size):  # one warp per requested time, vectorised over pixels
+            k, tau = int(ks[j]), float(ws[j])
+            if k < 0:
+                out[j] = self.images[0 if k == -1 else -1]
             else:
-                k = int(np.searchsorted(tr, t, side="right")) - 1
-                tau = float((t - tr[k]) / (tr[k + 1] - tr[k]))
                 out[j] = self.images[k] if tau <= 0 else self._between(k, tau)
         return out
 

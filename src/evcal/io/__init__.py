@@ -21,6 +21,7 @@ from pathlib import Path
 
 from ..events import SensorSize
 from ..recording import Recording, RecordingError
+from ._util import file_head
 from .aedat4 import read_aedat4
 from .calibfile import CalibrationFileError, load_calibration, save_calibration, write_csv
 from .ecd import read_ecd, write_ecd
@@ -79,10 +80,8 @@ def sniff(path: str | os.PathLike[str]) -> str | None:
         return ros
     if path.is_dir() or (path.is_file() and path.name in ("events.txt", "images.txt")):
         return "ecd"
-    try:
-        with open(path, "rb") as f:
-            head = f.read(16)
-    except OSError:
+    head = file_head(path)
+    if head is None:
         return None
     for magic, kind in _MAGICS:
         if head.startswith(magic):

@@ -13,6 +13,15 @@ from ..jsonable import dumps
 from ..recording import RecordingError
 
 
+def file_head(path: Path, n: int = 16) -> bytes | None:
+    """The first ``n`` bytes of a file (what content sniffing looks at); None if unreadable."""
+    try:
+        with open(path, "rb") as f:
+            return f.read(n)
+    except OSError:
+        return None
+
+
 def metadata_to_json(metadata: dict[str, Any]) -> str:
     """Serialise recording metadata; values JSON cannot hold become their ``repr``."""
     return dumps(metadata)

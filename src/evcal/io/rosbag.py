@@ -51,7 +51,7 @@ from ..errors import ErrorReason
 from ..events import EVENTS_DTYPE, SensorSize
 from ..recording import Frames, Recording, RecordingError
 from ._evcodecs import PacketDecoder, PayloadError, make_decoder
-from ._util import check_sensor_arg
+from ._util import check_sensor_arg, file_head
 
 if TYPE_CHECKING:
     from rosbags.interfaces import Connection
@@ -152,10 +152,8 @@ def is_rosbag(path: str | os.PathLike[str]) -> str | None:
         return "rosbag2" if (path / "metadata.yaml").is_file() else None
     if path.name == "metadata.yaml":
         return "rosbag2"
-    try:
-        with open(path, "rb") as f:
-            head = f.read(16)
-    except OSError:
+    head = file_head(path)
+    if head is None:
         return None
     if head.startswith(ROS1_MAGIC):
         return "rosbag1"

@@ -170,22 +170,32 @@ class FrameInterpolator:
         """The source at each of the times ``t_s``: float32 ``[K, H, W]``, the same floats as
         calling it at each time (into ``out`` when given)."""
         ts = np.asarray(t_s, np.float64).reshape(-1)
-        tr = self._t_rel_s
-        shape = (ts.size, *self.images.shape[1:])
+        out = self._block_buffer(ts.size, out)
+        k, w = self._locate(ts)
+        _lerp_frames(self.images, k, w, out)
+        return out
+
+    def _block_buffer(self, n: int, out: np.ndarray | None) -> np.ndarray:
+        """``out`` checked to hold ``n`` frames (C-contiguous float32), or a new one."""
+        shape = (n, *self.images.shape[1:])
         if out is None:
-            out = np.empty(shape, np.float32)
-        elif out.shape != shape or out.dtype != np.float32 or not out.flags.c_contiguous:
+            return np.empty(shape, np.float32)
+        if out.shape != shape or out.dtype != np.float32 or not out.flags.c_contiguous:
             raise ValueError(f"out has shape {out.shape} and dtype {out.dtype}; expected a "
                              f"C-contiguous float32 array of shape {shape}")
-        # k = -1: the first frame, k = -2: the last, else between frames k and k + 1
+        return out
+
+    def _locate(self, ts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """For each time: ``k`` (-1 before the first frame, -2 after the last, else between
+        frames ``k`` and ``k + 1``) and the float32 fraction ``w`` of the way to ``k + 1``."""
+        tr = self._t_rel_s
         k = np.searchsorted(tr, ts, side="right") - 1
         k = np.where(ts <= tr[0], -1, np.where(ts >= tr[-1], -2, k))
         kk = np.clip(k, 0, max(tr.size - 2, 0))
         nxt = np.minimum(kk + 1, tr.size - 1)
         with np.errstate(invalid="ignore", divide="ignore"):
             w = ((ts - tr[kk]) / (tr[nxt] - tr[kk])).astype(np.float32)
-        _lerp_frames(self.images, k, w, out)
-        return out
+        return k, w
 
 
 @numba.njit(cache=True, nogil=True)
