@@ -35,7 +35,7 @@ from evcal.sim.ideal import SimConfig, simulate_ideal  # noqa: E402
 pytestmark = pytest.mark.timeout(240)
 
 N_SMALL, N_LARGE = 15_000, 10_000_000  # n_small near the paper's, scaled to 64x48
-ONEI = OnEIConfig(n_small=N_SMALL, n_large=N_LARGE)
+ONEI = OnEIConfig(n_small=N_SMALL, n_large=N_LARGE, window_frames=5)  # the service's windows
 ZARGS = ["--no-multicast-scouting"]
 
 

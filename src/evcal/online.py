@@ -116,9 +116,10 @@ _SCALARS: dict[str, tuple[str, Any]] = {
     "base": ("_base", int), "next_open": ("_next_open", int),
     "cum_events": ("_cum_events", int), "removals": ("_removals", int),
     "since_resolve": ("_since_resolve", int), "frame_cap": ("_frame_cap", _opt_int),
-    "log_offset": ("log_offset", float), "next_offset_check": ("_next_offset_check", int)}
+    "log_offset": ("log_offset", float), "next_offset_check": ("_next_offset_check", int),
+    "holds_all": ("_holds_all", bool)}
 # absent from the states of earlier versions
-_OPTIONAL_SCALARS = frozenset({"n_sessions", "log_offset", "next_offset_check"})
+_OPTIONAL_SCALARS = frozenset({"n_sessions", "log_offset", "next_offset_check", "holds_all"})
 _VALID = int(Reason.VALID)
 PENDING_SLOTS = 6  # equations queued before they are added to the normal equations
 _OPEN, _DROP = 0, 1  # the two sliding sums: the small buffer closing next, the one leaving
@@ -209,6 +210,7 @@ class OnEIConfig:
 
     n_small: int | None = None
     n_large: int | None = None
+    window_frames: int | None = None
     smoothing: float = 0.1
     log_offset: float | str = 30.0  # DN, or "auto": estimated online from the buffer
     residual_correction: str | float = "auto"
@@ -227,7 +229,7 @@ class OnEIConfig:
         if not (lo == "auto" or (isinstance(lo, (int, float)) and not isinstance(lo, bool)
                                  and lo >= 0)):
             raise ConfigError(f"log_offset={lo!r} must be 'auto' or a number >= 0 (DN)")
-        for name in ("n_small", "n_large", "max_buffer_frames"):
+        for name in ("n_small", "n_large", "max_buffer_frames", "window_frames"):
             v = getattr(self, name)
             if v is not None and v < 1:
                 raise ConfigError(f"{name}={v} must be >= 1")
@@ -333,6 +335,9 @@ class OnlineCalibrator:
         self.n_folded_late = 0  # events folded without their frame (pending overflow)
         self.n_late_events = 0  # events that arrived after the frame that ends their interval
         self.n_sessions = 0  # discontinuities of the stream's time base (new_session)
+        # the large buffer still holds every event of the stream: a new solution then holds
+        # all the evidence of the earlier ones and replaces the estimate (see _resolve)
+        self._holds_all = True
         self._guard = StreamGuard(sensor)  # time order of this calibrator's input
 
     def _reset_buffer(self) -> None:
@@ -380,6 +385,7 @@ class OnlineCalibrator:
         self._reset_buffer()
         self._guard = StreamGuard(self.sensor)
         self.n_sessions += 1
+        self._holds_all = False
 
     @property
     def last_event_t_us(self) -> int | None:
@@ -514,12 +520,16 @@ class OnlineCalibrator:
     # -- the log offset, online ----------------------------------------------------------------
 
     AUTO_WINDOW = 5  # frame intervals per window of the offset criterion (OffEI's default d)
+    # OffEI's grid (1..400 DN, 21 points) extended down to 0.1 DN at the same spacing
+    OFFSET_GRID = (0.1, 400.0, 30)
 
     def _check_offset(self) -> None:
         """Estimate the offset from the buffer (``log_offset="auto"``): first once it holds
-        ``2 d + 1`` frames, then again after 4x, 16x, ... as many frames; a changed estimate
-        (by more than 10 % in ``log(1 + o)``) rebuilds the equations from the buffer's raw
-        frames (the smoothed estimate goes on from there)."""
+        ``2 d + 1`` frames, then again after 4x, 16x, ... as many frames. A changed
+        estimate (by more than 10 % in ``log(1 + o)``) rebuilds the equations from the
+        buffer's raw frames and restarts the smoothed estimate: the solutions folded so far
+        were fitted to log changes at the wrong offset, and averaging them with the new ones
+        would keep their bias for ``1 / smoothing`` re-solves."""
         first = math.isnan(self.log_offset)
         if first and len(self._frames) < 2 * self.AUTO_WINDOW + 1:
             return
@@ -530,7 +540,8 @@ class OnlineCalibrator:
             return
         o, info = found
         self._next_offset_check = self.n_frames * 4
-        info.update(frames_seen=self.n_frames, previous=None if first else self.log_offset)
+        info.update(frames_seen=self.n_frames, previous=None if first else self.log_offset,
+                    estimate=o)
         self.offset_info = info
         if first:
             self.log_offset = o
@@ -538,6 +549,10 @@ class OnlineCalibrator:
         elif abs(math.log1p(o) - math.log1p(self.log_offset)) > 0.1:
             self.log_offset = o
             self._rebuild()
+            self.estimate = LowPassEstimate(self.sensor.n_pixels)
+            self._resolve()  # at once, from the rebuilt buffer
+            self._since_resolve = 0
+            info["estimate_restarted"] = True
 
     def _offset_from_buffer(self) -> tuple[float, dict[str, Any]] | None:
         """The criterion of ``--log-offset auto`` on the frames and interval counts the large
@@ -576,7 +591,7 @@ class OnlineCalibrator:
         w = (ok[ks] & ok[ks - d]).astype(np.float64)
         try:
             o, info = offset_from_windows(sp, se, last[ks] - last[ks - d], img[ks - d], img[ks],
-                                          w)
+                                          w, offset_grid=self.OFFSET_GRID)
         except CalibrationError:  # nothing to judge by yet (a still scene): ask again later
             return None
         info.update(pixels=int(pix.size), window_frames=int(d), source="OnEI buffer")
@@ -605,7 +620,8 @@ class OnlineCalibrator:
             if not fj.opens:
                 self._next_open += 1
                 continue
-            if newest.cum_events - fj.cum_events < self.n_small:
+            wf = self.config.window_frames
+            if (k - j < wf) if wf else (newest.cum_events - fj.cum_events < self.n_small):
                 break
             fj.closes_at = k
             self._queue(j, k, +1.0, _OPEN)
@@ -640,6 +656,7 @@ class OnlineCalibrator:
                     rng[0], rng[1] = base + 1, max(rng[1], base + 1)
             self._frames.popleft()
             self._base += 1
+            self._holds_all = False
             second.forget_interval()
             self._next_open = max(self._next_open, self._base)
 
@@ -781,6 +798,11 @@ class OnlineCalibrator:
         # the number of small buffers each event lies in
         overlap = max(1.0, self.n_equations * self.n_small / max(self.buffer_events, 1))
         smoothing = float(cfg.smoothing)
+        if self._holds_all:
+            # every solution so far came from a subset of the buffer this one is solved
+            # from: it replaces them (averaging in the early, short-buffer solutions with
+            # equal weights would only add their noise)
+            est.n_solved[:] = 0
         for b in range(self._n_blocks):
             s = b * BLOCK
             e = min(s + BLOCK, n)

@@ -10,6 +10,7 @@ import sys
 import threading
 from collections.abc import Sequence
 
+from ..errors import ConfigError
 from ..online import OnEIConfig
 from .core import ON_FULL, ServiceConfig
 from .signing import SignatureError
@@ -62,7 +63,12 @@ def build_parser(prog: str = "evcal serve") -> argparse.ArgumentParser:
                    help="events per equation (default: scaled with the sensor)")
     g.add_argument("--n-large", type=int, default=None,
                    help="events in the sliding buffer (default: scaled with the sensor)")
-    g.add_argument("--smoothing", type=float, default=None)
+    g.add_argument("--smoothing", type=float, default=None,
+                   help="weight of each new solution in the low-pass estimate (default 0.1)")
+    g.add_argument("--window-frames", type=int, default=5,
+                   help="frame intervals each equation spans, as OffEI's --window-frames "
+                        "(default 5); 0 closes them by event count (n_small), as the OnEI "
+                        "paper does")
     g.add_argument("--log-offset", type=_offset_arg, default="auto",
                    help="offset of log(I + offset) in frame units (DN), or 'auto' (default): "
                         "estimated per camera from its first frames and events with the "
@@ -88,6 +94,9 @@ def config_from_args(args: argparse.Namespace) -> ServiceConfig:
     check_key(f"{args.prefix.strip('/')}/{args.cameras}", "--prefix/--cameras")
     onei = {k: getattr(args, k) for k in ("n_small", "n_large", "smoothing", "log_offset")
             if getattr(args, k) is not None}
+    if args.window_frames < 0:
+        raise ConfigError(f"--window-frames {args.window_frames} must be >= 0")
+    onei["window_frames"] = args.window_frames or None
     return ServiceConfig(
         prefix=args.prefix, cameras=args.cameras, instance=args.instance,
         queue_bytes=int(args.queue_mb * (1 << 20)), on_full=args.on_full,

@@ -97,8 +97,12 @@ class ServiceConfig:
     # a camera none of whose messages was ever accepted is dropped after this long idle, and
     # at once when a new camera needs its slot (junk ids cannot lock real cameras out)
     probation_s: float = 10.0
-    # the service estimates each camera's log offset unless told (OnEI's own default is 30)
-    onei: OnEIConfig = field(default_factory=lambda: OnEIConfig(log_offset="auto"))
+    # the service estimates each camera's log offset unless told (OnEI's own default is 30),
+    # and its equations span 5 frame intervals, as OffEI's (OnEI's own default closes them by
+    # event count, which ends them in bursts of motion: 1.1-1.5x OffEI's c error on common
+    # pixels of v2e recordings with frame windows, 1.5-2.1x with event-count ones)
+    onei: OnEIConfig = field(default_factory=lambda: OnEIConfig(log_offset="auto",
+                                                                window_frames=5))
 
     def __post_init__(self) -> None:
         if self.on_full not in ON_FULL:
