@@ -123,3 +123,23 @@ def test_real_davis346_end_to_end(shared_data, tmp_path, capsys):
     cal = load_calibration(tmp_path / "offei.npz")
     assert 20 < cal.log_offset < 200  # DAVIS frames: the paper hand-tuned 40-100
     assert summary["calibrated"]["rmse"] <= summary["di"]["rmse"]
+
+
+def test_gap_says_which_extra_is_missing_before_it_runs(small_sim, tmp_path, capsys,
+                                                        monkeypatch):
+    """On an install without the ``gap`` extra, ``evcal gap`` names the missing modules and
+    the extra at once (it used to fail with ``No module named 'matplotlib'`` after the
+    workflow, when writing its plots)."""
+    import importlib.util
+
+    real = importlib.util.find_spec
+
+    def find_spec(name, *args, **kwargs):
+        return None if name in ("matplotlib", "cv2") else real(name, *args, **kwargs)
+
+    monkeypatch.setattr(importlib.util, "find_spec", find_spec)
+    assert main(["gap", str(small_sim), "--out", str(tmp_path / "g")]) == 1
+    err = capsys.readouterr().err
+    assert "cv2 (opencv-python-headless), matplotlib missing" in err
+    assert "pip install 'evcal[gap]'" in err
+    assert not (tmp_path / "g").exists()

@@ -260,7 +260,7 @@ def _delegate(module: str, func: str = "main", extra: str = "service"
 
 
 DELEGATED: dict[str, tuple[Callable[[list[str]], int], str]] = {
-    "gap": (_delegate("evcal.gap.cli", extra="service"),
+    "gap": (_delegate("evcal.gap.cli", extra="gap"),
             "find and name the effects a recording shows that the model lacks"),
     "serve": (_delegate("evcal.service.cli", "main_serve"), "run the live calibration service"),
     "replay": (_delegate("evcal.clients.replay"), "publish a recording onto Zenoh"),

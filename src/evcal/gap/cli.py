@@ -55,6 +55,12 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f"evcal gap: {exc}", file=sys.stderr)
         return 2
+    missing = _missing_modules(flow=args.interpolation == "flow", plots=not args.no_plots,
+                               rrd=not args.no_rrd)
+    if missing:
+        print(f"evcal gap: {', '.join(missing)} missing: pip install 'evcal[gap]' (or pass "
+              "--interpolation linear, --no-plots, --no-rrd)", file=sys.stderr)
+        return 1
     try:
         rec = open_recording(args.recording, sensor=sensor)
     except RecordingError as exc:
@@ -82,6 +88,17 @@ def run(args: argparse.Namespace) -> int:
     print(f"named effects: {named}")
     print(f"gap {result.initial.gap:.2f} -> {result.final.gap:.2f}; report in {paths['markdown']}")
     return 0
+
+
+def _missing_modules(*, flow: bool, plots: bool, rrd: bool) -> list[str]:
+    """The optional modules (the ``gap`` extra) this run needs and cannot import: checked
+    before the hour-long workflow, not when its report is written."""
+    import importlib.util  # noqa: PLC0415
+
+    needed = [("cv2 (opencv-python-headless)", "cv2", flow),
+              ("matplotlib", "matplotlib", plots), ("rerun (rerun-sdk)", "rerun", rrd)]
+    return [label for label, mod, used in needed
+            if used and importlib.util.find_spec(mod) is None]
 
 
 def main(argv: Sequence[str] | None = None) -> int:
