@@ -213,8 +213,8 @@ def test_open_recording_errors(tmp_path: Path) -> None:
     with pytest.raises(RecordingError, match=r"unknown recording format .* suffix '\.h5'.* "
                                              r"evcal reads .*AEDAT4"):
         open_recording(tmp_path / "x.h5")
-    (tmp_path / "old.aedat").write_bytes(b"#!AER-DAT2.0\r\n")
-    with pytest.raises(RecordingError, match="another version than 4.0"):
+    (tmp_path / "old.aedat").write_bytes(b"#!AER-DAT3.0\r\n")
+    with pytest.raises(RecordingError, match="another version than 2.0, 3.1 or 4.0"):
         open_recording(tmp_path / "old.aedat")
     (tmp_path / "empty").mkdir()
     with pytest.raises(RecordingError, match="no events.txt or images.txt"):
