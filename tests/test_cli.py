@@ -143,3 +143,37 @@ def test_gap_says_which_extra_is_missing_before_it_runs(small_sim, tmp_path, cap
     assert "cv2 (opencv-python-headless), matplotlib missing" in err
     assert "pip install 'evcal[gap]'" in err
     assert not (tmp_path / "g").exists()
+
+
+def test_calibrate_and_evaluate_json_on_stdout(small_sim, tmp_path, capsys):
+    """--json with no file prints JSON instead of the table (machine-readable stdout);
+    with a file it writes it beside the table."""
+    cal_path = tmp_path / "cal.npz"
+    assert main(["calibrate", str(small_sim), "--out", str(cal_path), "--json", "-q"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["method"] == "offei"
+    assert out["sensor"] == "64x48"
+    assert out["log_offset_estimated"] is True
+    assert 0.5 < out["summary"]["valid_fraction"] <= 1.0
+    assert out["diagnostics"]["window_frames"] == 5
+    assert main(["evaluate", str(small_sim), "--calibration", str(cal_path),
+                 "--frames-per-image", "5", "--json"]) == 0
+    scores = json.loads(capsys.readouterr().out)
+    assert scores["calibrated"]["psnr"] > scores["di"]["psnr"]
+    assert main(["evaluate", str(small_sim), "--calibration", str(cal_path),
+                 "--frames-per-image", "5", "--json", str(tmp_path / "s.json")]) == 0
+    assert "psnr" in capsys.readouterr().out
+    assert json.loads((tmp_path / "s.json").read_text())["n_images"] == scores["n_images"]
+
+
+def test_every_option_of_the_core_commands_has_help():
+    from evcal.cli import build_parser
+
+    parser = build_parser()
+    sub = next(a for a in parser._actions if a.dest == "command")
+    for name in ("info", "calibrate", "evaluate", "simulate", "bench"):
+        sp = sub.choices[name]
+        dests = {a.dest for a in sp._actions}
+        assert {"quiet", "verbose"} <= dests, name
+        for action in sp._actions:
+            assert action.help, f"evcal {name} {action.option_strings or action.dest}"

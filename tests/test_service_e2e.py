@@ -166,6 +166,31 @@ def test_query_selector_fields_and_errors(two_cameras, service):
     assert not bad[0].ok and json.loads(bad[0].payload)["reason"] == "bad_query"
 
 
+def test_environment_gives_the_endpoint_and_a_flag_wins(two_cameras, service, tmp_path):
+    """EVCAL_CONNECT stands in for --connect; a --connect on the command line wins over it;
+    a bad EVCAL_MODE is refused by name."""
+    from evcal.testing import python_env
+
+    def query_with(env_extra: dict, args: list[str], out: Path):
+        env = {**python_env(), **env_extra}
+        return subprocess.run(
+            [sys.executable, "-m", "evcal.clients.query", "--camera", "lab/rig1/cam0", *ZARGS,
+             "--out", str(out), "--timeout", "5", *args],
+            capture_output=True, text=True, timeout=120, env=env)
+
+    res = query_with({"EVCAL_CONNECT": service["ep"]}, [], tmp_path / "env.npz")
+    assert res.returncode == 0, res.stderr
+    assert load_calibration(tmp_path / "env.npz").shape == (48, 64)
+    unused = endpoint(free_port())
+    res = query_with({"EVCAL_CONNECT": unused}, ["--connect", service["ep"]],
+                     tmp_path / "flag.npz")
+    assert res.returncode == 0, res.stderr
+    res = query_with({"EVCAL_CONNECT": service["ep"], "EVCAL_MODE": "hub"}, [],
+                     tmp_path / "bad.npz")
+    assert res.returncode != 0
+    assert "EVCAL_MODE='hub'" in res.stderr
+
+
 def test_road_aedat4_through_replay_service_query(service, shared_data, tmp_path):
     path = shared_data / "davis346_road" / "road.aedat4"
     if not path.exists():

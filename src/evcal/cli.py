@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -17,6 +18,33 @@ import numpy as np
 
 from .estimators import ESTIMATORS
 from .events import SensorSize
+
+DESCRIPTION = """\
+evcal: per-pixel calibration of event cameras.
+
+An event pixel fires ON when its log intensity rose by c + b since its last event and OFF
+when it fell by c - b. evcal estimates the contrast threshold c and the bias b of every
+pixel from events and frames (offline or live), tells which pixels are hot, cold, warm or
+cool, and measures how much better event-integrated images get."""
+
+EPILOG = """\
+examples:
+  evcal info road.aedat4
+  evcal calibrate road.aedat4 --out cal.npz             # OffEI, log offset estimated
+  evcal evaluate road.aedat4 --calibration cal.npz      # reconstruction vs DI
+  evcal simulate --out sim.mcap --duration-s 5          # a camera with known c, b
+  evcal gap road.aedat4 --out gap/                      # what the sensor model lacks
+  evcal demo                                            # service + simulated camera
+  evcal serve --listen tcp/0.0.0.0:7447                 # the live calibration service
+
+environment:
+  EVCAL_CONNECT, EVCAL_LISTEN, EVCAL_ZENOH_CONFIG, EVCAL_MODE
+      defaults of --connect, --listen, --config and --mode of the service and clients
+      (serve, replay, query, record, forget); a flag on the command line wins
+
+exit codes: 0 success, 1 failure (a bad file, a failed calibration), 2 bad usage.
+Run 'evcal COMMAND -h' for a command's options; docs/ holds the formats, the service, the
+wire layout and the model-gap workflow."""
 
 
 class CliError(Exception):
@@ -44,7 +72,8 @@ def _open(path: str, sensor: str | None = None, args: argparse.Namespace | None 
 
     return open_recording(path, sensor=_sensor_arg(sensor),
                           events_topic=getattr(args, "events_topic", None),
-                          frames_topic=getattr(args, "frames_topic", None))
+                          frames_topic=getattr(args, "frames_topic", None),
+                          camera=getattr(args, "camera", None))
 
 
 def _offset_arg(text: str) -> float | str:
@@ -130,11 +159,20 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
                         window_frames=args.window_frames, n_small=args.n_small,
                         n_large=args.n_large, smoothing=args.smoothing)
     for warning in cal.warnings:
-        print(f"evcal calibrate: warning: {warning}", file=sys.stderr)
+        _note(args, "calibrate", f"warning: {warning}")
     save_calibration(cal, args.out)
     if args.csv:
         write_csv(cal, args.csv)
     s = cal.summary()
+    if args.json is not None:
+        _write_json(args.json, {
+            "recording": str(args.recording), "out": str(args.out), "method": cal.method,
+            "sensor": str(rec.sensor), "log_offset": cal.log_offset,
+            "log_offset_estimated": args.log_offset == "auto" and args.method != "offe",
+            "summary": s, "warnings": list(cal.warnings),
+            "diagnostics": cal.diagnostics.to_dict()})
+        if args.json == "-":
+            return 0
     print(f"method        {cal.method}")
     print(f"sensor        {rec.sensor}")
     print(f"log_offset    {cal.log_offset:.3f}"
@@ -175,7 +213,10 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     summary = res.summary()
     for note in (res.params.get("events_per_image_note"), res.log_offset_note):
         if note and note not in ("given", "from the calibration"):
-            print(f"evcal evaluate: note: {note}", file=sys.stderr)
+            _note(args, "evaluate", f"note: {note}")
+    if args.json == "-":
+        _write_json("-", summary)
+        return 0
     keys = ("rmse", "psnr", "ssim", "psnr_paper", "ssim_paper")
     print(f"images: {summary['n_images']}   (psnr, ssim: standard; *_paper: the reference "
           f"code's 20·log10(255²/MSE) and single-window SSIM)")
@@ -183,7 +224,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     for name in ("calibrated", "di"):
         print(f"{name:12}" + "".join(f"{summary[name][k]:>12.4f}" for k in keys))
     if args.json:
-        Path(args.json).write_text(json.dumps(summary, indent=2))
+        _write_json(args.json, summary)
     return 0
 
 
@@ -275,7 +316,8 @@ DELEGATED: dict[str, tuple[Callable[[list[str]], int], str]] = {
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="evcal", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="evcal", description=DESCRIPTION, epilog=EPILOG,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
     from . import __version__  # noqa: PLC0415
 
     p.add_argument("--version", action="version", version=f"evcal {__version__}")
@@ -283,14 +325,24 @@ def build_parser() -> argparse.ArgumentParser:
 
     def common(sp: argparse.ArgumentParser, recording: bool = True) -> None:
         if recording:
-            sp.add_argument("recording", help="ECD folder, .aedat4, .mcap, .npz or a ROS 1/2 "
-                                              "bag (docs/FORMATS.md)")
+            sp.add_argument("recording", help="an ECD folder, AEDAT 2.0/3.1/4, Prophesee RAW "
+                                              "(EVT 2/2.1/3) or DAT, HDF5 (MVSEC, DSEC, v2e), "
+                                              "a ROS 1/2 bag, evcal .mcap or .npz; detected "
+                                              "by content (docs/FORMATS.md)")
             sp.add_argument("--sensor-size", metavar="WxH", help="sensor size, e.g. 240x180")
             sp.add_argument("--events-topic", metavar="TOPIC", default=None,
                             help="a bag's event topic, when it holds several")
             sp.add_argument("--frames-topic", metavar="TOPIC", default=None,
                             help="a bag's image topic, when it holds several")
-        sp.add_argument("--quiet", action="store_true", help="no progress bar")
+            sp.add_argument("--camera", metavar="NAME", default=None,
+                            help="which camera of a stereo HDF5 file (MVSEC: left or right)")
+        verbosity(sp)
+
+    def verbosity(sp: argparse.ArgumentParser) -> None:
+        sp.add_argument("-q", "--quiet", action="store_true",
+                        help="no progress bars, notes or warnings on stderr (errors still)")
+        sp.add_argument("-v", "--verbose", action="count", default=0,
+                        help="log what is done on stderr (-vv: debug detail)")
 
     sp = sub.add_parser("info", help="sensor size, duration, counts and event rate")
     common(sp)
@@ -319,43 +371,88 @@ def build_parser() -> argparse.ArgumentParser:
                          "(its report.json): the recording is simulated under that model and "
                          "the fit's gain and offset removed (docs/GAP.md)")
     sp.add_argument("--seed", type=int, default=0, help="seed of --model's simulations")
+    sp.add_argument("--json", nargs="?", const="-", metavar="OUT.json", default=None,
+                    help="the summary and diagnostics as JSON: to OUT.json, or instead of the "
+                         "table on stdout when no file is given")
     sp.set_defaults(func=cmd_calibrate)
 
     sp = sub.add_parser("evaluate", help="reconstruction quality against DI")
     common(sp)
-    sp.add_argument("--calibration", required=True, help="calibration .npz")
-    sp.add_argument("--events-per-image", type=int, default=500_000)
-    sp.add_argument("--frames-per-image", type=int, default=None)
-    sp.add_argument("--skip-s", type=float, default=0.0)
-    sp.add_argument("--json", metavar="OUT.json")
+    sp.add_argument("--calibration", required=True,
+                    help="calibration .npz (evcal calibrate, evcal query or the service's)")
+    sp.add_argument("--events-per-image", type=int, default=500_000,
+                    help="integrate from a frame until this many events (default 500000, "
+                         "lowered with a note when the recording holds fewer)")
+    sp.add_argument("--frames-per-image", type=int, default=None,
+                    help="integrate over this many frame intervals instead of an event count")
+    sp.add_argument("--skip-s", type=float, default=0.0,
+                    help="seconds at the start left out of the scoring (default 0)")
+    sp.add_argument("--json", nargs="?", const="-", metavar="OUT.json", default=None,
+                    help="the scores as JSON: to OUT.json, or instead of the table on stdout "
+                         "when no file is given")
     sp.set_defaults(func=cmd_evaluate)
 
     sp = sub.add_parser("simulate", help="ideal event camera simulation with known c, b")
     common(sp, recording=False)
     sp.add_argument("--out", required=True, help="recording to write (.mcap, .npz or folder)")
-    sp.add_argument("--sensor-size", metavar="WxH", default="240x180")
-    sp.add_argument("--duration-s", type=float, default=10.0)
-    sp.add_argument("--frame-rate-hz", type=float, default=25.0)
-    sp.add_argument("--internal-rate-hz", type=float, default=1000.0)
-    sp.add_argument("--contrast-mean", type=float, default=0.2)
-    sp.add_argument("--contrast-std", type=float, default=0.03)
-    sp.add_argument("--bias-mean", type=float, default=0.02)
-    sp.add_argument("--bias-std", type=float, default=0.01)
-    sp.add_argument("--log-offset", type=float, default=30.0)
+    sp.add_argument("--sensor-size", metavar="WxH", default="240x180",
+                    help="sensor width x height (default 240x180)")
+    sp.add_argument("--duration-s", type=float, default=10.0, help="seconds (default 10)")
+    sp.add_argument("--frame-rate-hz", type=float, default=25.0,
+                    help="APS frame rate (default 25)")
+    sp.add_argument("--internal-rate-hz", type=float, default=1000.0,
+                    help="rate of the simulator's intensity steps (default 1000)")
+    sp.add_argument("--contrast-mean", type=float, default=0.2,
+                    help="mean contrast threshold c over pixels (default 0.2)")
+    sp.add_argument("--contrast-std", type=float, default=0.03,
+                    help="pixel-to-pixel spread of c (default 0.03)")
+    sp.add_argument("--bias-mean", type=float, default=0.02,
+                    help="mean bias b (default 0.02; ON fires at c + b, OFF at c - b)")
+    sp.add_argument("--bias-std", type=float, default=0.01,
+                    help="pixel-to-pixel spread of b (default 0.01)")
+    sp.add_argument("--log-offset", type=float, default=30.0,
+                    help="the sensor sees log(I + offset), frames in DN (default 30)")
     sp.add_argument("--scene", default="astronaut", help="scikit-image photo name or image path")
     sp.add_argument("--speed", type=float, default=1.0, help="camera motion speed factor")
-    sp.add_argument("--seed", type=int, default=0)
+    sp.add_argument("--seed", type=int, default=0,
+                    help="seed of the maps and the motion (default 0)")
     sp.set_defaults(func=cmd_simulate)
 
     sp = sub.add_parser("bench", help="print speed and memory figures")
-    sp.add_argument("--json", metavar="OUT.json")
+    sp.add_argument("--json", metavar="OUT.json", help="also write the figures as JSON")
     sp.add_argument("--quick", action="store_true", help="smaller sizes (for CI smoke runs)")
-    sp.add_argument("--quiet", action="store_true")
+    verbosity(sp)
     sp.set_defaults(func=cmd_bench)
 
     for name, (_, helptext) in DELEGATED.items():
         sub.add_parser(name, help=helptext, add_help=False)
     return p
+
+
+def _setup_logging(args: argparse.Namespace) -> None:
+    """-v: INFO, -vv: DEBUG, -q: errors only, on stderr."""
+    verbose, quiet = getattr(args, "verbose", 0), getattr(args, "quiet", False)
+    level = (logging.ERROR if quiet else logging.WARNING if not verbose
+             else logging.INFO if verbose == 1 else logging.DEBUG)
+    logging.basicConfig(level=level, format="evcal %(levelname)s %(name)s: %(message)s",
+                        stream=sys.stderr)
+    logging.getLogger("evcal").setLevel(level)
+
+
+def _note(args: argparse.Namespace, command: str, text: str) -> None:
+    """A note or warning on stderr, unless -q."""
+    if not getattr(args, "quiet", False):
+        print(f"evcal {command}: {text}", file=sys.stderr)
+
+
+def _write_json(target: str, data: Any) -> None:
+    from .jsonable import to_jsonable  # noqa: PLC0415
+
+    text = json.dumps(to_jsonable(data), indent=2)
+    if target == "-":
+        print(text)
+    else:
+        Path(target).write_text(text + "\n")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -364,6 +461,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if argv and argv[0] in DELEGATED:
             return DELEGATED[argv[0]][0](argv[1:])
         args = build_parser().parse_args(argv)
+        _setup_logging(args)
         return int(args.func(args))
     except CliError as exc:
         print(f"evcal: error: {exc}", file=sys.stderr)

@@ -68,6 +68,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="OnEI sliding buffer in events (default 5M: the whole demo)")
     p.add_argument("--timeout", type=float, default=100.0,
                    help="give up after this many seconds of streaming")
+    p.add_argument("--max-rate", action="store_true",
+                   help="replay as fast as the link takes it instead of in real time (the "
+                        "latency then includes the backlog the burst builds)")
     p.add_argument("-v", "--verbose", action="count", default=0)
     return p
 
@@ -130,7 +133,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise RuntimeError(f"the service did not start: {failure[0] if failure else '?'}")
         _say(f"service up on {ep}; replaying onto {config.prefix}/{args.camera}")
         with Transport(ZenohOptions.loopback(connect=[ep])) as t:
-            st = replay(t, rec, args.camera, speed=None)
+            st = replay(t, rec, args.camera, speed=None if args.max_rate else 1.0)
             _say(f"sent {st.events} events, {st.frames} frames in {st.seconds:.2f} s")
             status_key = f"{config.prefix}/{args.camera}/status"
 
@@ -147,9 +150,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     if failure:
         print(f"evcal demo: the service failed: {failure[0]}", file=sys.stderr)
         return 1
-    _say(f"live calibration after {status['updates']} updates, median latency "
-         f"{status['latency_ms']['median']:.1f} ms, log offset estimated online "
-         f"{live.log_offset:.1f} (true {cfg.log_offset:g}); computing the offline reference")
+    _say(f"live calibration after {status['updates']} updates; {latency_line(status)}; log "
+         f"offset estimated online {live.log_offset:.1f} (true {cfg.log_offset:g}); computing "
+         "the offline reference")
 
     from evcal.calibration import Calibration
 
@@ -170,6 +173,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(f"Rerun recording: {out} (open with `rerun {out}`); "
           f"{time.monotonic() - t_start:.1f} s in all.")
     return 0
+
+
+def latency_line(status: dict) -> str:
+    """What the latency figures of a camera's status mean, in one line: frame received to
+    calibration published (median, p95), and how much of it was waiting in the queue."""
+    lat = status.get("latency_ms") or {}
+    if lat.get("median") is None:
+        return "no calibration published yet"
+    parts = lat.get("parts_median") or {}
+    queue = parts.get("queue")
+    line = (f"frame received -> calibration published: median {lat['median']:.1f} ms, "
+            f"p95 {lat['p95']:.1f} ms")
+    if queue is not None:
+        line += f" (median {queue:.1f} ms of it queued behind earlier messages)"
+    return line
 
 
 if __name__ == "__main__":

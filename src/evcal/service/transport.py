@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import threading
 import time
 from collections.abc import Callable, Iterable
@@ -95,7 +96,28 @@ def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
                         "--cfg='transport/unicast/max_links:2' (repeatable)")
 
 
+ENV_PREFIX = "EVCAL_"  # EVCAL_CONNECT, EVCAL_LISTEN, EVCAL_ZENOH_CONFIG, EVCAL_MODE
+
+
+def _env_list(name: str) -> tuple[str, ...]:
+    return tuple(e.strip() for e in os.environ.get(ENV_PREFIX + name, "").split(",")
+                 if e.strip())
+
+
 def options_from_args(args: argparse.Namespace) -> ZenohOptions:
+    """The session options of the flags, with ``EVCAL_CONNECT`` / ``EVCAL_LISTEN``
+    (comma-separated endpoints), ``EVCAL_ZENOH_CONFIG`` (a JSON5 file) and ``EVCAL_MODE``
+    as the defaults of ``--connect``, ``--listen``, ``--config`` and ``--mode``: a flag given
+    on the command line wins over its variable."""
+    mode = args.mode or os.environ.get(ENV_PREFIX + "MODE") or None
+    if mode is not None and mode not in MODES:
+        raise ValueError(f"{ENV_PREFIX}MODE={mode!r}: expected one of {', '.join(MODES)}")
+    connect = tuple(args.connect) or _env_list("CONNECT")
+    listen = tuple(args.listen) or _env_list("LISTEN")
+    config = args.config or os.environ.get(ENV_PREFIX + "ZENOH_CONFIG") or None
+    if config is not None and not os.path.isfile(config):
+        raise ValueError(f"zenoh configuration file {config!r} does not exist"
+                         + ("" if args.config else f" ({ENV_PREFIX}ZENOH_CONFIG)"))
     extra = []
     for item in args.cfg:
         key, sep, value = item.partition(":")
@@ -104,8 +126,7 @@ def options_from_args(args: argparse.Namespace) -> ZenohOptions:
                              "'transport/unicast/max_links:2'")
         extra.append((key, value))
     return ZenohOptions(
-        mode=args.mode, connect=tuple(args.connect), listen=tuple(args.listen),
-        config_file=args.config,
+        mode=mode, connect=connect, listen=listen, config_file=config,
         multicast_scouting=False if args.no_multicast_scouting else None,
         extra=tuple(extra),
     )
