@@ -28,6 +28,12 @@ def test_demo_prints_table_and_writes_rrd(tmp_path):
     assert gain_db > 1.0, res.stdout  # the live calibration beats DI
     ents = read_entities(out)
     assert ents.get("/cameras/demo/cam0/maps/contrast", 0) >= 3
+    # the truth is known: error maps and the c MAE curve beside the maps
+    assert ents["/cameras/demo/cam0/maps/contrast_error"] == ents[
+        "/cameras/demo/cam0/maps/contrast"]
+    assert ents["/cameras/demo/cam0/series/c_mae"] >= 3
+    assert ents.get("/cameras/demo/cam0/events", 0) >= 1
+    assert "frame received -> calibration published" in res.stderr
 
 
 def test_query_without_a_service_fails_clearly(tmp_path):

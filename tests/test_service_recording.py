@@ -86,3 +86,116 @@ def test_a_rerun_failure_stops_recording_never_the_caller(tmp_path):
     assert log.stopped is not None and "No space left" in log.stopped
     log.frame("cam0", 1, np.zeros((4, 5), np.uint8))  # ignored, no exception
     log.close()
+
+
+def _mask_of(path, entity_suffix):
+    """The last mask image logged at an entity ending in ``entity_suffix``, as [y, x]."""
+    from rerun.chunk import RrdReader
+
+    reader = RrdReader(str(path))
+    found = None
+    for store in reader.recordings():
+        for chunk in reader.stream(store=store).collect().stream():
+            if not str(chunk.entity_path).endswith(entity_suffix):
+                continue
+            rb = chunk.to_record_batch()
+            if "SegmentationImage:buffer" not in rb.schema.names:
+                continue
+            buf = rb.column("SegmentationImage:buffer").to_pylist()[-1][0]
+            fmt = rb.column("SegmentationImage:format").to_pylist()[-1][0]
+            found = np.asarray(buf, np.uint8).reshape(fmt["height"], fmt["width"])
+    return found
+
+
+def test_series_each_in_one_view_of_its_own_scale():
+    """Every logged series is in exactly one view (valid_fraction used to be in none) and
+    rates, latencies, fractions and dB do not share an axis."""
+    from evcal.service.recording import SERIES, SERIES_VIEWS
+
+    placed = [n for _, names in SERIES_VIEWS for n in names]
+    assert sorted(placed) == sorted(SERIES)
+    for _, names in SERIES_VIEWS:
+        units = {n.rsplit("_", 1)[-1] for n in names if n.endswith(("_hz", "_ms", "_db"))}
+        assert len(units) <= 1, names
+
+
+def test_invalid_pixels_masked_truth_errors_and_stderr(tmp_path):
+    """Invalid pixels are drawn by a mask layer over each map, not as data; with the truth
+    the error maps and the c/b MAE series are logged; standard-error maps beside."""
+    rng = np.random.default_rng(1)
+    shape = (30, 40)
+    valid = rng.random(shape) > 0.2
+    cal = Calibration.uniform(shape, 0.2, 0.01, log_offset=30.0).replace(
+        contrast=(0.2 + 0.01 * rng.standard_normal(shape)).astype(np.float32), valid=valid,
+        stderr_contrast=np.where(valid, 0.01, np.inf).astype(np.float32),
+        stderr_bias=np.where(valid, 0.005, np.inf).astype(np.float32))
+    truth = (np.full(shape, 0.2), np.full(shape, 0.01))
+    path = tmp_path / "t.rrd"
+    log = RrdLogger(path, map_period_s=0.0, scalar_period_s=0.0, truth={"cam0": truth})
+    t_us = 1_744_227_144_732_712  # a ROS stamp: also on the absolute sensor_clock timeline
+    log.updated("cam0", cal, t_us, {})
+    log.close()
+    from rerun.chunk import RrdReader
+
+    reader = RrdReader(str(path))
+    timelines = {name for store in reader.recordings()
+                 for chunk in reader.stream(store=store).collect().stream()
+                 if str(chunk.entity_path) == "/cameras/cam0/maps/contrast"
+                 for name in chunk.to_record_batch().schema.names}
+    assert {"sensor_time", "sensor_clock", "wall_time"} <= timelines
+    ents = read_entities(path)
+    for name in ("contrast", "bias", "stderr_contrast", "stderr_bias", "contrast_error",
+                 "bias_error"):
+        assert ents[f"/cameras/cam0/maps/{name}"] == 1, name
+        np.testing.assert_array_equal(_mask_of(path, f"maps/{name}/invalid"), ~valid)
+    assert ents["/cameras/cam0/series/c_mae"] == 1
+    assert ents["/cameras/cam0/series/valid_fraction"] == 1
+
+
+def test_offline_review_recordings(tmp_path, capsys):
+    """calibrate --rrd and evaluate --rrd: the maps (with the truth evcal simulate wrote
+    beside the recording), then the recording replayed through the reconstruction, with the
+    ON/OFF events of every other interval."""
+    from evcal.cli import main
+
+    sim = tmp_path / "sim.npz"
+    assert main(["simulate", "--out", str(sim), "--sensor-size", "48x36", "--duration-s",
+                 "2", "--internal-rate-hz", "500", "-q"]) == 0
+    cal = tmp_path / "cal.npz"
+    assert main(["calibrate", str(sim), "--out", str(cal), "--rrd", str(tmp_path / "c.rrd"),
+                 "-q"]) == 0
+    ents = read_entities(tmp_path / "c.rrd")
+    assert ents["/cameras/sim.npz/maps/contrast_error"] == 1
+    assert ents["/cameras/sim.npz/series/c_mae"] == 1
+    assert not any("/recon/" in e for e in ents)
+    assert main(["evaluate", str(sim), "--calibration", str(cal), "--frames-per-image", "5",
+                 "--rrd", str(tmp_path / "e.rrd"), "--truth", str(tmp_path / "nope.npz")]) == 2
+    assert "no such file" in capsys.readouterr().err
+    assert main(["evaluate", str(sim), "--calibration", str(cal), "--frames-per-image", "5",
+                 "--rrd", str(tmp_path / "e.rrd"), "-q"]) == 0
+    ents = read_entities(tmp_path / "e.rrd")
+    # 50 frame intervals: a window of 5 opens at the frame after the last one closed (every
+    # 6th frame), so 8 reconstructions; the events of every other interval
+    assert ents["/cameras/sim.npz/recon/calibrated"] == 50 // 6
+    assert ents["/cameras/sim.npz/series/psnr_gain_db"] == 50 // 6
+    assert ents["/cameras/sim.npz/events"] == 50 // 2
+
+
+def test_live_viewer_sink_beside_the_file(tmp_path):
+    """serve_port (serve --rerun-serve): a gRPC server a viewer connects to, listening while
+    the file is written as before."""
+    import socket
+
+    from evcal.testing import free_port
+
+    port = free_port()
+    path = tmp_path / "live.rrd"
+    log = RrdLogger(path, map_period_s=0.0, scalar_period_s=0.0, serve_port=port)
+    try:
+        cal = Calibration.uniform((24, 32), 0.2, 0.01, log_offset=30.0)
+        log.updated("cam0", cal, 1_000, {})
+        with socket.create_connection(("127.0.0.1", port), timeout=5):
+            pass  # the viewer's endpoint is up
+    finally:
+        log.close()
+    assert read_entities(path)["/cameras/cam0/maps/contrast"] == 1

@@ -163,6 +163,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     save_calibration(cal, args.out)
     if args.csv:
         write_csv(cal, args.csv)
+    _review(args, "calibrate", rec, cal, reconstruct=False)
     s = cal.summary()
     if args.json is not None:
         _write_json(args.json, {
@@ -211,6 +212,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     res = evaluate(rec, cal, events_per_image=args.events_per_image,
                    frames_per_image=args.frames_per_image, skip_s=args.skip_s)
     summary = res.summary()
+    _review(args, "evaluate", rec, cal, reconstruct=True,
+            frames_per_image=args.frames_per_image or 5)
     for note in (res.params.get("events_per_image_note"), res.log_offset_note):
         if note and note not in ("given", "from the calibration"):
             _note(args, "evaluate", f"note: {note}")
@@ -338,6 +341,15 @@ def build_parser() -> argparse.ArgumentParser:
                             help="which camera of a stereo HDF5 file (MVSEC: left or right)")
         verbosity(sp)
 
+    def review(sp: argparse.ArgumentParser, what: str) -> None:
+        sp.add_argument("--rrd", metavar="OUT.rrd", default=None,
+                        help=f"a Rerun recording to review: {what} (needs the service extra; "
+                             "open with `rerun OUT.rrd`)")
+        sp.add_argument("--truth", metavar="TRUTH.npz", default=None,
+                        help="true c and b maps (contrast, bias), for error maps in --rrd "
+                             "(default: the .truth.npz evcal simulate wrote beside the "
+                             "recording, if any)")
+
     def verbosity(sp: argparse.ArgumentParser) -> None:
         sp.add_argument("-q", "--quiet", action="store_true",
                         help="no progress bars, notes or warnings on stderr (errors still)")
@@ -374,6 +386,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--json", nargs="?", const="-", metavar="OUT.json", default=None,
                     help="the summary and diagnostics as JSON: to OUT.json, or instead of the "
                          "table on stdout when no file is given")
+    review(sp, "the maps, their masks, standard errors and histograms")
     sp.set_defaults(func=cmd_calibrate)
 
     sp = sub.add_parser("evaluate", help="reconstruction quality against DI")
@@ -390,6 +403,8 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--json", nargs="?", const="-", metavar="OUT.json", default=None,
                     help="the scores as JSON: to OUT.json, or instead of the table on stdout "
                          "when no file is given")
+    review(sp, "the maps and every reconstruction beside DI's and the frame, PSNR over time, "
+               "the events")
     sp.set_defaults(func=cmd_evaluate)
 
     sp = sub.add_parser("simulate", help="ideal event camera simulation with known c, b")
@@ -453,6 +468,36 @@ def _write_json(target: str, data: Any) -> None:
         print(text)
     else:
         Path(target).write_text(text + "\n")
+
+
+def _review(args: argparse.Namespace, command: str, rec: Any, cal: Any, *,
+            reconstruct: bool, frames_per_image: int = 5) -> None:
+    """``--rrd``: the offline review recording (service/recording.py, rerun)."""
+    if not args.rrd:
+        return
+    try:
+        from .service.recording import write_review  # noqa: PLC0415
+    except ModuleNotFoundError as exc:
+        raise CliError(f"--rrd needs the 'service' extra ({exc.name} is missing): "
+                       "pip install 'evcal[service]'") from None
+    truth_file = Path(args.truth) if args.truth else truth_path_for(Path(args.recording))
+    truth = None
+    if truth_file.is_file():
+        with np.load(truth_file) as z:
+            if "contrast" not in z or "bias" not in z:
+                raise CliError(f"--truth {truth_file}: no contrast and bias arrays")
+            truth = (z["contrast"], z["bias"])
+        if truth[0].shape != cal.shape:
+            raise CliError(f"--truth {truth_file}: maps of shape {truth[0].shape}, the "
+                           f"calibration is {cal.shape}")
+        if not args.truth:
+            _note(args, command, f"note: error maps against the truth in {truth_file}")
+    elif args.truth:
+        raise CliError(f"--truth {truth_file}: no such file")
+    path = write_review(args.rrd, rec, cal, camera=Path(args.recording).name or "recording",
+                        truth=truth, reconstruct=reconstruct,
+                        frames_per_image=frames_per_image)
+    _note(args, command, f"review recording: {path} (rerun {path})")
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -120,7 +120,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         try:
             run(ZenohOptions.loopback(listen=[ep]), config, stop=stop, rrd=out,
                 rrd_options={"map_period_s": 0.25, "recon_period_s": 0.25,
-                             "scalar_period_s": 0.04},
+                             "scalar_period_s": 0.04,
+                             # the simulation's truth: error maps and the c MAE curve
+                             "truth": {args.camera: (truth["contrast"], truth["bias"])}},
                 ready=lambda s: ready.set())
         except BaseException as exc:  # reported by the main thread
             failure.append(exc)

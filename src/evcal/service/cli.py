@@ -37,6 +37,12 @@ def build_parser(prog: str = "evcal serve") -> argparse.ArgumentParser:
                    help="log maps at most every S seconds of sensor time (default 2)")
     p.add_argument("--rrd-recon-period", type=float, default=2.0, metavar="S",
                    help="log a reconstruction at most every S seconds of sensor time")
+    p.add_argument("--rerun-serve", type=int, default=None, metavar="PORT",
+                   help="also serve the recording live on this gRPC port (with --rrd): "
+                        "`rerun --connect rerun+http://HOST:PORT/proxy` shows it as it grows")
+    p.add_argument("--rerun-connect", default=None, metavar="URL",
+                   help="also stream the recording to a running viewer (with --rrd), e.g. "
+                        "rerun+http://127.0.0.1:9876/proxy")
     p.add_argument("--rrd-max-mb", type=float, default=300.0,
                    help="stop logging images after this many MiB of them (default 300)")
     p.add_argument("--sign-key", metavar="FILE.key",
@@ -118,6 +124,9 @@ def main_serve(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     setup_logging(args.verbose)
     try:
+        if (args.rerun_serve is not None or args.rerun_connect) and not args.rrd:
+            raise ValueError("--rerun-serve and --rerun-connect go with --rrd PATH (the live "
+                             "view is of the recording the file keeps)")
         zopts = options_from_args(args)
         config = config_from_args(args)
     except ValueError as exc:
@@ -138,7 +147,9 @@ def main_serve(argv: Sequence[str] | None = None) -> int:
         service = run(zopts, config, stop=stop, state_dir=args.state_dir, rrd=args.rrd,
                       rrd_options={"map_period_s": args.rrd_map_period,
                                    "recon_period_s": args.rrd_recon_period,
-                                   "max_image_bytes": int(args.rrd_max_mb * (1 << 20))},
+                                   "max_image_bytes": int(args.rrd_max_mb * (1 << 20)),
+                                   "serve_port": args.rerun_serve,
+                                   "connect_url": args.rerun_connect},
                       ready=lambda s: print(f"evcal serve: ready ({s.instance})",
                                             file=sys.stderr, flush=True),
                       sign_key=args.sign_key)

@@ -5,16 +5,28 @@ Entities, per camera (``<cam>`` is the camera id, which may have several chunks)
     cameras/<cam>/maps/contrast      DepthImage, viridis, robust range      (at most every
     cameras/<cam>/maps/bias          DepthImage, cyan-to-yellow              map_period_s of
     cameras/<cam>/maps/special       SegmentationImage + legend              sensor time)
+    cameras/<cam>/maps/<m>/invalid   SegmentationImage over each map: pixels without a
+                                     trusted solution drawn grey, not as data
+    cameras/<cam>/maps/stderr_contrast, stderr_bias   DepthImage of the standard errors
+    cameras/<cam>/maps/contrast_error, bias_error     |estimate - truth| when the truth is
+                                     known (demo, simulations: ``truth=``)
+    cameras/<cam>/events             Image: ON (red) / OFF (blue) counts of one frame
+                                     interval, at most every map_period_s
     cameras/<cam>/hist/contrast      BarChart of valid pixels' c
     cameras/<cam>/hist/bias          BarChart of valid pixels' b
     cameras/<cam>/recon/calibrated   Image: events integrated with the live calibration
     cameras/<cam>/recon/di           Image: the same with direct integration (c=0.1, b=0)
     cameras/<cam>/recon/frame        Image: the reference frame at the end of the window
     cameras/<cam>/series/<name>      Scalars: event_rate_hz, latency_ms, valid_fraction,
-                                     psnr_calibrated_db, psnr_di_db, psnr_gain_db, errors
+                                     psnr_calibrated_db, psnr_di_db, psnr_gain_db, errors,
+                                     c_mae and b_mae (with the truth); each in a view of its
+                                     own scale (rates, latencies, fractions, dB, errors)
     cameras/<cam>/log                TextLog: discovery, rejected inputs (rate-limited)
 
-Timelines: ``sensor_time`` (the camera's t_us as a duration) and ``wall_time``.
+Timelines: ``sensor_time`` (the camera's t_us as a duration), ``sensor_clock`` (the same as
+an absolute timestamp, for cameras whose t_us is Unix time, as ROS stamps are) and
+``wall_time``. Sinks: the file, plus a gRPC server a viewer connects to (``serve_port``) or
+a running viewer (``connect_url``).
 
 File growth is bounded: maps and reconstructions at most once per ``map_period_s`` /
 ``recon_period_s`` of sensor time, and no more images once ``max_image_bytes`` were logged
@@ -30,7 +42,7 @@ import logging
 import shutil
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -41,6 +53,7 @@ import rerun.blueprint as rrb
 
 from ..calibration import SPECIAL_LEGEND, Calibration, Special
 from ..reconstruct import Reconstruction, StreamingEvaluator
+from ..recording import Recording
 
 log = logging.getLogger("evcal.service.recording")
 
@@ -54,48 +67,58 @@ _SPECIAL_COLORS = {
     Special.COOL: (40, 200, 200),
 }
 SERIES = ("event_rate_hz", "latency_ms", "valid_fraction", "psnr_calibrated_db", "psnr_di_db",
-          "psnr_gain_db", "errors_total")
+          "psnr_gain_db", "errors_total", "c_mae", "b_mae")
+# the views of the series, one scale each: every series is in exactly one
+SERIES_VIEWS = (("event rate (Hz)", ("event_rate_hz",)),
+                ("frame to calibration latency (ms)", ("latency_ms",)),
+                ("valid fraction", ("valid_fraction",)),
+                ("PSNR (dB)", ("psnr_calibrated_db", "psnr_di_db", "psnr_gain_db")),
+                ("input errors (total)", ("errors_total",)),
+                ("error vs truth", ("c_mae", "b_mae")))
+MAPS_WITH_MASK = ("contrast", "bias", "stderr_contrast", "stderr_bias", "contrast_error",
+                  "bias_error")
+ABSOLUTE_T_US = 946_684_800_000_000  # 2000-01-01 in Unix µs: later t_us are clock times
 
 
 def entity(camera: str, *parts: str) -> str:
     return "/".join(("cameras", camera, *parts))
 
 
-def camera_blueprint(camera: str) -> Any:
+def camera_blueprint(camera: str, *, truth: bool = False) -> Any:
     base = "/" + entity(camera)
-    maps = rrb.Grid(
+    views = [
         rrb.Spatial2DView(origin=f"{base}/maps/contrast", name="contrast c"),
         rrb.Spatial2DView(origin=f"{base}/maps/bias", name="bias b"),
         rrb.Spatial2DView(origin=f"{base}/maps/special", name="special pixels"),
+        rrb.Spatial2DView(origin=f"{base}/maps/stderr_contrast", name="std. error of c"),
+        rrb.Spatial2DView(origin=f"{base}/maps/stderr_bias", name="std. error of b"),
+        rrb.Spatial2DView(origin=f"{base}/events", name="events ON/OFF (one interval)"),
         rrb.Spatial2DView(origin=f"{base}/recon/calibrated", name="calibrated reconstruction"),
         rrb.Spatial2DView(origin=f"{base}/recon/di", name="DI reconstruction"),
         rrb.Spatial2DView(origin=f"{base}/recon/frame", name="reference frame"),
-        grid_columns=3,
-    )
+    ]
+    if truth:
+        views += [rrb.Spatial2DView(origin=f"{base}/maps/contrast_error", name="|c - true c|"),
+                  rrb.Spatial2DView(origin=f"{base}/maps/bias_error", name="|b - true b|")]
+    maps = rrb.Grid(*views, grid_columns=3)
     hists = rrb.Horizontal(
         rrb.BarChartView(origin=f"{base}/hist/contrast", name="histogram of c"),
         rrb.BarChartView(origin=f"{base}/hist/bias", name="histogram of b"),
     )
-    series = rrb.Horizontal(
-        rrb.TimeSeriesView(origin=f"{base}/series", name="rates and latency",
-                           contents=[f"{base}/series/event_rate_hz",
-                                     f"{base}/series/latency_ms",
-                                     f"{base}/series/errors_total"]),
-        rrb.TimeSeriesView(origin=f"{base}/series", name="PSNR (dB)",
-                           contents=[f"{base}/series/psnr_calibrated_db",
-                                     f"{base}/series/psnr_di_db",
-                                     f"{base}/series/psnr_gain_db"]),
-    )
+    series = rrb.Grid(*[
+        rrb.TimeSeriesView(origin=f"{base}/series", name=name,
+                           contents=[f"{base}/series/{n}" for n in names])
+        for name, names in SERIES_VIEWS if truth or names[0] != "c_mae"], grid_columns=3)
     return rrb.Vertical(maps, hists, series, rrb.TextLogView(origin=f"{base}/log", name="log"),
-                        row_shares=[3, 1.2, 1.2, 0.6], name=camera)
+                        row_shares=[4, 1.2, 2, 0.6], name=camera)
 
 
-def make_blueprint(cameras: list[str]) -> Any:
+def make_blueprint(cameras: list[str], truth: Collection[str] | None = None) -> Any:
     if not cameras:
         return rrb.Blueprint(rrb.TextLogView(origin="/service", name="service"),
                              collapse_panels=False)
-    return rrb.Blueprint(rrb.Tabs(*[camera_blueprint(c) for c in cameras]),
-                         collapse_panels=False)
+    return rrb.Blueprint(rrb.Tabs(*[camera_blueprint(c, truth=c in (truth or ()))
+                                    for c in cameras]), collapse_panels=False)
 
 
 @dataclass
@@ -104,6 +127,8 @@ class _CameraLog:
     evaluator: StreamingEvaluator
     last_map_t_us: int | None = None
     last_scalar_t_us: int | None = None
+    last_events_t_us: int | None = None  # the last events image
+    event_counts: np.ndarray | None = None  # [2, pixels] ON, OFF of the open interval
 
 
 def free_path(path: Path) -> Path:
@@ -136,7 +161,10 @@ class RrdLogger:
                  scalar_period_s: float = 0.2, max_image_bytes: int = 300 << 20,
                  max_recon_events: int = 5_000_000, recording_id: str | None = None,
                  min_free_bytes: int = 64 << 20,
-                 disk_free: Callable[[Path], int] = _disk_free):
+                 disk_free: Callable[[Path], int] = _disk_free,
+                 truth: dict[str, tuple[np.ndarray, np.ndarray]] | None = None,
+                 serve_port: int | None = None, connect_url: str | None = None,
+                 app_id: str = APP_ID, started: str = "evcal service started"):
         self.requested_path = Path(path)
         self.path = free_path(self.requested_path)
         if self.path != self.requested_path:
@@ -156,11 +184,20 @@ class RrdLogger:
         self._images_stopped = False
         self._cams: dict[str, _CameraLog] = {}
         self._lock = threading.Lock()
-        self.rec = rr.RecordingStream(APP_ID, recording_id=recording_id)
+        # camera -> (true c, true b) maps: error maps and c/b MAE curves are logged for them
+        self.truth = {k: (np.asarray(c, np.float64), np.asarray(b, np.float64))
+                      for k, (c, b) in (truth or {}).items()}
+        self.rec = rr.RecordingStream(app_id, recording_id=recording_id)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self.rec.save(self.path, default_blueprint=make_blueprint([]))
+        sinks: list[Any] = [rr.FileSink(str(self.path))]
+        if serve_port is not None:  # a viewer connects: rerun --connect rerun+http://...
+            sinks.append(rr.GrpcServerSink(port=int(serve_port)))
+        if connect_url is not None:  # a running viewer
+            sinks.append(rr.GrpcSink(connect_url))
+        self.serve_port = serve_port
+        self.rec.set_sinks(*sinks, default_blueprint=make_blueprint([]))
         self._set_time(None)
-        self.rec.log("service", rr.TextLog("evcal service started", level="INFO"))
+        self.rec.log("service", rr.TextLog(started, level="INFO"))
         self._closed = False
 
     # -- helpers ---------------------------------------------------------------------------
@@ -168,6 +205,8 @@ class RrdLogger:
     def _set_time(self, t_us: int | None) -> None:
         if t_us is not None:
             self.rec.set_time("sensor_time", duration=t_us * 1e-6)
+            if t_us >= ABSOLUTE_T_US:  # a clock time (ROS stamps, jAER/Prophesee wall time)
+                self.rec.set_time("sensor_clock", timestamp=t_us * 1e-6)
         self.rec.set_time("wall_time", timestamp=time.time())
 
     def state(self) -> dict[str, Any]:
@@ -245,7 +284,8 @@ class RrdLogger:
                     max_events=self.max_recon_events))
                 names = sorted(self._cams)
             self._log_static(camera)
-            self.rec.send_blueprint(make_blueprint(names), make_active=True, make_default=True)
+            self.rec.send_blueprint(make_blueprint(names, self.truth), make_active=True,
+                                    make_default=True)
             self.rec.log(entity(camera, "log"), rr.TextLog(
                 f"camera {camera}: {shape[1]}x{shape[0]} sensor", level="INFO"))
         return cl
@@ -254,6 +294,12 @@ class RrdLogger:
         self.rec.log(entity(camera, "maps", "special"), rr.AnnotationContext([
             rr.AnnotationInfo(id=int(k), label=SPECIAL_LEGEND[int(k)], color=c)
             for k, c in _SPECIAL_COLORS.items()]), static=True)
+        mask = rr.AnnotationContext([
+            rr.AnnotationInfo(id=0, label="trusted", color=(0, 0, 0, 0)),
+            rr.AnnotationInfo(id=1, label="invalid (no trusted solution)",
+                              color=(90, 90, 90, 255))])
+        for name in MAPS_WITH_MASK:
+            self.rec.log(entity(camera, "maps", name, "invalid"), mask, static=True)
 
     # -- Observer --------------------------------------------------------------------------
 
@@ -264,6 +310,13 @@ class RrdLogger:
         cl = self._cams.get(camera)
         if cl is not None:
             cl.evaluator.events(events)
+            if cl.event_counts is not None and events.size:
+                w = cl.shape[1]
+                flat = events["y"].astype(np.int64) * w + events["x"]
+                n = cl.shape[0] * w
+                on = events["p"] > 0
+                cl.event_counts[0] += np.bincount(flat[on], minlength=n)
+                cl.event_counts[1] += np.bincount(flat[~on], minlength=n)
 
     def frame(self, camera: str, t_us: int, image: np.ndarray) -> None:
         self._guard(self._frame, camera, t_us, image)
@@ -274,9 +327,30 @@ class RrdLogger:
             return
         if self._images_stopped:
             cl.evaluator.discard()
+        self._events_image(camera, cl, t_us)
         result = cl.evaluator.frame(t_us, image)
         if result is not None:
             self._log_reconstruction(camera, result)
+
+    def _events_image(self, camera: str, cl: _CameraLog, t_us: int) -> None:
+        """At a frame: log the ON/OFF counts of the interval it closes (when one was being
+        counted), and start counting the next one when a map period has passed."""
+        if cl.event_counts is not None:
+            counts, cl.event_counts = cl.event_counts, None
+            h, w = cl.shape
+            if self._image_budget(3 * h * w, camera):
+                busy = counts[counts > 0]
+                scale = max(1.0, float(np.percentile(busy, 99))) if busy.size else 1.0
+                rgb = np.zeros((h, w, 3), np.uint8)
+                rgb[..., 0] = np.clip(counts[0] * (255.0 / scale), 0, 255).reshape(h, w)
+                rgb[..., 2] = np.clip(counts[1] * (255.0 / scale), 0, 255).reshape(h, w)
+                self._set_time(t_us)
+                self.rec.log(entity(camera, "events"), rr.Image(rgb))
+            cl.last_events_t_us = t_us
+            return
+        if not self._images_stopped and (cl.last_events_t_us is None
+                                         or t_us - cl.last_events_t_us >= self.map_period_us):
+            cl.event_counts = np.zeros((2, cl.shape[0] * cl.shape[1]), np.int64)
 
     def _log_reconstruction(self, camera: str, r: Reconstruction) -> None:
         """Log what the core's :class:`~evcal.reconstruct.StreamingEvaluator` computed."""
@@ -305,16 +379,37 @@ class RrdLogger:
             lat = status.get("latency_ms", {}).get("last")
             values = {"event_rate_hz": status.get("event_rate_hz"), "latency_ms": lat,
                       "valid_fraction": cal.valid_fraction,
-                      "errors_total": status.get("errors_total")}
+                      "errors_total": status.get("errors_total"),
+                      **self._truth_errors(camera, cal)}
             for name, v in values.items():
                 if v is not None:
                     self.rec.log(entity(camera, "series", name), rr.Scalars([float(v)]))
         if cl.last_map_t_us is not None and t_us - cl.last_map_t_us < self.map_period_us:
             return
-        if not self._image_budget(cal.contrast.nbytes * 2 + cal.special.nbytes, camera):
+        n_maps = 4 + 2 * (camera in self.truth)  # c, b, their errors (and vs truth)
+        if not self._image_budget(n_maps * (cal.contrast.size * 5) + cal.special.nbytes,
+                                  camera):  # each a float32 map and a uint8 mask
             return
         cl.last_map_t_us = t_us
         self._log_maps(camera, cal)
+
+    def _truth_errors(self, camera: str, cal: Calibration) -> dict[str, float]:
+        """c and b mean absolute errors over the valid pixels, when the truth is known."""
+        t = self.truth.get(camera)
+        v = cal.valid
+        if t is None or t[0].shape != cal.shape or not v.any():
+            return {}
+        return {"c_mae": float(np.mean(np.abs(cal.contrast[v] - t[0][v]))),
+                "b_mae": float(np.mean(np.abs(cal.bias[v] - t[1][v])))}
+
+    def _log_map(self, camera: str, name: str, values: np.ndarray, invalid: np.ndarray,
+                 colormap: str, depth_range: tuple[float, float]) -> None:
+        """One map and its mask of invalid pixels (drawn grey over it, not as data)."""
+        self.rec.log(entity(camera, "maps", name), rr.DepthImage(
+            np.where(invalid, np.float32(0), values).astype(np.float32), colormap=colormap,
+            depth_range=depth_range))
+        self.rec.log(entity(camera, "maps", name, "invalid"),
+                     rr.SegmentationImage(invalid.astype(np.uint8), draw_order=10.0))
 
     def _log_maps(self, camera: str, cal: Calibration) -> None:
         v = cal.valid
@@ -322,10 +417,23 @@ class RrdLogger:
         b_abs = float(np.percentile(np.abs(cal.bias[v]), 98)) if v.any() else 0.1
         c_hi = max(float(c_hi), float(c_lo) + 1e-3)
         b_abs = max(b_abs, 1e-3)
-        self.rec.log(entity(camera, "maps", "contrast"), rr.DepthImage(
-            cal.contrast, colormap="viridis", depth_range=(float(c_lo), c_hi)))
-        self.rec.log(entity(camera, "maps", "bias"), rr.DepthImage(
-            cal.bias, colormap="cyantoyellow", depth_range=(-b_abs, b_abs)))
+        invalid = ~v
+        self._log_map(camera, "contrast", cal.contrast, invalid, "viridis",
+                      (float(c_lo), c_hi))
+        self._log_map(camera, "bias", cal.bias, invalid, "cyantoyellow", (-b_abs, b_abs))
+        for name, se in (("stderr_contrast", cal.stderr_contrast),
+                         ("stderr_bias", cal.stderr_bias)):
+            bad = invalid | ~np.isfinite(se)
+            hi = float(np.percentile(se[~bad], 98)) if (~bad).any() else 1.0
+            self._log_map(camera, name, np.where(bad, 0, se), bad, "magma",
+                          (0.0, max(hi, 1e-6)))
+        t = self.truth.get(camera)
+        if t is not None and t[0].shape == cal.shape:
+            for name, est, true in (("contrast_error", cal.contrast, t[0]),
+                                    ("bias_error", cal.bias, t[1])):
+                err = np.abs(est - true)
+                hi = float(np.percentile(err[v], 98)) if v.any() else 0.05
+                self._log_map(camera, name, err, invalid, "magma", (0.0, max(hi, 1e-6)))
         self.rec.log(entity(camera, "maps", "special"), rr.SegmentationImage(cal.special))
         for name, values, rng in (("contrast", cal.contrast[v], (float(c_lo), c_hi)),
                                   ("bias", cal.bias[v], (-b_abs, b_abs))):
@@ -368,6 +476,38 @@ class RrdLogger:
         except Exception:  # noqa: BLE001
             self.errors += 1
         self._finish()
+
+
+def write_review(path: str | Path, rec: Recording, cal: Calibration, *,
+                 camera: str = "recording", truth: tuple[np.ndarray, np.ndarray] | None = None,
+                 reconstruct: bool = True, frames_per_image: int = 5,
+                 max_image_bytes: int = 300 << 20) -> Path:
+    """An offline run's ``.rrd`` (``evcal calibrate --rrd``, ``evcal evaluate --rrd``): the
+    calibration's maps, masks, standard errors and histograms (and error maps against
+    ``truth``, the true c and b), then, with ``reconstruct``, the recording replayed through
+    the service's own reconstruction (events integrated over ``frames_per_image`` frame
+    intervals with the calibration and with DI, the reference frames, PSNR series and the
+    ON/OFF events of every other interval). Returns the path written (never overwrites)."""
+    from ..stream import frame_intervals  # noqa: PLC0415
+
+    logger = RrdLogger(path, map_period_s=0.0, recon_period_s=0.0,
+                       recon_frames=frames_per_image, scalar_period_s=0.0,
+                       max_image_bytes=max_image_bytes,
+                       truth={camera: truth} if truth is not None else None,
+                       app_id="evcal-offline", started=f"evcal offline review: {camera}")
+    try:
+        t0 = (int(rec.frames.t_us[0]) if len(rec.frames)
+              else int(rec.events["t_us"][0]) if rec.n_events else 0)
+        logger.updated(camera, cal, t0, {})
+        if reconstruct and len(rec.frames) >= 2:
+            for k, chunk in frame_intervals(rec.events, rec.frames.t_us):
+                logger.events(camera, chunk)
+                logger.frame(camera, int(rec.frames.t_us[k]), rec.frames.images[k])
+    finally:
+        logger.close()
+    if logger.stopped is not None:
+        raise OSError(f"{logger.path}: {logger.stopped}")
+    return logger.path
 
 
 def read_entities(path: str | Path) -> dict[str, int]:
