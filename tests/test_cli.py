@@ -177,3 +177,19 @@ def test_every_option_of_the_core_commands_has_help():
         assert {"quiet", "verbose"} <= dests, name
         for action in sp._actions:
             assert action.help, f"evcal {name} {action.option_strings or action.dest}"
+
+
+def test_every_command_takes_q_and_v():
+    """-q and -v on every command, core and delegated (each parses them)."""
+    import contextlib
+    import io
+
+    from evcal.cli import DELEGATED
+
+    for name in ("info", "calibrate", "evaluate", "simulate", "bench", *DELEGATED):
+        out = io.StringIO()
+        with contextlib.redirect_stdout(out), pytest.raises(SystemExit) as exc:
+            main([name, "--help"])
+        assert exc.value.code == 0, name
+        text = out.getvalue()
+        assert "-q, --quiet" in text and "-v, --verbose" in text, name

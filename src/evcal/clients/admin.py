@@ -19,7 +19,7 @@ from evcal.service import keys
 from evcal.service.signing import SignatureError, generate_keys
 from evcal.service.transport import Transport, TransportError, options_from_args
 
-from .common import base_parser, camera_arg, fail
+from .common import add_verbosity, base_parser, camera_arg, fail
 
 
 def main_keygen(argv: Sequence[str] | None = None) -> int:
@@ -28,13 +28,15 @@ def main_keygen(argv: Sequence[str] | None = None) -> int:
         "`evcal query --verify`."))
     p.add_argument("--out", required=True, metavar="PREFIX",
                    help="write PREFIX.key (mode 600) and PREFIX.pub; existing files are kept")
+    add_verbosity(p)
     args = p.parse_args(argv)
     try:
         key, pub = generate_keys(args.out)
     except (SignatureError, OSError) as exc:
         return fail("evcal keygen", str(exc))
-    print(f"evcal keygen: private key {key} (keep it secret), public key {pub}",
-          file=sys.stderr)
+    if not args.quiet:
+        print(f"evcal keygen: private key {key} (keep it secret), public key {pub}",
+              file=sys.stderr)
     return 0
 
 

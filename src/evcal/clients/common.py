@@ -9,10 +9,33 @@ from evcal.service import keys
 from evcal.service.transport import add_zenoh_arguments
 
 
+class _Verbosity(argparse.Action):
+    """-v / -q of the clients: stderr logging is set as the flag is parsed, so every client
+    honours it without code of its own."""
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace,
+                 values: object, option_string: str | None = None) -> None:
+        from evcal.service.cli import setup_logging
+
+        if self.dest == "quiet":
+            namespace.quiet = True
+        else:
+            namespace.verbose = (getattr(namespace, "verbose", 0) or 0) + 1
+        setup_logging(getattr(namespace, "verbose", 0) or 0, getattr(namespace, "quiet", False))
+
+
+def add_verbosity(p: argparse.ArgumentParser) -> None:
+    p.add_argument("-v", "--verbose", action=_Verbosity, nargs=0, default=0,
+                   help="more detail on stderr (-vv: debug)")
+    p.add_argument("-q", "--quiet", action=_Verbosity, nargs=0, default=False,
+                   help="errors only on stderr")
+
+
 def base_parser(prog: str, description: str) -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog=prog, description=description)
     add_zenoh_arguments(p)
     p.add_argument("--prefix", default="evcal", help="key prefix (default: evcal)")
+    add_verbosity(p)
     return p
 
 

@@ -56,6 +56,7 @@ def format_table(rows: list[dict[str, Any]]) -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from .common import add_verbosity
     p = argparse.ArgumentParser(prog="evcal demo", description=__doc__.split("\n")[0])
     p.add_argument("--out", default="demo.rrd", help="Rerun recording to write (demo.rrd)")
     p.add_argument("--size", default="240x180", help="simulated sensor WxH (default 240x180)")
@@ -71,7 +72,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-rate", action="store_true",
                    help="replay as fast as the link takes it instead of in real time (the "
                         "latency then includes the backlog the burst builds)")
-    p.add_argument("-v", "--verbose", action="count", default=0)
+    add_verbosity(p)
     return p
 
 
@@ -92,7 +93,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     from .query import fetch_calibration, fetch_json
     from .replay import replay
 
-    setup_logging(args.verbose)
+    setup_logging(args.verbose, args.quiet)
     try:
         sensor = SensorSize.parse(args.size)
         cfg = SimConfig(height=sensor.height, width=sensor.width, duration_s=args.duration,

@@ -34,11 +34,20 @@ def build_parser() -> argparse.ArgumentParser:
                         "or a linear blend")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     p.add_argument("--no-rrd", action="store_true", help="skip gap.rrd")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("-q", "--quiet", action="store_true",
+                   help="no progress bar or notes on stderr (errors still)")
+    p.add_argument("-v", "--verbose", action="count", default=0,
+                   help="log the workflow's steps on stderr (-vv: debug)")
     return p
 
 
 def run(args: argparse.Namespace) -> int:
+    import logging  # noqa: PLC0415
+
+    logging.basicConfig(
+        level=logging.ERROR if args.quiet
+        else (logging.WARNING, logging.INFO, logging.DEBUG)[min(args.verbose, 2)],
+        stream=sys.stderr, format="evcal gap %(levelname)s %(name)s: %(message)s")
     from ..events import SensorSize  # noqa: PLC0415
     from ..io import open_recording  # noqa: PLC0415
     from ..recording import RecordingError  # noqa: PLC0415

@@ -80,7 +80,7 @@ def build_parser(prog: str = "evcal serve") -> argparse.ArgumentParser:
                         "estimated per camera from its first frames and events with the "
                         "criterion of `evcal calibrate --log-offset auto`, re-checked as data "
                         "accumulate")
-    p.add_argument("-v", "--verbose", action="count", default=0)
+    add_verbosity(p)
     return p
 
 
@@ -113,16 +113,27 @@ def config_from_args(args: argparse.Namespace) -> ServiceConfig:
     )
 
 
-def setup_logging(verbose: int) -> None:
-    level = logging.WARNING if verbose <= 0 else logging.INFO if verbose == 1 else logging.DEBUG
+def setup_logging(verbose: int, quiet: bool = False) -> None:
+    """stderr logging: evcal's INFO by default (the service's own account), -v INFO for all,
+    -vv DEBUG, -q errors only."""
+    level = (logging.ERROR if quiet else logging.WARNING if verbose <= 0
+             else logging.INFO if verbose == 1 else logging.DEBUG)
     logging.basicConfig(level=level, stream=sys.stderr,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    logging.getLogger("evcal").setLevel(min(level, logging.INFO))
+    logging.getLogger("evcal").setLevel(level if quiet else min(level, logging.INFO))
+
+
+def add_verbosity(p: argparse.ArgumentParser) -> None:
+    """-v / -q, the same on every command."""
+    p.add_argument("-v", "--verbose", action="count", default=0,
+                   help="more detail on stderr (-vv: debug)")
+    p.add_argument("-q", "--quiet", action="store_true",
+                   help="errors only on stderr (no notes, progress or info lines)")
 
 
 def main_serve(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    setup_logging(args.verbose)
+    setup_logging(args.verbose, args.quiet)
     try:
         if (args.rerun_serve is not None or args.rerun_connect) and not args.rrd:
             raise ValueError("--rerun-serve and --rerun-connect go with --rrd PATH (the live "
