@@ -2,6 +2,9 @@
 
     python scripts/bench_service.py throughput [--sizes 346x260,1280x720] [--events 40e6]
     python scripts/bench_service.py latency [--rates 1e6,2e6,5e6] [--seconds 20] [--rrd]
+                                            [--size 346x260]
+    python scripts/bench_service.py scaling [--seconds 30] [--cameras 2]
+    python scripts/bench_service.py shm [--events 40e6]
     python scripts/bench_service.py memory [--minutes 10]
     python scripts/bench_service.py stress [--minutes 10] [--cameras 4]
     python scripts/bench_service.py all
@@ -27,6 +30,17 @@ latency     a DAVIS346-like real-time stream: 346x260, 25 Hz frames, events at `
             the median of each step (queue wait, OnEI fold + re-solve, calibration maps,
             encode, publish). Also the round trip seen by the client: frame put -> that
             calibration received back.
+scaling     1, then 2 (``--cameras``) cameras streamed at once into one service at full rate
+            (each a ``evcal replay --max-rate --loop`` of a 346x260 simulated recording, its
+            own process), for ``--seconds``: the service's aggregate events/s and updates/s
+            from its status counters over the timed part, and the ratio to one camera. Each
+            camera has its own decoder and estimator threads (numba kernels release the GIL),
+            so cameras run on different cores; the replays share the cores too.
+shm         the "events" throughput with zenoh's shared-memory transport (on by default
+            between local processes for messages above 3 KiB) and with it disabled
+            (``transport/shared_memory/enabled: false`` on both sides), beside the zenoh
+            loopback floor: the same messages put and received by two sessions of this
+            process, nothing else done with them.
 memory      the service's RSS every 10 s while a 346x260 camera streams 1 M events/s and
             25 Hz frames in real time (re-solves every ~10 frames).
 stress      ``--cameras`` real ``evcal replay --max-rate --loop`` processes (346x260 simulated
@@ -70,6 +84,9 @@ def synthetic_chunk(rng: np.random.Generator, sensor: SensorSize, n: int, t0_us:
 def status(t: Transport, camera: str) -> dict:
     r = t.get(f"evcal/{camera}/status", timeout_s=2.0)
     return json.loads(r[0].payload) if r and r[0].ok else {}
+
+
+SHM_OFF = ["--cfg", "transport/shared_memory/enabled:false"]
 
 
 def start_service(extra: list[str]) -> tuple[ServiceProcess, str]:
@@ -147,7 +164,7 @@ THROUGHPUT_MODES = {
 
 
 def throughput(sensor: SensorSize, n_events: int, *, mode: str, chunk: int = 100_000,
-               warmup_events: int = 4_000_000) -> dict:
+               warmup_events: int = 4_000_000, shm: bool = True) -> dict:
     rng = np.random.default_rng(0)
     rate_hz = 20e6  # sensor-time event rate of the synthetic stream
     span = int(chunk / rate_hz * 1e6)
@@ -156,10 +173,14 @@ def throughput(sensor: SensorSize, n_events: int, *, mode: str, chunk: int = 100
     img = rng.integers(0, 255, sensor.shape).astype(np.uint8)
     frames, extra = THROUGHPUT_MODES[mode]
     frame_every = max(1, int(FRAME_US * rate_hz / 1e6 / chunk))  # 25 Hz of sensor time
-    sp, ep = start_service(extra)
+    sp, ep = start_service(extra + ([] if shm else SHM_OFF))
     cam = f"bench/{sensor}"
+    zopts = ZenohOptions.loopback(connect=[ep])
+    if not shm:
+        zopts = ZenohOptions(mode="peer", connect=(ep,), multicast_scouting=False,
+                             extra=(("transport/shared_memory/enabled", "false"),))
     try:
-        with Transport(ZenohOptions.loopback(connect=[ep])) as t:
+        with Transport(zopts) as t:
             wait_for(lambda: t.alive("evcal/@service/*", timeout_s=1.0), timeout_s=60)
             s = Stream(t, cam, sensor)
 
@@ -190,7 +211,7 @@ def throughput(sensor: SensorSize, n_events: int, *, mode: str, chunk: int = 100
     finally:
         sp.stop()
     timed = n_msgs * chunk
-    return {"sensor": str(sensor), "mode": mode, "events": timed,
+    return {"sensor": str(sensor), "mode": mode, "events": timed, "shm": shm,
             "publish_s": t_pub, "total_s": t_all, "events_per_s": timed / t_all,
             "updates": st.get("updates"), "errors": st.get("errors_total"),
             "service_rss_mb": rss / 2**20, "other_load_cores": load.cores}
@@ -200,17 +221,17 @@ def throughput(sensor: SensorSize, n_events: int, *, mode: str, chunk: int = 100
 
 
 def latency(rate: float, seconds: float, *, chunk_ms: float = 10.0, rrd: str | None = None,
-            warmup_s: float = 3.0) -> dict:
-    """A real-time 346x260 stream at ``rate`` events/s, 25 Hz frames, OnEI's default sizes."""
-    sensor = SensorSize(260, 346)
+            warmup_s: float = 3.0, size: str = "346x260") -> dict:
+    """A real-time stream at ``rate`` events/s, 25 Hz frames, OnEI's default sizes."""
+    sensor = SensorSize.parse(size)
     rng = np.random.default_rng(1)
     chunk_us = int(chunk_ms * 1000)
     per_chunk = int(rate * chunk_us / 1e6)
     chunks_per_frame = FRAME_US // chunk_us
     # one second of distinct packets and eight frames, re-stamped (the publisher's CPU is
     # the machine's too)
-    pool = [synthetic_chunk(rng, sensor, per_chunk, 0, chunk_us)
-            for _ in range(1_000_000 // chunk_us)]
+    n_pool = max(8, min(1_000_000 // chunk_us, 4_000_000 // max(per_chunk, 1)))
+    pool = [synthetic_chunk(rng, sensor, per_chunk, 0, chunk_us) for _ in range(n_pool)]
     images = [rng.integers(0, 255, sensor.shape).astype(np.uint8) for _ in range(8)]
     extra = ["--rrd", rrd] if rrd else []
     sp, ep = start_service(extra)
@@ -260,14 +281,106 @@ def latency(rate: float, seconds: float, *, chunk_ms: float = 10.0, rrd: str | N
     finally:
         sp.stop()
     rt = np.array(got) * 1e3
-    return {"rate": rate, "frames": n_frames, "updates": st.get("updates"),
+    return {"sensor": str(sensor), "rate": rate, "frames": n_frames,
+            "updates": st.get("updates"),
             "calibrations_back": len(got),
             "roundtrip_ms_median": float(np.median(rt)) if rt.size else float("nan"),
             "roundtrip_ms_p95": float(np.percentile(rt, 95)) if rt.size else float("nan"),
+            "roundtrip_ms_p99": float(np.percentile(rt, 99)) if rt.size else float("nan"),
             "service_latency_ms": st.get("latency_ms") or {},
             "errors": st.get("errors_total"), "dropped": st.get("dropped"),
             "recorder_dropped": recorder.get("recorder_dropped") if rrd else None,
             "service_rss_mb": rss / 2**20, "other_load_cores": load.cores}
+
+
+# ----------------------------------------------------------------------------- scaling
+
+
+def scaling(seconds: float, max_cameras: int) -> list[dict]:
+    """Aggregate service throughput with 1..max_cameras cameras at full rate."""
+    import subprocess
+    import tempfile
+    from pathlib import Path
+
+    from evcal.io import write_recording
+    from evcal.sim.ideal import SimConfig, simulate_ideal
+    from evcal.testing import python_env
+
+    d = Path(tempfile.mkdtemp(prefix="evcal-scaling-"))
+    sim = simulate_ideal(SimConfig(height=260, width=346, duration_s=4.0, seed=11))
+    path = write_recording(sim.recording, d / "cam.npz")
+    out = []
+    for n in range(1, max_cameras + 1):
+        sp, ep = start_service([])
+        reps: list[subprocess.Popen[str]] = []
+        cams = [f"scale/cam{c}" for c in range(n)]
+        try:
+            with Transport(ZenohOptions.loopback(connect=[ep])) as t:
+                wait_for(lambda: t.alive("evcal/@service/*", timeout_s=1.0), timeout_s=60)
+                for cam in cams:
+                    reps.append(subprocess.Popen(
+                        [sys.executable, "-m", "evcal.clients.replay", str(path), "--camera",
+                         cam, "--connect", ep, *ZARGS, "--max-rate", "--loop"],
+                        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                        env=python_env()))
+                time.sleep(5.0)  # warm-up: cameras created, kernels loaded
+
+                def totals(cams: list[str] = cams) -> tuple[int, int]:
+                    sts = [status(t, c) for c in cams]
+                    return (sum(x.get("events", 0) for x in sts),
+                            sum(x.get("updates", 0) for x in sts))
+
+                with OtherLoad(sp.pid) as load:
+                    e0, u0 = totals()
+                    t0 = time.monotonic()
+                    time.sleep(seconds)
+                    e1, u1 = totals()
+                    dt = time.monotonic() - t0
+                cpu = psutil.Process(sp.pid).cpu_percent(interval=1.0) / 100.0
+        finally:
+            for r in reps:
+                r.kill()
+            sp.stop()
+        out.append({"cameras": n, "events_per_s": (e1 - e0) / dt,
+                    "updates_per_s": (u1 - u0) / dt, "service_cores": cpu,
+                    "other_load_cores": load.cores})
+    return out
+
+
+# ----------------------------------------------------------------------------- shm
+
+
+def zenoh_loopback_floor(n_events: int, chunk: int = 100_000, shm: bool = True) -> float:
+    """Events/s of the same messages put by one session and received by another of this
+    process (the transport alone: nothing decoded)."""
+    import threading as th
+
+    rng = np.random.default_rng(0)
+    payload = encode_events(synthetic_chunk(rng, SensorSize(260, 346), chunk, 0, 5000),
+                            height=260, width=346, seq=0)
+    n_msgs = max(1, n_events // chunk)
+    ep = endpoint(free_port())
+    extra = () if shm else (("transport/shared_memory/enabled", "false"),)
+    got = th.Semaphore(0)
+    with Transport(ZenohOptions(mode="peer", listen=(ep,), multicast_scouting=False,
+                                extra=extra)) as rx, \
+            Transport(ZenohOptions(mode="peer", connect=(ep,), multicast_scouting=False,
+                                   extra=extra)) as tx:
+        rx.subscribe("bench/floor", lambda key, data, enc: got.release())
+        pub = tx.publisher("bench/floor", keys.ENC_EVENTS, block=True)
+        wait_for(lambda: pub.has_subscribers, timeout_s=10)
+        for _ in range(20):  # warm-up
+            pub.put(payload)
+        for _ in range(20):
+            got.acquire(timeout=10)
+        t0 = time.monotonic()
+        for _ in range(n_msgs):
+            pub.put(payload)
+        for _ in range(n_msgs):
+            if not got.acquire(timeout=60):
+                break
+        dt = time.monotonic() - t0
+    return n_msgs * chunk / dt
 
 
 # ----------------------------------------------------------------------------- memory
@@ -414,14 +527,17 @@ def print_latency(r: dict) -> None:
     sl = r["service_latency_ms"]
     parts = sl.get("parts_median") or {}
     nan = float("nan")
-    print(f"latency 346x260, {r['rate'] / 1e6:g} M ev/s, 25 Hz frames, default OnEI sizes, "
+    print(f"latency {r['sensor']}, {r['rate'] / 1e6:g} M ev/s, 25 Hz frames, default OnEI "
+          "sizes, "
           f"{r['updates']} updates in {r['frames']} frames:\n"
           f"  frame arrival -> calibration published (service): median "
-          f"{sl.get('median') or nan:.1f} ms, p95 {sl.get('p95') or nan:.1f} ms, max "
+          f"{sl.get('median') or nan:.1f} ms, p95 {sl.get('p95') or nan:.1f} ms, p99 "
+          f"{sl.get('p99') or nan:.1f} ms, max "
           f"{sl.get('max') or nan:.1f} ms\n"
           f"    median steps: " + ", ".join(f"{k} {v:.1f}" for k, v in parts.items()) + " ms\n"
           f"  frame put -> calibration received (client round trip): median "
-          f"{r['roundtrip_ms_median']:.1f} ms, p95 {r['roundtrip_ms_p95']:.1f} ms "
+          f"{r['roundtrip_ms_median']:.1f} ms, p95 {r['roundtrip_ms_p95']:.1f} ms, p99 "
+          f"{r['roundtrip_ms_p99']:.1f} ms "
           f"({r['calibrations_back']} calibrations back); errors {r['errors']}, dropped "
           f"{r['dropped']}, service RSS {r['service_rss_mb']:.0f} MiB"
           + (f"; recording, recorder dropped {r['recorder_dropped']} calls"
@@ -431,7 +547,9 @@ def print_latency(r: dict) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=(__doc__ or "").split("\n")[0])
-    p.add_argument("what", choices=["throughput", "latency", "memory", "stress", "all"])
+    p.add_argument("what", choices=["throughput", "latency", "memory", "stress", "scaling",
+                                    "shm", "all"])
+    p.add_argument("--size", default="346x260", help="latency: sensor size WxH")
     p.add_argument("--cameras", type=int, default=4, help="stress: replays at once")
     p.add_argument("--sizes", default="346x260,1280x720", help="throughput: sensor sizes")
     p.add_argument("--modes", default=",".join(THROUGHPUT_MODES),
@@ -454,7 +572,24 @@ def main(argv: list[str] | None = None) -> int:
                       f"other processes used {r['other_load_cores']:.2f} cores)", flush=True)
     if args.what in ("latency", "all"):
         for rate in args.rates.split(","):
-            print_latency(latency(float(rate), args.seconds, rrd=args.rrd))
+            print_latency(latency(float(rate), args.seconds, rrd=args.rrd, size=args.size))
+    if args.what in ("scaling", "all"):
+        rows = scaling(args.seconds, max(2, args.cameras if args.what == "scaling" else 2))
+        one = rows[0]["events_per_s"] or float("nan")
+        for r in rows:
+            print(f"scaling {r['cameras']} camera(s) at full rate (346x260, default OnEI): "
+                  f"{r['events_per_s'] / 1e6:.1f} M events/s in all "
+                  f"({r['events_per_s'] / one:.2f}x one camera), {r['updates_per_s']:.1f} "
+                  f"updates/s, service {r['service_cores']:.2f} cores, other processes "
+                  f"{r['other_load_cores']:.2f} cores", flush=True)
+    if args.what in ("shm", "all"):
+        for shm in (True, False):
+            floor = zenoh_loopback_floor(int(args.events), shm=shm)
+            r = throughput(SensorSize(260, 346), int(args.events), mode="events", shm=shm)
+            print(f"shm {'on ' if shm else 'off'}: service {r['events_per_s'] / 1e6:.1f} M "
+                  f"events/s (events mode, 346x260); zenoh loopback floor "
+                  f"{floor / 1e6:.1f} M events/s; ratio {r['events_per_s'] / floor:.2f}; "
+                  f"other processes used {r['other_load_cores']:.2f} cores", flush=True)
     if args.what in ("memory", "all"):
         r = memory(args.minutes)
         print(f"memory 346x260, 1 M ev/s and 25 Hz in real time for {r['minutes']:g} min: "

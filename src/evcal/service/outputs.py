@@ -73,6 +73,7 @@ def camera_status(cam: Camera, *, now_s: float | None = None) -> dict[str, Any]:
             "median": float(np.median(lat)) if lat.size else None,
             "mean": float(lat.mean()) if lat.size else None,
             "p95": float(np.percentile(lat, 95)) if lat.size else None,
+            "p99": float(np.percentile(lat, 99)) if lat.size else None,
             "max": float(lat.max()) if lat.size else None,
             "parts_median": st.latency_parts(),
         },
