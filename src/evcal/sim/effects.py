@@ -120,18 +120,24 @@ class Leak(Effect):
 class ShotNoise(Effect):
     name: ClassVar[str] = "shot_noise"
     primary: ClassVar[str] = "rate_hz"
+    n_fitted: ClassVar[int] = 2
     rate_hz: float = 1.0
     ref_dn: float = 16.0
+    # rate ~ (ref / I)**light_exponent: 1 is photon shot noise's 1/I; sensors and simulators
+    # differ (v2e's falls only 4x from black to white: about 0.6)
+    light_exponent: float = 1.0
 
     def __post_init__(self) -> None:
         _check(self.name, np.isfinite(self.rate_hz) and self.rate_hz >= 0,
                "rate_hz must be finite and >= 0", self.rate_hz)
         _check(self.name, self.ref_dn > 0, "ref_dn must be > 0", self.ref_dn)
+        _check(self.name, 0 <= self.light_exponent <= 2, "light_exponent must be in [0, 2]",
+               self.light_exponent)
 
     def rate_at(self, intensity_dn: np.ndarray) -> np.ndarray:
         """Noise-event rate (Hz, ON and OFF together) at intensity ``I`` (DN)."""
         i = np.maximum(np.asarray(intensity_dn, np.float64), 0.1 * self.ref_dn)
-        return self.rate_hz * self.ref_dn / i
+        return np.asarray(self.rate_hz * (self.ref_dn / i) ** self.light_exponent)
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -143,7 +143,8 @@ def _search(j0: np.ndarray, n_slow: np.ndarray, slow_idx: np.ndarray, k: int,
             last_fire: np.ndarray, leak_debt: np.ndarray, rng_state: np.ndarray,
             u_shot: np.ndarray, th_sigma: np.ndarray, refr_us: np.ndarray,
             refr_delay: np.ndarray, shot_rate_hz: np.ndarray, shot_ref_dn: np.ndarray,
-            bw_cutoff_hz: np.ndarray, bw_ref_dn: np.ndarray, bw_min_hz: np.ndarray,
+            shot_exp: np.ndarray, bw_cutoff_hz: np.ndarray, bw_ref_dn: np.ndarray,
+            bw_min_hz: np.ndarray,
             t_f: np.ndarray, t_i: np.ndarray, pix: np.ndarray, pol: np.ndarray,
             lab: np.ndarray, n: int) -> Any:  # pragma: no cover - compiled
     """The exact crossing search of step ``k`` for the pixels ``slow_idx[j0:n_slow]``;
@@ -181,7 +182,10 @@ def _search(j0: np.ndarray, n_slow: np.ndarray, slow_idx: np.ndarray, k: int,
         npol = 0
         if shot:
             u = u_shot[i]
-            rate = shot_rate_hz * shot_ref_dn / max(inten, 0.1 * shot_ref_dn)
+            if shot_exp == 1.0:
+                rate = shot_rate_hz * shot_ref_dn / max(inten, 0.1 * shot_ref_dn)
+            else:
+                rate = shot_rate_hz * (shot_ref_dn / max(inten, 0.1 * shot_ref_dn)) ** shot_exp
             pr = rate * dt_s
             if u < pr:
                 fn = u / pr
@@ -324,6 +328,7 @@ def run_steps(
     leak_ref_dn: Any,
     shot_rate_hz: Any,
     shot_ref_dn: Any,
+    shot_exp: Any,
     bw_cutoff_hz: Any,
     bw_ref_dn: Any,
     bw_min_hz: Any,
@@ -397,13 +402,15 @@ def run_steps(
             # u < p = (rate ref / max(I, 0.1 ref)) dt is decided here without the division
             # where u max(I, 0.1 ref) is clearly above rate ref dt (pass 2 decides the rest,
             # with the division)
-            c_quiet = shot_rate_hz * shot_ref_dn * dt_s * (1.0 + _SHOT_MARGIN)
+            c_quiet = shot_rate_hz * shot_ref_dn ** shot_exp * dt_s * (1.0 + _SHOT_MARGIN)
             i_min = 0.1 * shot_ref_dn
             for i in range(n_pix):
                 u = _next_u01(rng_state, i)
                 u_shot[i] = u
                 x = np.float64(intensity[k, i])
                 x = x if x > i_min else i_min
+                if shot_exp != 1.0:
+                    x = x ** shot_exp
                 shot_quiet[i] = u * x > c_quiet
         if bw or not shortcut:
             for i in range(n_pix):
@@ -448,7 +455,7 @@ def run_steps(
             n, j = _search(j, n_slow, slow_idx, k, intensity, times, log_offset, lf, lf_ok,
                            i_prev, hi_i, lo_i, ref_i, ref, th_on_nom, th_off_nom, th_on,
                            th_off, dead_until, last_fire, leak_debt, rng_state, u_shot,
-                           th_sigma, refr_us, refr_delay, shot_rate_hz, shot_ref_dn,
+                           th_sigma, refr_us, refr_delay, shot_rate_hz, shot_ref_dn, shot_exp,
                            bw_cutoff_hz, bw_ref_dn, bw_min_hz, t_f, t_i, pix, pol, lab, n)
             if j < n_slow:
                 t_f = _grow(t_f, n)

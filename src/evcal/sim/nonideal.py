@@ -174,8 +174,9 @@ def simulate(
         leak_rate = leak.pixel_rates_hz(npix, r_leak)
         leak_exp, leak_ref = float(leak.light_exponent), float(leak.ref_dn)
     shot = eff.get(ShotNoise.name)
-    shot_rate, shot_ref = (float(shot.rate_hz), float(shot.ref_dn)) if isinstance(
-        shot, ShotNoise) else (0.0, 16.0)
+    shot_rate, shot_ref, shot_exp = (
+        (float(shot.rate_hz), float(shot.ref_dn), float(shot.light_exponent))
+        if isinstance(shot, ShotNoise) else (0.0, 16.0, 1.0))
     bw = eff.get(Bandwidth.name)
     bw_cut, bw_ref, bw_min = (float(bw.cutoff_hz), float(bw.ref_dn), float(bw.min_cutoff_hz)
                               ) if isinstance(bw, Bandwidth) else (0.0, 128.0, 0.5)
@@ -234,8 +235,8 @@ def simulate(
         buf_tf, buf_ti, buf_pix, buf_p, buf_lab, n_ev = run_steps(
             block, times[k : k + kk + 1], offset, lf, lf_ok, i_prev, hi_i, lo_i, ref_i, ref,
             th_on_nom, th_off_nom, th_on, th_off, dead, last_fire, leak_rate, debt, rng_state,
-            th_sigma, refr_us, refr_delay, leak_exp, leak_ref, shot_rate, shot_ref, bw_cut,
-            bw_ref, bw_min, buf_tf, buf_ti, buf_pix, buf_p, buf_lab, n_ev)
+            th_sigma, refr_us, refr_delay, leak_exp, leak_ref, shot_rate, shot_ref, shot_exp,
+            bw_cut, bw_ref, bw_min, buf_tf, buf_ti, buf_pix, buf_p, buf_lab, n_ev)
         k += kk
         want = int(1.1 * n_ev * n_steps / k) + 1024
         if k < n_steps and want > buf_tf.size:
