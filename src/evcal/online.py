@@ -56,6 +56,7 @@ from __future__ import annotations
 import json
 import math
 from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
@@ -104,6 +105,32 @@ from .stream import StreamError, StreamGuard, frame_intervals
 
 STATE_FORMAT = "evcal.onei.v2"
 # state_dict's scalars: JSON key -> attribute (besides sensor, config and the stream's times)
+_OFFSET_POOL: ThreadPoolExecutor | None = None
+
+
+def _offset_pool() -> ThreadPoolExecutor:
+    """One worker thread for every calibrator's offset criterion (numpy releases the GIL in
+    its array work, so the frame path goes on meanwhile)."""
+    global _OFFSET_POOL
+    if _OFFSET_POOL is None:
+        _OFFSET_POOL = ThreadPoolExecutor(max_workers=1, thread_name_prefix="evcal-offset")
+    return _OFFSET_POOL
+
+
+def _offset_criterion(sp: np.ndarray, se: np.ndarray, dq: np.ndarray, fj: np.ndarray,
+                      fk: np.ndarray, w: np.ndarray, grid: tuple[float, float, int],
+                      n_pix: int, d: int) -> tuple[float, dict[str, Any]] | None:
+    """``offset_from_windows`` on prepared windows (run on the worker thread)."""
+    from .offline import offset_from_windows  # noqa: PLC0415 - offline imports solver only
+
+    try:
+        o, info = offset_from_windows(sp, se, dq, fj, fk, w, offset_grid=grid)
+    except CalibrationError:  # nothing to judge by yet (a still scene): ask again later
+        return None
+    info.update(pixels=n_pix, window_frames=d, source="OnEI buffer")
+    return o, info
+
+
 def _opt_int(v: Any) -> int | None:
     return None if v is None else int(v)
 
@@ -327,6 +354,8 @@ class OnlineCalibrator:
         self.log_offset = float(given) if not isinstance(given, str) else math.nan
         self.offset_info: dict[str, Any] = {"method": "auto" if auto else "given"}
         self._next_offset_check = 0  # frame count of the next online re-estimate
+        # a criterion being computed off the frame path: (frame count to apply it at, job)
+        self._offset_job: tuple[int, Future[tuple[float, dict[str, Any]] | None]] | None = None
         self.lam = 0.0
         self.n_updates = 0
         self.n_events = 0
@@ -450,7 +479,10 @@ class OnlineCalibrator:
         if self._frame_cap is None:
             self._frame_cap = self.config.frame_cap(self.sensor, img.dtype.itemsize)
         self._push(t_us, img.ravel().copy())
-        if math.isnan(self.log_offset) or self.n_frames >= self._next_offset_check > 0:
+        if self._offset_job is not None and self.n_frames >= self._offset_job[0]:
+            self._apply_offset()
+        if self._offset_job is None and (math.isnan(self.log_offset)
+                                         or self.n_frames >= self._next_offset_check > 0):
             self._check_offset()
         formed = (not math.isnan(self.log_offset)) and self._close_small_buffers()
         self._drop_overflow()
@@ -523,23 +555,44 @@ class OnlineCalibrator:
     # OffEI's grid (1..400 DN, 21 points) extended down to 0.1 DN at the same spacing
     OFFSET_GRID = (0.1, 400.0, 30)
 
+    # frames after a check is started at which its result is applied: the criterion (a
+    # fraction of a second at 10 k pixels) runs on a worker thread meanwhile, so no frame
+    # waits for it live, and the result lands at the same frame in every run (offline runs
+    # wait for it there)
+    OFFSET_LAG_FRAMES = 8
+    OFFSET_PIXELS = 4000  # busiest pixels the criterion is computed on
+    OFFSET_MAX_WINDOWS = 64  # the newest windows of the buffer
+
     def _check_offset(self) -> None:
-        """Estimate the offset from the buffer (``log_offset="auto"``): first once it holds
-        ``2 d + 1`` frames, then again after 4x, 16x, ... as many frames. A changed
-        estimate (by more than 10 % in ``log(1 + o)``) rebuilds the equations from the
-        buffer's raw frames and restarts the smoothed estimate: the solutions folded so far
-        were fitted to log changes at the wrong offset, and averaging them with the new ones
-        would keep their bias for ``1 / smoothing`` re-solves."""
+        """Start an estimate of the offset from the buffer (``log_offset="auto"``): first
+        once it holds ``2 d + 1`` frames, then again after 4x, 16x, ... as many frames. The
+        inputs are copied here (milliseconds); the criterion runs on a worker thread and
+        :meth:`_apply_offset` takes its result ``OFFSET_LAG_FRAMES`` frames later."""
         first = math.isnan(self.log_offset)
         if first and len(self._frames) < 2 * self.AUTO_WINDOW + 1:
             return
-        found = self._offset_from_buffer()
-        if found is None:
+        inputs = self._offset_inputs()
+        if inputs is None:
             if not first:
                 self._next_offset_check = self.n_frames * 4
             return
-        o, info = found
         self._next_offset_check = self.n_frames * 4
+        self._offset_job = (self.n_frames + self.OFFSET_LAG_FRAMES,
+                            _offset_pool().submit(_offset_criterion, *inputs))
+
+    def _apply_offset(self) -> None:
+        """Take the started estimate. A changed estimate (by more than 10 % in
+        ``log(1 + o)``) rebuilds the equations from the buffer's raw frames and restarts the
+        smoothed estimate: the solutions folded so far were fitted to log changes at the
+        wrong offset, and averaging them with the new ones would keep their bias for
+        ``1 / smoothing`` re-solves."""
+        assert self._offset_job is not None
+        found = self._offset_job[1].result()
+        self._offset_job = None
+        if found is None:  # nothing to judge by yet (a still scene): ask again later
+            return
+        first = math.isnan(self.log_offset)
+        o, info = found
         info.update(frames_seen=self.n_frames, previous=None if first else self.log_offset,
                     estimate=o)
         self.offset_info = info
@@ -554,19 +607,19 @@ class OnlineCalibrator:
             self._since_resolve = 0
             info["estimate_restarted"] = True
 
-    def _offset_from_buffer(self) -> tuple[float, dict[str, Any]] | None:
-        """The criterion of ``--log-offset auto`` on the frames and interval counts the large
-        buffer holds (busiest pixels, windows of ``AUTO_WINDOW`` intervals)."""
-        from .offline import offset_from_windows  # noqa: PLC0415 - offline imports solver only
-
-        frames = list(self._frames)
+    def _offset_inputs(self) -> tuple[Any, ...] | None:
+        """The windows of the criterion of ``--log-offset auto`` from the frames and interval
+        counts the large buffer holds (busiest pixels, the newest windows of
+        ``AUTO_WINDOW`` intervals): copies, so the buffer may move on."""
+        frames = list(self._frames)[-(self.OFFSET_MAX_WINDOWS + self.AUTO_WINDOW):]
         d = min(self.AUTO_WINDOW, len(frames) - 3)
         limits = self.config.limits
         busy = np.flatnonzero(self._counts >= max(limits.min_events, 2 * d))
         if d < 1 or busy.size < 10:
             return None
         rng = np.random.default_rng(0)
-        pix = np.sort(rng.choice(busy, size=min(10_000, busy.size), replace=False))
+        pix = np.sort(rng.choice(busy, size=min(self.OFFSET_PIXELS, busy.size),
+                                 replace=False))
         pos = np.full(self.sensor.n_pixels, -1, np.int64)
         pos[pix] = np.arange(pix.size)
         on = np.zeros((len(frames), pix.size), np.int64)
@@ -586,16 +639,10 @@ class OnlineCalibrator:
         se = ((con[ks] + coff[ks]) - (con[ks - d] + coff[ks - d])).astype(np.float64)
         last = np.stack([f.last_p[pix] for f in frames]).astype(np.float64)
         img = np.stack([f.image[pix] for f in frames]).astype(np.float64)
-        sat = self.config.saturation_dn
-        ok = usable(img, sat)
+        ok = usable(img, self.config.saturation_dn)
         w = (ok[ks] & ok[ks - d]).astype(np.float64)
-        try:
-            o, info = offset_from_windows(sp, se, last[ks] - last[ks - d], img[ks - d], img[ks],
-                                          w, offset_grid=self.OFFSET_GRID)
-        except CalibrationError:  # nothing to judge by yet (a still scene): ask again later
-            return None
-        info.update(pixels=int(pix.size), window_frames=int(d), source="OnEI buffer")
-        return o, info
+        return (sp, se, last[ks] - last[ks - d], img[ks - d], img[ks], w, self.OFFSET_GRID,
+                int(pix.size), int(d))
 
     def _form_all(self) -> None:
         """Form every small buffer the buffer holds (once the offset became known)."""
@@ -905,6 +952,8 @@ class OnlineCalibrator:
                    "last_event_t_us": self.last_event_t_us,
                    "last_frame_t_us": self.last_frame_t_us}
         scalars.update({key: getattr(self, attr) for key, (attr, _) in _SCALARS.items()})
+        if self._offset_job is not None:  # its result is not saved: check again on restore
+            scalars["next_offset_check"] = self.n_frames
         scalars["offset_info"] = to_jsonable(self.offset_info)
         img_dtype = frames[0].image.dtype if frames else np.dtype(np.uint8)
         out: dict[str, np.ndarray] = {
