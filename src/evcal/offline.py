@@ -41,6 +41,7 @@ from .recording import Recording, RecordingError
 from .solver import (
     NormalEquations,
     SolveLimits,
+    WindowRing,
     correction_lambda,
     log_intensity,
     solve_normal_equations,
@@ -128,20 +129,17 @@ def offei(rec: Recording, config: OffEIConfig | None = None) -> Calibration:
     else:
         offset, offset_info = float(cfg.log_offset), {"method": "given"}
     ne = NormalEquations(rec.sensor.n_pixels)
-    ring: deque[tuple[Snapshot, np.ndarray, np.ndarray]] = deque(maxlen=d + 1)
+    # the windows (k - d, k) of every frame k >= d, added in batches: the sums of
+    # add(P, E, Q, A, dL, w) of _window_terms, one pass over them per batch
+    ring = WindowRing(rec.sensor.n_pixels, d)
     last: Snapshot | None = None
     for snap in frame_snapshots(rec):
         img = snap.image.ravel()
-        ring.append((snap, log_intensity(img, offset), usable(img, cfg.saturation_dn)))
         last = snap
-        if len(ring) == d + 1:
-            s_j, l_j, u_j = ring[0]
-            s_k, l_k, u_k = ring[-1]
-            p, e, q, a = _window_terms(s_j, s_k)
-            w = (u_j & u_k).astype(np.float64)
-            with np.errstate(invalid="ignore"):  # -inf - -inf at black pixels, offset 0
-                dl = np.where(w > 0, l_k - l_j, 0.0)
-            ne.add(p, e, q, a, dl, w)
+        if ring.push(snap.on, snap.off, snap.last_p, log_intensity(img, offset),
+                     usable(img, cfg.saturation_dn)):
+            ring.flush(ne)
+    ring.flush(ne)
     assert last is not None
     # Events used: those between the first and the last frame.
     first_t, last_t = int(rec.frames.t_us[0]), int(rec.frames.t_us[-1])

@@ -107,6 +107,14 @@ class NormalEquations:
         self.yy[idx] += ws * dl * dl
         self.n_eq[idx] += ws * np.ones_like(dl)
 
+    def add_windows(self, ring: WindowRing, rows_j: np.ndarray, rows_k: np.ndarray) -> None:
+        """:meth:`add` of the dense windows ``rows_j -> rows_k`` of ``ring``, weight 1 where
+        both frames are usable (else 0): one compiled pass for the batch. The same sums as
+        ``add(P, E, Q, A, dL, w)`` window by window, up to the order of the additions."""
+        _add_windows(self.m, ring.on, ring.off, ring.q, ring.lg, ring.ok,
+                     np.ascontiguousarray(rows_j, np.int64),
+                     np.ascontiguousarray(rows_k, np.int64))
+
     def system(self, lam: float) -> tuple[np.ndarray, ...]:
         """``(a11, a12, a22, r1, r2, yy)`` of ``dL = c (P + lam Q) + b (E + lam A)``."""
         a11 = self.pp + 2 * lam * self.pq + lam * lam * self.qq
@@ -166,6 +174,103 @@ def _add_sparse(m: np.ndarray, idx: np.ndarray, p: np.ndarray, e: np.ndarray, q:
         m[13, k] += wa * dl[i]
         m[14, k] += ws * dl[i] * dl[i]
         m[15, k] += ws
+
+
+@numba.njit(cache=True, nogil=True)
+def _add_windows(m: np.ndarray, on: np.ndarray, off: np.ndarray, q: np.ndarray,
+                 lg: np.ndarray, ok: np.ndarray, rows_j: np.ndarray, rows_k: np.ndarray
+                 ) -> Any:  # pragma: no cover - compiled
+    """The dense windows ``rows_j[w] -> rows_k[w]`` of ring buffers ``[row, pixel]`` (running
+    ON/OFF counts, last polarity, log intensity, usable), pixel by pixel: a pixel's 16 sums
+    over all the windows are formed in registers and added to ``m`` once, so ``m`` (128 bytes
+    a pixel) streams through memory once per batch instead of once per window. The products
+    are those of :meth:`NormalEquations.add` with weight 1 or 0 (unusable windows skipped)."""
+    n_w = rows_j.size
+    for i in range(m.shape[1]):
+        s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = s8 = s9 = 0.0
+        s10 = s11 = s12 = s13 = s14 = s15 = 0.0
+        for w in range(n_w):
+            rj = rows_j[w]
+            rk = rows_k[w]
+            if not (ok[rj, i] and ok[rk, i]):
+                continue
+            non = np.float64(on[rk, i] - on[rj, i])
+            noff = np.float64(off[rk, i] - off[rj, i])
+            qk = np.float64(q[rk, i])
+            qj = np.float64(q[rj, i])
+            dl = lg[rk, i] - lg[rj, i]
+            p = non - noff
+            e = non + noff
+            dq = qk - qj
+            a = abs(qk) - abs(qj)
+            s0 += p * p
+            s1 += p * e
+            s2 += p * dq
+            s3 += p * a
+            s4 += e * e
+            s5 += e * dq
+            s6 += e * a
+            s7 += dq * dq
+            s8 += dq * a
+            s9 += a * a
+            s10 += p * dl
+            s11 += e * dl
+            s12 += dq * dl
+            s13 += a * dl
+            s14 += dl * dl
+            s15 += 1.0
+        m[0, i] += s0
+        m[1, i] += s1
+        m[2, i] += s2
+        m[3, i] += s3
+        m[4, i] += s4
+        m[5, i] += s5
+        m[6, i] += s6
+        m[7, i] += s7
+        m[8, i] += s8
+        m[9, i] += s9
+        m[10, i] += s10
+        m[11, i] += s11
+        m[12, i] += s12
+        m[13, i] += s13
+        m[14, i] += s14
+        m[15, i] += s15
+
+
+class WindowRing:
+    """The last ``size`` frames' running counts, last polarities, log intensities and usable
+    masks as ring buffers ``[row, pixel]``, and the windows waiting to be added: OffEI adds
+    its windows in batches through :meth:`NormalEquations.add_windows` (one pass over the
+    sums per batch)."""
+
+    def __init__(self, n_pixels: int, window_frames: int, batch: int = 16):
+        self.d = int(window_frames)
+        self.size = self.d + int(batch)
+        self.batch = int(batch)
+        self.on = np.zeros((self.size, n_pixels), np.int32)
+        self.off = np.zeros((self.size, n_pixels), np.int32)
+        self.q = np.zeros((self.size, n_pixels), np.int8)
+        self.lg = np.zeros((self.size, n_pixels), np.float64)
+        self.ok = np.zeros((self.size, n_pixels), np.bool_)
+        self.n = 0  # frames pushed
+        self.pending: list[int] = []  # frame numbers k whose window (k - d, k) is pending
+
+    def push(self, on: np.ndarray, off: np.ndarray, last_p: np.ndarray, lg: np.ndarray,
+             ok: np.ndarray) -> bool:
+        """Store frame ``n``; True when a batch of windows is due (call ``flush``)."""
+        r = self.n % self.size
+        self.on[r], self.off[r], self.q[r], self.lg[r], self.ok[r] = on, off, last_p, lg, ok
+        if self.n >= self.d:
+            self.pending.append(self.n)
+        self.n += 1
+        return len(self.pending) >= self.batch
+
+    def flush(self, ne: NormalEquations) -> None:
+        if not self.pending:
+            return
+        k = np.asarray(self.pending, np.int64)
+        ne.add_windows(self, (k - self.d) % self.size, k % self.size)
+        self.pending.clear()
 
 
 # Reason codes as plain ints for the compiled kernels
