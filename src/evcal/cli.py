@@ -137,6 +137,8 @@ def cmd_info(args: argparse.Namespace) -> int:
 def cmd_calibrate(args: argparse.Namespace) -> int:
     from .io import save_calibration, write_csv  # noqa: PLC0415
 
+    if args.stream:
+        return _calibrate_stream(args)
     rec = _open(args.recording, args.sensor_size, args)
     from .estimators import calibrate  # noqa: PLC0415
 
@@ -193,6 +195,45 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         print(f"correction    c / {mc['gain_median']:.4f} (median; "
               f"{mc['gain_range'][0]:.4f}..{mc['gain_range'][1]:.4f} over {mc['cells']} "
               f"cells), b shifted by {mc['bias_shift_median']:+.4f} (median)")
+    print(f"wrote         {args.out}")
+    return 0
+
+
+def _calibrate_stream(args: argparse.Namespace) -> int:
+    """``calibrate --stream``: OffEI of an evcal MCAP without loading it."""
+    from .io import save_calibration, sniff, write_csv  # noqa: PLC0415
+    from .offline import OffEIConfig, offei_file  # noqa: PLC0415
+
+    if args.method != "offei" or args.model or args.rrd:
+        raise CliError("--stream is OffEI alone: no --method other than offei, no --model, "
+                       "no --rrd")
+    if sniff(args.recording) != "mcap":
+        raise CliError(f"--stream reads evcal's .mcap recordings; {args.recording} is not one "
+                       "(convert it with evcal simulate/record, or drop --stream)")
+    okw: dict[str, Any] = {"log_offset": args.log_offset}
+    if args.window_frames is not None:
+        okw["window_frames"] = args.window_frames
+    with _progress(None, "offei", args.quiet) as bar:
+        def tick(done: int, total: int) -> None:
+            bar.total = total or None
+            bar.n = done
+            bar.refresh()
+
+        cal = offei_file(args.recording, OffEIConfig(**okw), prefix_frames=args.prefix_frames,
+                         progress=tick)
+    save_calibration(cal, args.out)
+    if args.csv:
+        write_csv(cal, args.csv)
+    s = cal.summary()
+    if args.json is not None:
+        _write_json(args.json, {"recording": str(args.recording), "out": str(args.out),
+                                "method": cal.method, "log_offset": cal.log_offset,
+                                "summary": s, "diagnostics": cal.diagnostics.to_dict()})
+        if args.json == "-":
+            return 0
+    print(f"method        {cal.method} (streamed)")
+    print(f"log_offset    {cal.log_offset:.3f}")
+    print(f"valid pixels  {s['valid_fraction'] * 100:.1f} %")
     print(f"wrote         {args.out}")
     return 0
 
@@ -383,6 +424,13 @@ def build_parser() -> argparse.ArgumentParser:
                          "(its report.json): the recording is simulated under that model and "
                          "the fit's gain and offset removed (docs/GAP.md)")
     sp.add_argument("--seed", type=int, default=0, help="seed of --model's simulations")
+    sp.add_argument("--stream", action="store_true",
+                    help="OffEI of an evcal .mcap read message by message, for recordings "
+                         "larger than memory (a progress bar on stderr; with --log-offset "
+                         "auto the offset comes from the first --prefix-frames frames)")
+    sp.add_argument("--prefix-frames", type=_positive_int, default=250,
+                    help="--stream with --log-offset auto: frames the offset is estimated "
+                         "on (default 250)")
     sp.add_argument("--json", nargs="?", const="-", metavar="OUT.json", default=None,
                     help="the summary and diagnostics as JSON: to OUT.json, or instead of the "
                          "table on stdout when no file is given")

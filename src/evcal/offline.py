@@ -28,16 +28,19 @@ for the overlap by counting ``n / d`` independent equations.
 
 from __future__ import annotations
 
+import os
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from .accumulate import Snapshot, frame_snapshots
+from .accumulate import Accumulator, Snapshot, frame_snapshots
 from .calibration import Calibration, OffEIDiagnostics, Reason
 from .errors import CalibrationError
-from .recording import Recording, RecordingError
+from .events import SensorSize
+from .recording import Frames, Recording, RecordingError, concat_events
 from .solver import (
     NormalEquations,
     SolveLimits,
@@ -47,6 +50,7 @@ from .solver import (
     solve_normal_equations,
     usable,
 )
+from .stream import frame_intervals
 
 # ----------------------------------------------------------------------------------------
 # OffEI
@@ -122,37 +126,168 @@ def _frame_flags(rec: Recording, saturation_dn: tuple[float, float]) -> np.ndarr
 def offei(rec: Recording, config: OffEIConfig | None = None) -> Calibration:
     """Offline events + intensity calibration (OffEI) of every pixel of ``rec``."""
     cfg = config or OffEIConfig()
-    d = int(cfg.window_frames)
-    _check_frames(rec, d)
+    _check_frames(rec, int(cfg.window_frames))
     if cfg.log_offset == "auto":
         offset, offset_info = estimate_log_offset(rec, cfg)
     else:
         offset, offset_info = float(cfg.log_offset), {"method": "given"}
-    ne = NormalEquations(rec.sensor.n_pixels)
-    # the windows (k - d, k) of every frame k >= d, added in batches: the sums of
-    # add(P, E, Q, A, dL, w) of _window_terms, one pass over them per batch
-    ring = WindowRing(rec.sensor.n_pixels, d)
-    last: Snapshot | None = None
-    for snap in frame_snapshots(rec):
-        img = snap.image.ravel()
-        last = snap
-        if ring.push(snap.on, snap.off, snap.last_p, log_intensity(img, offset),
-                     usable(img, cfg.saturation_dn)):
-            ring.flush(ne)
-    ring.flush(ne)
-    assert last is not None
-    # Events used: those between the first and the last frame.
-    first_t, last_t = int(rec.frames.t_us[0]), int(rec.frames.t_us[-1])
-    n_events = _events_per_pixel(rec, first_t, last_t)
-    lam = correction_lambda(ne, cfg.residual_correction, cfg.limits, n_events)
-    diagnostics = OffEIDiagnostics(
-        residual_lambda=lam, window_frames=d, residual_correction=cfg.residual_correction,
-        log_offset_estimation=offset_info, n_frames=len(rec.frames))
-    return solve_normal_equations(
-        ne, n_events, rec.sensor.shape, limits=cfg.limits, overlap=float(d), log_offset=offset,
-        method="offei", diagnostics=diagnostics, extra_reason=_frame_flags(rec, cfg.saturation_dn),
-        residual_lambda=lam,
-    )
+    acc = OffEIStream(rec.sensor, cfg, offset, offset_info)
+    for k, chunk in frame_intervals(rec.events, rec.frames.t_us):
+        acc.events(chunk)
+        acc.frame(int(rec.frames.t_us[k]), rec.frames.images[k])
+    return acc.result()
+
+
+class OffEIStream:
+    """OffEI fed in time order, for recordings that do not fit in memory: :meth:`events`
+    (validated chunks, each before the next frame), :meth:`frame`, then :meth:`result`.
+
+    Memory is bounded whatever the length: the running counts, the window ring of the last
+    ``window_frames + 16`` frames (:class:`~evcal.solver.WindowRing`), the sums, and the
+    per-pixel frame statistics of the SATURATED / CONSTANT flags. The log offset must be known
+    (``offset``): :func:`offei_file` estimates it on a prefix. :func:`offei` is this fed
+    from memory, so both give the same maps.
+    """
+
+    def __init__(self, sensor: SensorSize, config: OffEIConfig, offset: float,
+                 offset_info: dict[str, Any] | None = None):
+        self.sensor = sensor
+        self.cfg = config
+        self.offset = float(offset)
+        self.offset_info = offset_info or {"method": "given"}
+        n = sensor.n_pixels
+        self._acc = Accumulator(sensor)
+        self._ne = NormalEquations(n)
+        self._ring = WindowRing(n, int(config.window_frames))
+        self._count_first: np.ndarray | None = None  # events per pixel before frame 0
+        self._clipped = np.zeros(n, np.int32)
+        self._lo = np.full(n, np.inf)
+        self._hi = np.full(n, -np.inf)
+        self.n_frames = 0
+        self.n_events = 0
+
+    def events(self, chunk: np.ndarray) -> None:
+        """Events before the next frame (``t_us`` below it), validated and in time order."""
+        self._acc.add(chunk)
+        self.n_events += int(chunk.size)
+
+    def frame(self, t_us: int, image: np.ndarray) -> None:
+        img = np.asarray(image)
+        if img.shape != self.sensor.shape:
+            raise CalibrationError(f"frame at t_us={t_us} has shape {img.shape}, the sensor "
+                                   f"is {self.sensor}")
+        flat = img.ravel()
+        ok = usable(flat, self.cfg.saturation_dn)
+        if self._count_first is None:
+            self._count_first = (self._acc.on + self._acc.off).astype(np.int64)
+        self._clipped += ~ok
+        np.minimum(self._lo, flat, out=self._lo)
+        np.maximum(self._hi, flat, out=self._hi)
+        if self._ring.push(self._acc.on, self._acc.off, self._acc.last_p,
+                           log_intensity(flat, self.offset), ok):
+            self._ring.flush(self._ne)
+        self.n_frames += 1
+
+    def result(self) -> Calibration:
+        d = int(self.cfg.window_frames)
+        if self.n_frames < d + 1:
+            raise CalibrationError(
+                f"the recording has {self.n_frames} frames, fewer than one window of {d} frame "
+                f"intervals needs ({d + 1}); use a smaller --window-frames")
+        self._ring.flush(self._ne)
+        assert self._count_first is not None
+        # events used: those between the first and the last frame
+        n_events = (self._ring.on[(self._ring.n - 1) % self._ring.size].astype(np.int64)
+                    + self._ring.off[(self._ring.n - 1) % self._ring.size]
+                    - self._count_first)
+        cfg = self.cfg
+        lam = correction_lambda(self._ne, cfg.residual_correction, cfg.limits, n_events)
+        flags = np.zeros(self.sensor.n_pixels, np.uint8)
+        flags[self._hi == self._lo] = Reason.CONSTANT
+        flags[self._clipped > self.n_frames // 2] = Reason.SATURATED
+        diagnostics = OffEIDiagnostics(
+            residual_lambda=lam, window_frames=d, residual_correction=cfg.residual_correction,
+            log_offset_estimation=self.offset_info, n_frames=self.n_frames)
+        return solve_normal_equations(
+            self._ne, n_events, self.sensor.shape, limits=cfg.limits, overlap=float(d),
+            log_offset=self.offset, method="offei", diagnostics=diagnostics,
+            extra_reason=flags, residual_lambda=lam)
+
+
+def offei_file(path: str | os.PathLike[str], config: OffEIConfig | None = None, *,
+               prefix_frames: int = 250,
+               progress: Callable[[int, int], None] | None = None) -> Calibration:
+    """OffEI of an evcal MCAP recording read message by message (files larger than memory).
+
+    The log offset, when ``"auto"``, is estimated on the first ``prefix_frames`` frames and
+    their events (held in memory, then fed on). ``progress(done, total)`` is called with
+    messages read. Gives the maps of :func:`offei` when the prefix is the whole recording or
+    the offset is given.
+    """
+    from .io.mcap_rec import iter_mcap  # noqa: PLC0415 - io is a layer above the core
+
+    cfg = config or OffEIConfig()
+    sensor, messages, total = iter_mcap(path)
+    acc: OffEIStream | None = None
+    held_ev: list[np.ndarray] = []  # the prefix, while the offset is unknown
+    held_fr: list[tuple[int, np.ndarray]] = []
+    pending: list[np.ndarray] = []  # events not yet before a frame
+    last_frame_t: int | None = None
+
+    def start(offset: float, info: dict[str, Any]) -> OffEIStream:
+        s = OffEIStream(sensor, cfg, offset, info)
+        ev = concat_events(held_ev)
+        t = np.array([f[0] for f in held_fr], np.int64)
+        for k, chunk in frame_intervals(ev, t):
+            s.events(chunk)
+            s.frame(held_fr[k][0], held_fr[k][1])
+        held_ev.clear()
+        held_fr.clear()
+        return s
+
+    def prefix_offset() -> tuple[float, dict[str, Any]]:
+        t = np.array([f[0] for f in held_fr], np.int64)
+        imgs = np.stack([f[1] for f in held_fr])
+        prefix = Recording(sensor, concat_events(held_ev),
+                           Frames(t, imgs, np.zeros(len(t), np.int64)))
+        o, info = estimate_log_offset(prefix, cfg)
+        info["prefix_frames"] = len(held_fr)
+        return o, info
+
+    done = 0
+    for kind, t_us, payload in messages:
+        done += 1
+        if progress is not None and done % 64 == 0:
+            progress(done, total)
+        if kind == "events":
+            if last_frame_t is not None and payload.size and int(payload["t_us"][0]) < last_frame_t:
+                raise RecordingError(f"{path}: events at t_us={int(payload['t_us'][0])} come "
+                                     f"after the frame at t_us={last_frame_t} in the file: it "
+                                     "cannot be read in one pass (open it whole instead)")
+            pending.append(payload)
+            continue
+        ev = concat_events(pending)
+        cut = int(np.searchsorted(ev["t_us"], t_us, side="left"))
+        before, pending = ev[:cut], [ev[cut:]]
+        last_frame_t = t_us
+        if acc is None:
+            held_ev.append(before)
+            held_fr.append((t_us, payload))
+            if cfg.log_offset != "auto":
+                acc = start(float(cfg.log_offset), {"method": "given"})
+            elif len(held_fr) >= prefix_frames:
+                acc = start(*prefix_offset())
+            continue
+        acc.events(before)
+        acc.frame(t_us, payload)
+    if acc is None:  # the whole recording is the prefix
+        if len(held_fr) < int(cfg.window_frames) + 1:
+            raise CalibrationError(f"{path}: {len(held_fr)} frames, fewer than one window of "
+                                   f"{cfg.window_frames} frame intervals needs")
+        acc = start(*prefix_offset())
+    if progress is not None:
+        progress(total, total)
+    return acc.result()
 
 
 def _events_per_pixel(rec: Recording, t0_us: int, t1_us: int) -> np.ndarray:

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -256,6 +257,71 @@ def is_ros2_event_mcap(path: str | os.PathLike[str]) -> bool:
     if summary is None:
         return False
     return any(s.name == "event_camera_msgs/msg/EventPacket" for s in summary.schemas.values())
+
+
+def iter_mcap(path: str | os.PathLike[str], *, sensor: SensorSize | None = None
+              ) -> tuple[SensorSize, Iterator[tuple[str, int, Any]], int]:
+    """An evcal MCAP recording as a stream, for files larger than memory: ``(sensor,
+    messages, n_messages)``, ``messages`` yielding ``("events", t_us of the first event,
+    events)`` and ``("frames", t_us, image)`` in the file's time order (log time), each
+    message decoded and checked as :func:`read_mcap` does. The sensor comes from the
+    ``evcal`` metadata record (or ``sensor=``); a message for another size is refused when
+    it is reached."""
+    from mcap.reader import make_reader
+
+    path = Path(path)
+    _check_magic(path)
+    try:
+        with open(path, "rb") as f:
+            reader = make_reader(f, validate_crcs=True)
+            meta = _read_metadata(reader, path)
+            summary = reader.get_summary()
+    except Exception as exc:  # mcap and OS errors of a corrupt file
+        raise RecordingError(f"{path}: cannot read as MCAP (truncated or corrupt file?): "
+                             f"{type(exc).__name__}: {exc}") from None
+    if meta is not None:
+        try:
+            found = SensorSize.parse(meta["sensor"])
+        except (KeyError, ValueError) as exc:
+            raise RecordingError(f"{path}: the 'evcal' metadata record has no valid sensor "
+                                 f"({exc})") from None
+        found = check_sensor_arg(found, sensor, str(path))
+    elif sensor is not None:
+        found = sensor
+    else:
+        raise RecordingError(f"{path}: no 'evcal' metadata record: give the sensor size "
+                             "(sensor=) to stream it")
+    total = int(sum(summary.statistics.channel_message_counts.values())) if (
+        summary is not None and summary.statistics is not None) else 0
+
+    def messages() -> Iterator[tuple[str, int, Any]]:
+        try:
+            with open(path, "rb") as f:
+                reader = make_reader(f, validate_crcs=True)
+                for _schema, channel, message in reader.iter_messages(log_time_order=True):
+                    if channel.topic == EVENTS_TOPIC:
+                        ev, header = decode_events(message.data)
+                        kind, t_us, payload = "events", (int(ev["t_us"][0]) if ev.size else 0), ev
+                    elif channel.topic == FRAMES_TOPIC:
+                        t_us, _exp, payload, header = decode_frame(message.data)
+                        kind = "frames"
+                    else:
+                        continue
+                    if (header["height"], header["width"]) != found.shape:
+                        raise RecordingError(
+                            f"{path}: a {channel.topic} message is for a "
+                            f"{header['width']}x{header['height']} sensor, the recording is "
+                            f"{found}")
+                    yield kind, int(t_us), payload
+        except WireError as exc:
+            raise RecordingError(f"{path}: {exc}") from None
+        except RecordingError:
+            raise
+        except Exception as exc:  # mcap, zstd and OS errors of a corrupt file
+            raise RecordingError(f"{path}: cannot read as MCAP (truncated or corrupt file?): "
+                                 f"{type(exc).__name__}: {exc}") from None
+
+    return found, messages(), total
 
 
 def read_mcap(path: str | os.PathLike[str], *, sensor: SensorSize | None = None) -> Recording:
