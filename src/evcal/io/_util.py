@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from ..events import SensorSize
+from ..events import EVENTS_DTYPE, SensorSize
 from ..jsonable import dumps
 from ..recording import RecordingError
 
@@ -67,3 +67,19 @@ def load_npz_arrays(path: str | Path, error: type[Exception], what: str = ""
     except Exception as exc:  # zipfile, zlib, OS and format errors of a damaged archive
         raise error(f"{path}: cannot read {what or 'as .npz'} (truncated or corrupt?): "
                     f"{type(exc).__name__}: {exc}") from None
+
+
+def events_sorted(t: np.ndarray, x: np.ndarray, y: np.ndarray, on: np.ndarray
+                  ) -> tuple[np.ndarray, int]:
+    """Columns packed as evcal events (``on``: True for ON), sorted by time (stable) when
+    they are not; with the number of events that were out of order (for the metadata)."""
+    events = np.empty(t.shape[0], EVENTS_DTYPE)
+    events["t_us"] = t
+    events["x"] = x
+    events["y"] = y
+    events["p"] = np.where(on, 1, -1)
+    tt = events["t_us"]
+    if tt.size > 1 and (tt[1:] < tt[:-1]).any():
+        reordered = int(np.count_nonzero(tt[1:] < np.maximum.accumulate(tt)[:-1]))
+        return events[np.argsort(tt, kind="stable")], reordered
+    return events, 0

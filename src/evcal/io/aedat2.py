@@ -51,9 +51,9 @@ from typing import Any
 import numpy as np
 
 from ..errors import ErrorReason
-from ..events import EVENTS_DTYPE, SensorSize
+from ..events import SensorSize
 from ..recording import Frames, Recording, RecordingError
-from ._util import check_sensor_arg
+from ._util import check_sensor_arg, events_sorted
 
 AEDAT2_MAGIC = b"#!AER-DAT2.0"
 AEDAT31_MAGIC = b"#!AER-DAT3.1"
@@ -105,20 +105,6 @@ def _chip(lines: list[str]) -> tuple[str | None, SensorSize | None, str | None]:
             if key in low:
                 return name, sensor, layout
     return None, None, None
-
-
-def _sorted(t: np.ndarray, x: np.ndarray, y: np.ndarray, on: np.ndarray
-            ) -> tuple[np.ndarray, int]:
-    events = np.empty(t.shape[0], EVENTS_DTYPE)
-    events["t_us"] = t
-    events["x"] = x
-    events["y"] = y
-    events["p"] = np.where(on, 1, -1)
-    tt = events["t_us"]
-    if tt.size > 1 and (tt[1:] < tt[:-1]).any():
-        reordered = int(np.count_nonzero(tt[1:] < np.maximum.accumulate(tt)[:-1]))
-        return events[np.argsort(tt, kind="stable")], reordered
-    return events, 0
 
 
 def _check_inside(where: str, x: np.ndarray, y: np.ndarray, sensor: SensorSize,
@@ -180,7 +166,7 @@ def _read_aedat2(data: bytes, where: str, sensor: SensorSize | None) -> Recordin
                     imu_samples=int(np.count_nonzero(imu)))
     x, y, on, t = x[pol], y[pol], on[pol], t[pol]
     _check_inside(where, x, y, found, str(layout))
-    events, reordered = _sorted(t, x, y, on)
+    events, reordered = events_sorted(t, x, y, on)
     meta.update(reordered_events=reordered, header=lines)
     return Recording(sensor=found, events=events, metadata=meta)
 
@@ -283,7 +269,7 @@ def _read_aedat31(data: bytes, where: str, sensor: SensorSize | None) -> Recordi
     d, ts = d[valid], ts[valid]
     x, y = (d >> 17) & 0x7FFF, (d >> 2) & 0x7FFF
     _check_inside(where, x, y, found, "libcaer polarity")
-    events, reordered = _sorted(ts, x, y, ((d >> 1) & 1) == 1)
+    events, reordered = events_sorted(ts, x, y, ((d >> 1) & 1) == 1)
     frame_obj = None
     if frames:
         frames.sort(key=lambda f: f[0])

@@ -32,9 +32,9 @@ from typing import Any
 import numpy as np
 
 from ..errors import ErrorReason
-from ..events import EVENTS_DTYPE, SensorSize
+from ..events import SensorSize
 from ..recording import Frames, Recording, RecordingError
-from ._util import check_sensor_arg
+from ._util import check_sensor_arg, events_sorted
 
 HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
 MVSEC_SENSOR = SensorSize(height=260, width=346)
@@ -71,20 +71,6 @@ def hdf5_layout(f: Any) -> str | None:
     if _has(f, "events") and f["events"].ndim == 2 and f["events"].shape[1] == 4:
         return "v2e"
     return None
-
-
-def _sorted(t: np.ndarray, x: np.ndarray, y: np.ndarray, on: np.ndarray
-            ) -> tuple[np.ndarray, int]:
-    events = np.empty(t.shape[0], EVENTS_DTYPE)
-    events["t_us"] = t
-    events["x"] = x
-    events["y"] = y
-    events["p"] = np.where(on, 1, -1)
-    tt = events["t_us"]
-    if tt.size > 1 and (tt[1:] < tt[:-1]).any():
-        reordered = int(np.count_nonzero(tt[1:] < np.maximum.accumulate(tt)[:-1]))
-        return events[np.argsort(tt, kind="stable")], reordered
-    return events, 0
 
 
 def _check_columns(where: str, **cols: np.ndarray) -> None:
@@ -141,7 +127,7 @@ def _read_mvsec(f: Any, where: str, camera: str | None, sensor: SensorSize | Non
                              "(N, 4) rows [x, y, t, p]", ErrorReason.MALFORMED)
     x, y = _coords(where, raw[:, 0], raw[:, 1])
     on = _polarity(where, raw[:, 3], (-1, 1))
-    events, reordered = _sorted(_seconds_to_us(where, raw[:, 2]), x, y, on)
+    events, reordered = events_sorted(_seconds_to_us(where, raw[:, 2]), x, y, on)
     frames = None
     found = MVSEC_SENSOR
     if _has(g, "image_raw"):
@@ -168,7 +154,7 @@ def _read_dsec(f: Any, where: str, sensor: SensorSize | None
     _check_columns(where, x=x, y=y, t=t, p=p)
     offset = int(np.asarray(f["t_offset"][()])) if _has(f, "t_offset") else 0
     xi, yi = _coords(where, x, y)
-    events, reordered = _sorted(t.astype(np.int64) + offset, xi, yi,
+    events, reordered = events_sorted(t.astype(np.int64) + offset, xi, yi,
                                 _polarity(where, p, (0, 1)))
     meta = {"t_offset_us": offset, "has_ms_to_idx": _has(f, "ms_to_idx")}
     return check_sensor_arg(DSEC_SENSOR, sensor, where), events, reordered, None, meta
@@ -181,7 +167,8 @@ def _read_v2e(f: Any, where: str, sensor: SensorSize | None
     t = raw[:, 0]
     if t.dtype.kind == "f":
         t = np.rint(t)
-    events, reordered = _sorted(t.astype(np.int64), xi, yi, _polarity(where, raw[:, 3], (0, 1)))
+    events, reordered = events_sorted(t.astype(np.int64), xi, yi,
+                                      _polarity(where, raw[:, 3], (0, 1)))
     frames = None
     found = None
     if _has(f, "frame"):
