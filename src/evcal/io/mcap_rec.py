@@ -18,6 +18,7 @@ from __future__ import annotations
 import json
 import os
 from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -259,6 +260,21 @@ def is_ros2_event_mcap(path: str | os.PathLike[str]) -> bool:
     return any(s.name == "event_camera_msgs/msg/EventPacket" for s in summary.schemas.values())
 
 
+@contextmanager
+def _mcap_errors(path: Path) -> Iterator[None]:
+    """Errors while reading ``path`` as RecordingError naming the file: a malformed message
+    (WireError), or what mcap, zstd and the OS raise for a truncated or corrupt file."""
+    try:
+        yield
+    except WireError as exc:
+        raise RecordingError(f"{path}: {exc}") from None
+    except RecordingError:
+        raise
+    except Exception as exc:  # mcap, zstd and OS errors of a corrupt file
+        raise RecordingError(f"{path}: cannot read as MCAP (truncated or corrupt file?): "
+                             f"{type(exc).__name__}: {exc}") from None
+
+
 def iter_mcap(path: str | os.PathLike[str], *, sensor: SensorSize | None = None
               ) -> tuple[SensorSize, Iterator[tuple[str, int, Any]], int]:
     """An evcal MCAP recording as a stream, for files larger than memory: ``(sensor,
@@ -295,31 +311,23 @@ def iter_mcap(path: str | os.PathLike[str], *, sensor: SensorSize | None = None
         summary is not None and summary.statistics is not None) else 0
 
     def messages() -> Iterator[tuple[str, int, Any]]:
-        try:
-            with open(path, "rb") as f:
-                reader = make_reader(f, validate_crcs=True)
-                for _schema, channel, message in reader.iter_messages(log_time_order=True):
-                    if channel.topic == EVENTS_TOPIC:
-                        ev, header = decode_events(message.data)
-                        kind, t_us, payload = "events", (int(ev["t_us"][0]) if ev.size else 0), ev
-                    elif channel.topic == FRAMES_TOPIC:
-                        t_us, _exp, payload, header = decode_frame(message.data)
-                        kind = "frames"
-                    else:
-                        continue
-                    if (header["height"], header["width"]) != found.shape:
-                        raise RecordingError(
-                            f"{path}: a {channel.topic} message is for a "
-                            f"{header['width']}x{header['height']} sensor, the recording is "
-                            f"{found}")
-                    yield kind, int(t_us), payload
-        except WireError as exc:
-            raise RecordingError(f"{path}: {exc}") from None
-        except RecordingError:
-            raise
-        except Exception as exc:  # mcap, zstd and OS errors of a corrupt file
-            raise RecordingError(f"{path}: cannot read as MCAP (truncated or corrupt file?): "
-                                 f"{type(exc).__name__}: {exc}") from None
+        with _mcap_errors(path), open(path, "rb") as f:
+            reader = make_reader(f, validate_crcs=True)
+            for _schema, channel, message in reader.iter_messages(log_time_order=True):
+                if channel.topic == EVENTS_TOPIC:
+                    ev, header = decode_events(message.data)
+                    kind, t_us, payload = "events", (int(ev["t_us"][0]) if ev.size else 0), ev
+                elif channel.topic == FRAMES_TOPIC:
+                    t_us, _exp, payload, header = decode_frame(message.data)
+                    kind = "frames"
+                else:
+                    continue
+                if (header["height"], header["width"]) != found.shape:
+                    raise RecordingError(
+                        f"{path}: a {channel.topic} message is for a "
+                        f"{header['width']}x{header['height']} sensor, the recording is "
+                        f"{found}")
+                yield kind, int(t_us), payload
 
     return found, messages(), total
 
@@ -355,35 +363,27 @@ def read_mcap(path: str | os.PathLike[str], *, sensor: SensorSize | None = None)
     sizes: set[tuple[int, int]] = set()
     meta_record: dict[str, str] | None = None
     topics: set[str] = set()
-    try:
-        with open(path, "rb") as f:
-            reader = make_reader(f, validate_crcs=True)
-            meta_record = _read_metadata(reader, path)
-            for _schema, channel, message in reader.iter_messages(log_time_order=False):
-                topic = channel.topic
-                topics.add(topic)
-                if topic == EVENTS_TOPIC:
-                    ev, header = decode_events(message.data)
-                    if header["seq"] in events:
-                        raise RecordingError(f"{path}: /events message seq {header['seq']} "
-                                             "appears twice")
-                    events[header["seq"]] = ev
-                    sizes.add((header["height"], header["width"]))
-                elif topic == FRAMES_TOPIC:
-                    t_us, exp_us, image, header = decode_frame(message.data)
-                    if header["seq"] in frames:
-                        raise RecordingError(f"{path}: /frames message seq {header['seq']} "
-                                             "appears twice")
-                    frames[header["seq"]] = (t_us, exp_us, image)
-                    sizes.add((header["height"], header["width"]))
-                # /calibration and unknown channels: not part of a Recording.
-    except WireError as exc:
-        raise RecordingError(f"{path}: {exc}") from None
-    except RecordingError:
-        raise
-    except Exception as exc:  # mcap, zstd and OS errors of a corrupt file
-        raise RecordingError(f"{path}: cannot read as MCAP (truncated or corrupt file?): "
-                             f"{type(exc).__name__}: {exc}") from None
+    with _mcap_errors(path), open(path, "rb") as f:
+        reader = make_reader(f, validate_crcs=True)
+        meta_record = _read_metadata(reader, path)
+        for _schema, channel, message in reader.iter_messages(log_time_order=False):
+            topic = channel.topic
+            topics.add(topic)
+            if topic == EVENTS_TOPIC:
+                ev, header = decode_events(message.data)
+                if header["seq"] in events:
+                    raise RecordingError(f"{path}: /events message seq {header['seq']} "
+                                         "appears twice")
+                events[header["seq"]] = ev
+                sizes.add((header["height"], header["width"]))
+            elif topic == FRAMES_TOPIC:
+                t_us, exp_us, image, header = decode_frame(message.data)
+                if header["seq"] in frames:
+                    raise RecordingError(f"{path}: /frames message seq {header['seq']} "
+                                         "appears twice")
+                frames[header["seq"]] = (t_us, exp_us, image)
+                sizes.add((header["height"], header["width"]))
+            # /calibration and unknown channels: not part of a Recording.
 
     found: SensorSize | None = None
     metadata: dict[str, Any] = {}
