@@ -6,13 +6,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from evcal.solver import NormalEquations, WindowRing
+from evcal.solver import RING_BLOCK, NormalEquations, WindowRing
 
 
 @pytest.mark.parametrize(("d", "n_frames", "batch"), [(5, 40, 16), (1, 7, 3), (7, 30, 4)])
-def test_batched_windows_equal_the_definition(d, n_frames, batch):
+# pixel counts below, at and across the ring's block size (the last block partial or whole)
+@pytest.mark.parametrize("n", [500, 2 * RING_BLOCK, RING_BLOCK // 2 + 1])
+def test_batched_windows_equal_the_definition(d, n_frames, batch, n):
     rng = np.random.default_rng(d * 100 + n_frames)
-    n = 500
     on = np.cumsum(rng.poisson(2, (n_frames, n)), axis=0).astype(np.int32)
     off = np.cumsum(rng.poisson(2, (n_frames, n)), axis=0).astype(np.int32)
     last_p = rng.choice(np.array([-1, 0, 1], np.int8), (n_frames, n))
@@ -39,3 +40,8 @@ def test_batched_windows_equal_the_definition(d, n_frames, batch):
     assert np.isfinite(got.m).all()
     np.testing.assert_allclose(got.m, ref.m, rtol=1e-12, atol=1e-9)
     assert got.n_eq.max() <= n_frames - d
+    on_k, off_k = ring.counts(n_frames - 1)  # the counts read back as stored
+    np.testing.assert_array_equal(on_k, on[-1])
+    np.testing.assert_array_equal(off_k, off[-1])
+    with pytest.raises(IndexError, match="not in the ring"):
+        ring.counts(n_frames)

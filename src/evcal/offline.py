@@ -34,6 +34,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+import numba
 import numpy as np
 
 from .accumulate import Accumulator, Snapshot, frame_snapshots
@@ -105,24 +106,6 @@ def _check_frames(rec: Recording, d: int) -> None:
         raise CalibrationError("the recording has no events")
 
 
-def _frame_flags(rec: Recording, saturation_dn: tuple[float, float]) -> np.ndarray:
-    """SATURATED where a pixel is clipped in most frames, CONSTANT where it never changes."""
-    imgs = rec.frames.images
-    n = imgs.shape[0]
-    flags = np.zeros(imgs.shape[1] * imgs.shape[2], np.uint8)
-    clipped = np.zeros(flags.size, np.int32)
-    lo = np.full(flags.size, np.inf)
-    hi = np.full(flags.size, -np.inf)
-    for k in range(n):  # loop over frames, vectorised over pixels
-        f = imgs[k].ravel()
-        clipped += ~usable(f, saturation_dn)
-        lo = np.minimum(lo, f)
-        hi = np.maximum(hi, f)
-    flags[hi == lo] = Reason.CONSTANT
-    flags[clipped > n // 2] = Reason.SATURATED
-    return flags
-
-
 def offei(rec: Recording, config: OffEIConfig | None = None) -> Calibration:
     """Offline events + intensity calibration (OffEI) of every pixel of ``rec``."""
     cfg = config or OffEIConfig()
@@ -176,15 +159,19 @@ class OffEIStream:
         if img.shape != self.sensor.shape:
             raise CalibrationError(f"frame at t_us={t_us} has shape {img.shape}, the sensor "
                                    f"is {self.sensor}")
-        flat = img.ravel()
-        ok = usable(flat, self.cfg.saturation_dn)
+        flat = np.ascontiguousarray(img.ravel())
         if self._count_first is None:
             self._count_first = (self._acc.on + self._acc.off).astype(np.int64)
-        self._clipped += ~ok
-        np.minimum(self._lo, flat, out=self._lo)
-        np.maximum(self._hi, flat, out=self._hi)
-        if self._ring.push(self._acc.on, self._acc.off, self._acc.last_p,
-                           log_intensity(flat, self.offset), ok):
+        lo_dn, hi_dn = self.cfg.saturation_dn
+        if flat.dtype == np.uint8:  # log through the 256-entry table of log_intensity
+            lut = log_intensity(np.arange(256, dtype=np.uint8), self.offset)
+        else:
+            lut = np.empty(0)
+        lg = np.empty(flat.size, np.float64)
+        ok = np.empty(flat.size, np.bool_)
+        _frame_maps(flat, float(lo_dn), float(hi_dn), self.offset, lut, self._clipped,
+                    self._lo, self._hi, lg, ok)
+        if self._ring.push(self._acc.on, self._acc.off, self._acc.last_p, lg, ok):
             self._ring.flush(self._ne)
         self.n_frames += 1
 
@@ -197,9 +184,8 @@ class OffEIStream:
         self._ring.flush(self._ne)
         assert self._count_first is not None
         # events used: those between the first and the last frame
-        n_events = (self._ring.on[(self._ring.n - 1) % self._ring.size].astype(np.int64)
-                    + self._ring.off[(self._ring.n - 1) % self._ring.size]
-                    - self._count_first)
+        on_last, off_last = self._ring.counts(self._ring.n - 1)
+        n_events = on_last.astype(np.int64) + off_last - self._count_first
         cfg = self.cfg
         lam = correction_lambda(self._ne, cfg.residual_correction, cfg.limits, n_events)
         flags = np.zeros(self.sensor.n_pixels, np.uint8)
@@ -212,6 +198,24 @@ class OffEIStream:
             self._ne, n_events, self.sensor.shape, limits=cfg.limits, overlap=float(d),
             log_offset=self.offset, method="offei", diagnostics=diagnostics,
             extra_reason=flags, residual_lambda=lam)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _frame_maps(flat: np.ndarray, lo_dn: float, hi_dn: float, offset: float, lut: np.ndarray,
+                clipped: np.ndarray, lo: np.ndarray, hi: np.ndarray, lg: np.ndarray,
+                ok: np.ndarray) -> Any:  # pragma: no cover - compiled
+    """One pass over a frame: ``lg = log(I + offset)`` (through ``lut`` for uint8 frames,
+    as :func:`~evcal.solver.log_intensity`), ``ok`` = :func:`~evcal.solver.usable`, and the
+    statistics of the SATURATED / CONSTANT flags (clipped count, running min and max)."""
+    use_lut = lut.size > 0
+    for i in range(flat.size):
+        v = np.float64(flat[i])
+        u = (v > lo_dn) & (v < hi_dn)
+        ok[i] = u
+        clipped[i] += 0 if u else 1
+        lo[i] = v if v < lo[i] else lo[i]
+        hi[i] = v if v > hi[i] else hi[i]
+        lg[i] = lut[np.int64(flat[i])] if use_lut else np.log((v if v > 0.0 else 0.0) + offset)
 
 
 def offei_file(path: str | os.PathLike[str], config: OffEIConfig | None = None, *,

@@ -176,94 +176,117 @@ def _add_sparse(m: np.ndarray, idx: np.ndarray, p: np.ndarray, e: np.ndarray, q:
         m[15, k] += ws
 
 
+# pixels a block of the window ring holds (its rows contiguous): a block's rows and its 16
+# running sums stay in the L2 cache while its windows are added, and the hardware prefetcher
+# follows one contiguous stream instead of one per row and array (3x faster at 1280x720)
+RING_BLOCK = 128
+
+
 @numba.njit(cache=True, nogil=True)
 def _add_windows(m: np.ndarray, on: np.ndarray, off: np.ndarray, q: np.ndarray,
                  lg: np.ndarray, ok: np.ndarray, rows_j: np.ndarray, rows_k: np.ndarray
                  ) -> Any:  # pragma: no cover - compiled
-    """The dense windows ``rows_j[w] -> rows_k[w]`` of ring buffers ``[row, pixel]`` (running
-    ON/OFF counts, last polarity, log intensity, usable), pixel by pixel: a pixel's 16 sums
-    over all the windows are formed in registers and added to ``m`` once, so ``m`` (128 bytes
-    a pixel) streams through memory once per batch instead of once per window. The products
-    are those of :meth:`NormalEquations.add` with weight 1 or 0 (unusable windows skipped)."""
+    """The dense windows ``rows_j[w] -> rows_k[w]`` of ring buffers ``[block, row, pixel of
+    the block]`` (running ON/OFF counts, last polarity, log intensity, usable), a block of
+    pixels at a time: each pixel's 16 sums over all the windows are formed in a block-sized
+    scratch and added to ``m`` once, so ``m`` (128 bytes a pixel) streams through memory once
+    per batch, and the inner loop over a block's pixels is vectorised. The products are those
+    of :meth:`NormalEquations.add` with weight 1 or 0 (unusable windows add exact zeros, so
+    the sums equal the window-by-window ones bit for bit)."""
+    n = m.shape[1]
     n_w = rows_j.size
-    for i in range(m.shape[1]):
-        s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = s8 = s9 = 0.0
-        s10 = s11 = s12 = s13 = s14 = s15 = 0.0
+    size_b = on.shape[2]
+    s = np.zeros((16, size_b))
+    for blk in range(on.shape[0]):
+        i0 = blk * size_b
+        nb = min(size_b, n - i0)
+        s[:, :nb] = 0.0
         for w in range(n_w):
             rj = rows_j[w]
             rk = rows_k[w]
-            if not (ok[rj, i] and ok[rk, i]):
-                continue
-            non = np.float64(on[rk, i] - on[rj, i])
-            noff = np.float64(off[rk, i] - off[rj, i])
-            qk = np.float64(q[rk, i])
-            qj = np.float64(q[rj, i])
-            dl = lg[rk, i] - lg[rj, i]
-            p = non - noff
-            e = non + noff
-            dq = qk - qj
-            a = abs(qk) - abs(qj)
-            s0 += p * p
-            s1 += p * e
-            s2 += p * dq
-            s3 += p * a
-            s4 += e * e
-            s5 += e * dq
-            s6 += e * a
-            s7 += dq * dq
-            s8 += dq * a
-            s9 += a * a
-            s10 += p * dl
-            s11 += e * dl
-            s12 += dq * dl
-            s13 += a * dl
-            s14 += dl * dl
-            s15 += 1.0
-        m[0, i] += s0
-        m[1, i] += s1
-        m[2, i] += s2
-        m[3, i] += s3
-        m[4, i] += s4
-        m[5, i] += s5
-        m[6, i] += s6
-        m[7, i] += s7
-        m[8, i] += s8
-        m[9, i] += s9
-        m[10, i] += s10
-        m[11, i] += s11
-        m[12, i] += s12
-        m[13, i] += s13
-        m[14, i] += s14
-        m[15, i] += s15
+            for t in range(nb):
+                use = ok[blk, rk, t] & ok[blk, rj, t]
+                non = np.float64(on[blk, rk, t] - on[blk, rj, t])
+                noff = np.float64(off[blk, rk, t] - off[blk, rj, t])
+                qk = np.float64(q[blk, rk, t])
+                qj = np.float64(q[blk, rj, t])
+                # selects, not a multiplication by the weight: dL is -inf at black pixels
+                p = non - noff if use else 0.0
+                e = non + noff if use else 0.0
+                dq = qk - qj if use else 0.0
+                a = abs(qk) - abs(qj) if use else 0.0
+                dl = lg[blk, rk, t] - lg[blk, rj, t] if use else 0.0
+                s[0, t] += p * p
+                s[1, t] += p * e
+                s[2, t] += p * dq
+                s[3, t] += p * a
+                s[4, t] += e * e
+                s[5, t] += e * dq
+                s[6, t] += e * a
+                s[7, t] += dq * dq
+                s[8, t] += dq * a
+                s[9, t] += a * a
+                s[10, t] += p * dl
+                s[11, t] += e * dl
+                s[12, t] += dq * dl
+                s[13, t] += a * dl
+                s[14, t] += dl * dl
+                s[15, t] += 1.0 if use else 0.0
+        for k in range(16):
+            for t in range(nb):
+                m[k, i0 + t] += s[k, t]
 
 
 class WindowRing:
     """The last ``size`` frames' running counts, last polarities, log intensities and usable
-    masks as ring buffers ``[row, pixel]``, and the windows waiting to be added: OffEI adds
-    its windows in batches through :meth:`NormalEquations.add_windows` (one pass over the
-    sums per batch)."""
+    masks as ring buffers, and the windows waiting to be added: OffEI adds its windows in
+    batches through :meth:`NormalEquations.add_windows` (one pass over the sums per batch).
+
+    Layout ``[block, row, pixel of the block]`` (:data:`RING_BLOCK` pixels a block, the last
+    block padded): a block's rows are contiguous, so a batch reads the ring as one stream.
+    """
 
     def __init__(self, n_pixels: int, window_frames: int, batch: int = 16):
         self.d = int(window_frames)
         self.size = self.d + int(batch)
         self.batch = int(batch)
-        self.on = np.zeros((self.size, n_pixels), np.int32)
-        self.off = np.zeros((self.size, n_pixels), np.int32)
-        self.q = np.zeros((self.size, n_pixels), np.int8)
-        self.lg = np.zeros((self.size, n_pixels), np.float64)
-        self.ok = np.zeros((self.size, n_pixels), np.bool_)
+        self.n_pixels = int(n_pixels)
+        shape = (-(-self.n_pixels // RING_BLOCK), self.size, RING_BLOCK)
+        self.on = np.zeros(shape, np.int32)
+        self.off = np.zeros(shape, np.int32)
+        self.q = np.zeros(shape, np.int8)
+        self.lg = np.zeros(shape, np.float64)
+        self.ok = np.zeros(shape, np.bool_)
         self.n = 0  # frames pushed
         self.pending: list[int] = []  # frame numbers k whose window (k - d, k) is pending
 
     def push(self, on: np.ndarray, off: np.ndarray, last_p: np.ndarray, lg: np.ndarray,
              ok: np.ndarray) -> bool:
-        """Store frame ``n``; True when a batch of windows is due (call ``flush``)."""
+        """Store frame ``n`` (flat per-pixel maps); True when a batch of windows is due (call
+        ``flush``)."""
         r = self.n % self.size
-        self.on[r], self.off[r], self.q[r], self.lg[r], self.ok[r] = on, off, last_p, lg, ok
+        full = self.n_pixels // RING_BLOCK  # whole blocks; the last one may be partial
+        cut = full * RING_BLOCK
+        for dst, src in ((self.on, on), (self.off, off), (self.q, last_p), (self.lg, lg),
+                         (self.ok, ok)):
+            # numpy's strided copies: 4x faster here than one compiled loop over the five
+            dst[:full, r, :] = src[:cut].reshape(full, RING_BLOCK)
+            if cut < self.n_pixels:
+                dst[full, r, : self.n_pixels - cut] = src[cut:]
         if self.n >= self.d:
             self.pending.append(self.n)
         self.n += 1
         return len(self.pending) >= self.batch
+
+    def counts(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """The running ON and OFF counts (flat int32 maps, copies) stored for frame ``k``,
+        one of the last ``size`` frames pushed."""
+        if not (self.n - self.size <= k < self.n and k >= 0):
+            raise IndexError(f"frame {k} is not in the ring (frames {max(self.n - self.size, 0)}"
+                             f" to {self.n - 1})")
+        r = k % self.size
+        return (self.on[:, r, :].reshape(-1)[: self.n_pixels].copy(),
+                self.off[:, r, :].reshape(-1)[: self.n_pixels].copy())
 
     def flush(self, ne: NormalEquations) -> None:
         if not self.pending:
