@@ -86,7 +86,44 @@ CALIBRATION_SCHEMA: dict[str, Any] = {
 }
 
 
-class McapWriter:
+class McapFileWriter:
+    """An MCAP file being written (zstd chunks): opened and started here, finished by
+    :meth:`close` (extra metadata records, summary, footer; until then the file is
+    incomplete). A context manager; the base of evcal's and the ROS 2 layouts' writers."""
+
+    def __init__(self, path: str | os.PathLike[str], *, profile: str, library: str) -> None:
+        from mcap.writer import CompressionType, Writer
+
+        self.path = Path(path)
+        self._f = open(self.path, "wb")
+        try:
+            self._w = Writer(self._f, compression=CompressionType.ZSTD)
+            self._w.start(profile=profile, library=library)
+        except BaseException:
+            self._f.close()
+            raise
+        self._closed = False
+
+    def close(self, metadata: dict[str, dict[str, str]] | None = None) -> None:
+        """Write extra metadata records (name -> string map) and finish the file."""
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            for name, record in (metadata or {}).items():
+                self._w.add_metadata(name, record)
+            self._w.finish()
+        finally:
+            self._f.close()
+
+    def __enter__(self) -> McapFileWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class McapWriter(McapFileWriter):
     """evcal's MCAP layout, written message by message (a context manager).
 
     ``add_events``/``add_frame``/``add_calibration`` take encoded wire messages (the
@@ -98,13 +135,8 @@ class McapWriter:
 
     def __init__(self, path: str | os.PathLike[str], *, library: str = "evcal",
                  calibration: bool = False) -> None:
-        from mcap.writer import CompressionType, Writer
-
-        self.path = Path(path)
-        self._f = open(self.path, "wb")
+        super().__init__(path, profile="", library=library)
         try:
-            self._w = Writer(self._f, compression=CompressionType.ZSTD)
-            self._w.start(profile="", library=library)
             schemas = [("events", EVENTS_TOPIC, EVENTS_SCHEMA_NAME, EVENTS_SCHEMA),
                        ("frames", FRAMES_TOPIC, FRAME_SCHEMA_NAME, FRAME_SCHEMA)]
             if calibration:
@@ -119,7 +151,6 @@ class McapWriter:
             raise
         self.counts = {kind: 0 for kind in self._channels}
         self.sensor: SensorSize | None = None
-        self._closed = False
 
     def set_sensor(self, sensor: SensorSize, metadata: dict[str, Any] | None = None) -> None:
         """Write the ``evcal`` metadata record (once)."""
@@ -148,23 +179,8 @@ class McapWriter:
     def add_calibration(self, t_us: int, data: bytes) -> None:
         self._add("calibration", t_us, data)
 
-    def close(self, metadata: dict[str, dict[str, str]] | None = None) -> None:
-        """Write extra metadata records (name -> string map) and finish the file."""
-        if self._closed:
-            return
-        self._closed = True
-        try:
-            for name, record in (metadata or {}).items():
-                self._w.add_metadata(name, record)
-            self._w.finish()
-        finally:
-            self._f.close()
-
     def __enter__(self) -> McapWriter:
         return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
 
 def write_mcap(

@@ -50,7 +50,7 @@ import numpy as np
 from ..errors import ErrorReason
 from ..events import EVENTS_DTYPE, SensorSize
 from ..recording import Frames, Recording, RecordingError
-from ._evcodecs import PacketDecoder, PayloadError, make_decoder
+from ._evcodecs import DecodedPacket, PacketDecoder, PayloadError, make_decoder
 from ._util import check_sensor_arg, file_head
 
 if TYPE_CHECKING:
@@ -468,20 +468,38 @@ class _EventStream:
     triggers: int = 0
 
 
-def _packet_events(stream: _EventStream, msg: Any, where: str) -> np.ndarray:
+def packet_decoder(decoder: PacketDecoder | None, msg: Any) -> PacketDecoder:
+    """The decoder of a topic's next deserialised EventPacket ``msg``: ``decoder``, or a new
+    one for the message's encoding when it is None.
+
+    Raises :class:`~evcal.io._evcodecs.PayloadError` (``malformed``): a big-endian payload,
+    an encoding evcal does not decode, or an encoding other than the topic's.
+    """
     if msg.is_bigendian:
-        raise RosbagError(f"{where}: is_bigendian payloads are not supported (the drivers "
-                          "write little-endian words)", ErrorReason.MALFORMED)
+        raise PayloadError("is_bigendian payloads are not supported (the drivers write "
+                           "little-endian words)", ErrorReason.MALFORMED)
     enc = str(msg.encoding)
-    if stream.decoder is None:
-        try:
-            stream.decoder = make_decoder(enc)
-        except PayloadError as exc:
-            raise RosbagError(f"{where}: {exc}", exc.reason) from None
-        stream.encoding = enc
-    elif enc != stream.encoding:
-        raise RosbagError(f"{where}: encoding {enc!r}, the topic's earlier messages are "
-                          f"{stream.encoding!r}", ErrorReason.MALFORMED)
+    if decoder is None:
+        return make_decoder(enc)
+    if enc != decoder.encoding:
+        raise PayloadError(f"encoding {enc!r}, the topic's earlier messages are "
+                           f"{decoder.encoding!r}", ErrorReason.MALFORMED)
+    return decoder
+
+
+def decode_packet(decoder: PacketDecoder, msg: Any) -> DecodedPacket:
+    """The events of a deserialised EventPacket (:class:`PayloadError` if they do not
+    decode), with the topic's decoder from :func:`packet_decoder`."""
+    return decoder.decode(msg.events, time_base=int(msg.time_base), width=int(msg.width),
+                          height=int(msg.height), stamp_ns=_stamp_ns(msg))
+
+
+def _packet_events(stream: _EventStream, msg: Any, where: str) -> np.ndarray:
+    try:
+        stream.decoder = packet_decoder(stream.decoder, msg)
+    except PayloadError as exc:
+        raise RosbagError(f"{where}: {exc}", exc.reason) from None
+    stream.encoding = stream.decoder.encoding
     seq = int(msg.seq)
     if stream.last_seq is not None:
         if seq > stream.last_seq + 1:
@@ -491,9 +509,7 @@ def _packet_events(stream: _EventStream, msg: Any, where: str) -> np.ndarray:
             stream.seq_back += 1
     stream.last_seq = seq
     try:
-        pk = stream.decoder.decode(msg.events, time_base=int(msg.time_base),
-                                   width=int(msg.width), height=int(msg.height),
-                                   stamp_ns=_stamp_ns(msg))
+        pk = decode_packet(stream.decoder, msg)
     except PayloadError as exc:
         raise RosbagError(f"{where} (seq {seq}): {exc}", exc.reason) from None
     stream.dropped += pk.dropped
@@ -600,7 +616,7 @@ def _read(bag: _Bag, sensor: SensorSize | None, events_topic: str | None,
                     k = counts["frames"]
                     current = where = f"{bag.path}: topic {fr_topic} message {k}"
                     counts["frames"] += 1
-                    msg = _deserialize(deser, raw, conn.msgtype, where)
+                    msg = deserialize_message(deser, raw, conn.msgtype, where)
                     try:
                         image = image_to_gray(msg)
                     except PayloadError as exc:
@@ -679,7 +695,9 @@ def _read(bag: _Bag, sensor: SensorSize | None, events_topic: str | None,
         raise RosbagError(f"{bag.path}: {exc}", exc.reason) from None
 
 
-def _deserialize(deser: Any, raw: bytes | memoryview, msgtype: str, where: str) -> Any:
+def deserialize_message(deser: Any, raw: bytes | memoryview, msgtype: str, where: str) -> Any:
+    """``deser(raw, msgtype)`` (a typestore's ``deserialize_cdr`` or ``deserialize_ros1``);
+    :class:`RosbagError` (``truncated``) naming ``where`` when the bytes do not deserialise."""
     try:
         return deser(raw, msgtype)
     except Exception as exc:  # rosbags SerdeError, struct/index errors of a cut message
@@ -691,7 +709,7 @@ def _deserialize(deser: Any, raw: bytes | memoryview, msgtype: str, where: str) 
 def _event_message(bag: _Bag, stream: _EventStream, deser: Any, raw: bytes | memoryview,
                    where: str) -> np.ndarray:
     if stream.msgtype in (EVENT_PACKET, EVENT_ARRAY_LEGACY):
-        msg = _deserialize(deser, raw, stream.msgtype, where)
+        msg = deserialize_message(deser, raw, stream.msgtype, where)
         size = (int(msg.height), int(msg.width))
         chunk = _packet_events(stream, msg, where)
     else:
