@@ -259,3 +259,17 @@ def test_open_interval_counts_survive_a_restart():
         c.feed_frame(6000, img)
     np.testing.assert_array_equal(cal.state_dict()["fr_on"], b.state_dict()["fr_on"])
     np.testing.assert_array_equal(cal.state_dict()["counts"][:4], [1, 40, 6, 2])
+
+
+def test_residual_lambda_blocks_cover_small_sensors_and_spread_over_large_ones():
+    """lam is estimated on every pixel up to LAMBDA_BLOCKS blocks, else on that many blocks
+    spread from the first to the last (a 1280x720 sensor has 113)."""
+    from evcal._onei_kernels import BLOCK
+
+    small = OnlineCalibrator(SensorSize(260, 346))
+    np.testing.assert_array_equal(small._lambda_blocks(), np.arange(small._n_blocks))
+    hd = OnlineCalibrator(SensorSize(720, 1280))
+    blocks = hd._lambda_blocks()
+    assert hd._n_blocks == -(-720 * 1280 // BLOCK) > OnlineCalibrator.LAMBDA_BLOCKS
+    assert blocks.size == OnlineCalibrator.LAMBDA_BLOCKS == np.unique(blocks).size
+    assert blocks[0] == 0 and blocks[-1] == hd._n_blocks - 1

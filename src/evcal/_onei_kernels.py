@@ -202,29 +202,21 @@ def drop_interval(counts: np.ndarray, wins: np.ndarray, sub: np.ndarray, idx: np
 
 @_jit
 def fill_slot(win: np.ndarray, lp_j: np.ndarray, lp_k: np.ndarray, img_j: np.ndarray,
-              img_k: np.ndarray, first: int, last: int, sums: np.ndarray, qa: np.ndarray,
+              img_k: np.ndarray, sums: np.ndarray, qa: np.ndarray,
               raw: np.ndarray) -> None:  # pragma: no cover
-    """Queue one equation of two 8-bit frames: the pixel counts ``win`` (2, n) into ``sums``
-    (zeroed where a frame value lies outside ``first .. last``, the usable values: such
-    pixels weigh nothing), ``(q_k - q_j, |q_k| - |q_j|)`` into ``qa`` (2, n) and the frame
-    values into ``raw`` (2, n). Integer compares and selects: vectorised."""
+    """Queue one equation of two 8-bit frames: the pixel counts ``win`` (2, n) into ``sums``,
+    ``(q_k - q_j, |q_k| - |q_j|)`` into ``qa`` (2, n) and the frame values into ``raw``
+    (2, n) (a value the frames' table maps to NaN, one not usable, gives the equation weight
+    0 in :func:`apply_blocks`). Copies and differences: vectorised."""
     # one loop per output array: with more, the checks that the arrays do not overlap
     # exceed what the compiler vectorises
-    w_on = win[0]
-    w_off = win[1]
-    s_on = sums[0]
-    s_off = sums[1]
-    for w_c, s_c in ((w_on, s_on), (w_off, s_off)):
-        for i in range(w_on.size):
-            ij = np.int32(img_j[i])
-            ik = np.int32(img_k[i])
-            ok = (ij >= first) & (ij <= last) & (ik >= first) & (ik <= last)
-            s_c[i] = w_c[i] if ok else 0
+    sums[0] = win[0]
+    sums[1] = win[1]
     q = qa[0]
     a = qa[1]
-    for i in range(w_on.size):
+    for i in range(q.size):
         q[i] = lp_k[i] - lp_j[i]
-    for i in range(w_on.size):
+    for i in range(q.size):
         a[i] = abs(lp_k[i]) - abs(lp_j[i])
     raw[0] = img_j
     raw[1] = img_k
@@ -235,13 +227,14 @@ def _apply1(mb: np.ndarray, nb: int, on: np.ndarray, off: np.ndarray, q: np.ndar
             a: np.ndarray, dl: np.ndarray, sign: float) -> None:  # pragma: no cover
     """Add ``sign`` times one queued equation (maps starting at the block's first pixel) to
     the ``nb`` pixels of block ``mb``: :meth:`NormalEquations.add`'s products, added in the
-    same order (bit-identical sums). Weight 0 where the equation has no events (or a clipped
-    frame value); selects, no branches, so that the pixel loop vectorises."""
+    same order (bit-identical sums). Weight 0 where the equation has no events or its ``dl``
+    is NaN (a clipped frame value); selects, no branches, so that the pixel loop
+    vectorises."""
     B = BLOCK
     for i in range(nb):
         c_on = on[i]
         c_off = off[i]
-        ok = (c_on + c_off) > 0
+        ok = ((c_on + c_off) > 0) & (dl[i] == dl[i])
         ws = sign if ok else 0.0
         d = dl[i] if ok else 0.0
         p = np.float64(c_on - c_off)
@@ -278,8 +271,9 @@ def apply_blocks(m: np.ndarray, n: int, b_start: int, b_stop: int, sums: np.ndar
     """Add the queued equations ``slots`` (with ``signs``, in order) to blocks ``b_start ..
     b_stop`` of the blocked normal equations ``m`` of ``n`` pixels, block by block (a block
     stays in cache while its equations are added). A slot's ``dL`` is ``lut[raw[1]] -
-    lut[raw[0]]`` (``kinds`` True: 8-bit frames; computed per block into ``buf``, a table
-    look-up does not vectorise) or ``dl`` (other frames)."""
+    lut[raw[0]]`` (``kinds`` True: 8-bit frames, ``lut`` NaN at the values not usable;
+    computed per block into ``buf``, a table look-up does not vectorise) or ``dl`` (other
+    frames, 0 where not usable, and so their counts)."""
     for b in range(b_start, b_stop):
         s = b * BLOCK
         nb = min(BLOCK, n - s)

@@ -345,7 +345,6 @@ class OnlineCalibrator:
         self._lut_offset = math.nan
         self._no_reason = np.zeros(BLOCK, np.uint8)  # solve_pixels' extra_reason, per block
         self._lam_terms = np.empty((2, n), np.float64)  # the masked residual-lambda terms
-        self._usable = self._usable_range()
         self._reset_buffer()
         self.estimate = LowPassEstimate(n)  # what calibration() reports
         auto = self.config.log_offset == "auto"
@@ -747,11 +746,14 @@ class OnlineCalibrator:
             # log_intensity's own 8-bit table; the offset changes only with a rebuild, which
             # empties the queue: a queued equation is always added with its own table
             if not self._lut_offset == self.log_offset:
-                self._lut = log_intensity(np.arange(256, dtype=np.uint8), self.log_offset)
+                values = np.arange(256, dtype=np.uint8)
+                # NaN at the values usable() refuses: apply_blocks gives such an equation
+                # weight 0, as it does one without events
+                self._lut = np.where(usable(values, self.config.saturation_dn),
+                                     log_intensity(values, self.log_offset), np.nan)
                 self._lut_offset = self.log_offset
-            first, last = self._usable
-            fill_slot(sums, fj.last_p, fk.last_p, fj.image, fk.image, first, last,
-                      self._slot_sums[slot], self._slot_qa[slot], self._slot_raw[slot])
+            fill_slot(sums, fj.last_p, fk.last_p, fj.image, fk.image, self._slot_sums[slot],
+                      self._slot_qa[slot], self._slot_raw[slot])
             self._slot_kind[slot] = True
         else:  # other frame types: dL as _terms computed it (log_intensity's float path)
             raw_j, raw_k = fj.image, fk.image
@@ -766,11 +768,6 @@ class OnlineCalibrator:
             self._slot_qa[slot, 1] = np.abs(fk.last_p) - np.abs(fj.last_p)
             self._slot_kind[slot] = False
         self._queued.append((slot, sign))
-
-    def _usable_range(self) -> tuple[int, int]:
-        """The 8-bit values that ``usable`` accepts, ``first .. last`` (an interval)."""
-        ok = np.flatnonzero(usable(np.arange(256, dtype=np.uint8), self.config.saturation_dn))
-        return (int(ok[0]), int(ok[-1])) if ok.size else (1, 0)
 
     def _queued_arrays(self) -> tuple[np.ndarray, np.ndarray] | None:
         if not self._queued:
@@ -813,27 +810,40 @@ class OnlineCalibrator:
         ne.m[:] = rows.reshape(16, -1)[:, :n]
         return ne
 
+    # blocks (of BLOCK pixels) the residual-correction factor is estimated on: all of them up
+    # to this many, else this many spread evenly over the sensor (131 k pixels): lam is one
+    # number for the whole sensor, and at 1280x720 a pass over every block only to estimate
+    # it cost as much again as the solve (the sums do not fit in any cache)
+    LAMBDA_BLOCKS = 16
+
+    def _lambda_blocks(self) -> np.ndarray:
+        nb = self._n_blocks
+        if nb <= self.LAMBDA_BLOCKS:
+            return np.arange(nb)
+        return np.unique(np.linspace(0, nb - 1, self.LAMBDA_BLOCKS).round().astype(np.int64))
+
     def _resolve(self) -> None:
         """Solve every pixel and fold the solution into the estimate: block by block, each
         block updated with the queued equations and solved while in cache. The same kernels
-        and sums as ``correction_lambda`` and ``solve_pixels`` on the whole sensor."""
+        and sums as ``correction_lambda`` and ``solve_pixels`` on the whole sensor, but for
+        ``lam`` estimated on :meth:`_lambda_blocks` (every pixel up to 131 k pixels)."""
         cfg, lim, est = self.config, self.config.limits, self.estimate
         n, m, counts = self.sensor.n_pixels, self._m, self._counts_pad
         queued = self._queued_arrays()
+        applied = np.zeros(self._n_blocks, bool)  # blocks the queue was added to
         setting = cfg.residual_correction
         if setting == "auto":  # correction_lambda: fit without the correction, one step
             res_q, cq = self._lam_terms
             end = 0
-            for b in range(self._n_blocks):
+            for b in self._lambda_blocks():
                 s = b * BLOCK
                 self._apply_blocks(queued, b, b + 1)
+                applied[b] = True
                 mask, rq_b, cq_b = _lambda_terms(
                     m[b].reshape(16, BLOCK), counts[s : s + BLOCK], int(lim.min_events),
                     float(lim.min_decorrelation), float(lim.min_contrast),
                     float(lim.max_contrast), float(lim.max_bias_ratio))
                 end = append_masked(mask, rq_b, cq_b, min(BLOCK, n - s), res_q, cq, end)
-            queued = None
-            self._queued.clear()
             lam = 0.0
             if end:
                 den = float(cq[:end].sum())
@@ -853,7 +863,8 @@ class OnlineCalibrator:
         for b in range(self._n_blocks):
             s = b * BLOCK
             e = min(s + BLOCK, n)
-            self._apply_blocks(queued, b, b + 1)
+            if not applied[b]:
+                self._apply_blocks(queued, b, b + 1)
             c, b_new, reason, se_c, se_b = _solve_pixels(
                 m[b].reshape(16, BLOCK), counts[s : s + BLOCK], lam, float(overlap),
                 int(lim.min_events), float(lim.min_equations), float(lim.min_decorrelation),
