@@ -66,7 +66,8 @@ def test_an_interval_larger_than_the_buffer_is_kept_alone():
     cal = OnlineCalibrator(SENSOR, OnEIConfig(n_small=2000, n_large=10_000))
     statuses = feed(cal, rec)
     assert all(s["buffer_frames"] <= 2 for s in statuses)
-    assert statuses[-1]["buffer_equations"] == 1 and statuses[-1]["n_updates"] >= 8
+    assert statuses[-1]["buffer_equations"] == 1
+    assert statuses[-1]["n_updates"] >= 8
 
 
 def test_bad_input_is_refused_with_the_reason():
@@ -272,4 +273,5 @@ def test_residual_lambda_blocks_cover_small_sensors_and_spread_over_large_ones()
     blocks = hd._lambda_blocks()
     assert hd._n_blocks == -(-720 * 1280 // BLOCK) > OnlineCalibrator.LAMBDA_BLOCKS
     assert blocks.size == OnlineCalibrator.LAMBDA_BLOCKS == np.unique(blocks).size
-    assert blocks[0] == 0 and blocks[-1] == hd._n_blocks - 1
+    assert blocks[0] == 0
+    assert blocks[-1] == hd._n_blocks - 1
