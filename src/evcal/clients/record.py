@@ -32,6 +32,7 @@ from evcal.io.wire import (
     encode_frame,
 )
 from evcal.service import keys
+from evcal.service.cli import add_ros2_arguments, ros_domain
 from evcal.service.state import snapshot_name
 from evcal.service.transport import Transport, TransportError, options_from_args
 from evcal.stream import StreamGuard
@@ -175,33 +176,80 @@ def build_parser():
                    help="stop after S seconds (default: until Ctrl-C)")
     p.add_argument("--max-cameras", type=int, default=64,
                    help="record at most this many cameras (open files) at once (default 64)")
+    add_ros2_arguments(
+        p, "record the ROS 2 topics of a domain heard over rmw_zenoh (drivers' EventPackets "
+           "and Images, `evcal serve --ros2`'s calibration images, any standard type) into "
+           "one ROS 2 MCAP file (ros2msg schemas, CDR) that Foxglove, ros2 bag and evcal read")
     return p
+
+
+def _record(prog: str, zopts: Any, recorder: Any, duration: float | None, what: str
+            ) -> tuple[Any, int | None]:
+    """Subscribe ``recorder`` and record until SIGINT/SIGTERM or ``duration`` s; returns what
+    its ``close()`` returns and None, or an exit code when the session failed."""
+    stop = threading.Event()
+    old = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
+    code = None
+    try:
+        with Transport(zopts) as t:
+            recorder.subscribe(t)
+            print(f"{prog}: recording {what}", file=sys.stderr, flush=True)
+            stop.wait(duration)
+    except TransportError as exc:
+        code = fail(prog, str(exc))
+    finally:
+        counts = recorder.close()
+        for s, h in old.items():
+            signal.signal(s, h)
+    return counts, code
+
+
+def _main_ros2(args: Any, prog: str) -> int:
+    """``evcal record --ros2`` (see :mod:`evcal.clients.rosrecord`)."""
+    from .rosrecord import RosRecorder
+
+    if args.cameras or "{camera}" in args.out:
+        return fail(prog, "--camera and {camera} do not go with --ros2 (one file holds every "
+                          "topic of the domain)", 2)
+    try:
+        zopts = options_from_args(args)
+        domain = ros_domain(args)
+        rec = RosRecorder(args.out, domain)
+    except (ValueError, OSError) as exc:
+        return fail(prog, str(exc), 2)
+    t0 = time.monotonic()
+    counts, code = _record(prog, zopts, rec, args.duration,
+                           f"ROS 2 domain {domain} to {rec.path}")
+    if code is not None:
+        return code
+    for topic, n in sorted(counts.items()):
+        print(f"{prog}: {topic}: {n} messages", file=sys.stderr)
+    if not counts:
+        return fail(prog, f"nothing recorded in {time.monotonic() - t0:.1f} s (is a ROS 2 node "
+                          f"publishing in domain {domain}, reachable with these --connect/"
+                          "--mode settings?)", 3)
+    print(f"{prog}: {sum(counts.values())} messages -> {rec.path}", file=sys.stderr)
+    return 0
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     prog = "evcal record"
+    if args.ros2:
+        return _main_ros2(args, prog)
+    if args.ros_domain is not None:
+        return fail(prog, "--ros-domain goes with --ros2", 2)
     cameras = [c.strip("/") for c in args.cameras] or ["**"]
     try:
         zopts = options_from_args(args)
         rec = Recorder(args.out, cameras, args.prefix, max_cameras=args.max_cameras)
     except ValueError as exc:
         return fail(prog, str(exc), 2)
-    stop = threading.Event()
-    old = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
     t0 = time.monotonic()
-    try:
-        with Transport(zopts) as t:
-            rec.subscribe(t)
-            print(f"{prog}: recording {', '.join(cameras)} under {args.prefix}", file=sys.stderr,
-                  flush=True)
-            stop.wait(args.duration)
-    except TransportError as exc:
-        return fail(prog, str(exc))
-    finally:
-        counts = rec.close()
-        for s, h in old.items():
-            signal.signal(s, h)
+    counts, code = _record(prog, zopts, rec, args.duration,
+                           f"{', '.join(cameras)} under {args.prefix}")
+    if code is not None:
+        return code
     for cam, c in counts.items():
         print(f"{prog}: {cam}: {c['events']} events, {c['frames']} frames, "
               f"{c['calibrations']} calibrations, {c['lost']} lost, {c['rejected']} rejected "

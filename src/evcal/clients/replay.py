@@ -33,6 +33,7 @@ from evcal.io import open_recording
 from evcal.io.wire import encode_events, encode_frame
 from evcal.recording import Recording
 from evcal.service import keys
+from evcal.service.cli import add_ros2_arguments, ros_domain
 from evcal.service.transport import Transport, TransportError, options_from_args
 from evcal.stream import frame_cuts
 
@@ -221,8 +222,9 @@ def build_parser():
     p = base_parser("evcal replay", "Publish a recording onto zenoh in evcal's wire format.")
     p.add_argument("recording", help="any recording evcal reads (.aedat4, .mcap, .npz, ECD "
                                      "folder)")
-    p.add_argument("--camera", required=True, type=camera_arg,
-                   help="camera id, one or more key chunks, e.g. lab/rig1/cam0")
+    p.add_argument("--camera", type=camera_arg,
+                   help="camera id, one or more key chunks, e.g. lab/rig1/cam0 (required "
+                        "but with --ros2)")
     rate = p.add_mutually_exclusive_group()
     rate.add_argument("--speed", type=float, default=1.0,
                       help="real time scaled by this factor (default 1)")
@@ -238,7 +240,58 @@ def build_parser():
     p.add_argument("--block-timeout", type=float, default=3600.0, metavar="S",
                    help="how long a message may wait for a stalled receiver before zenoh "
                         "closes the link (default 3600; zenoh's own default is 5)")
+    g = add_ros2_arguments(
+        p, "RECORDING is a ROS 1 or 2 bag: publish its messages unchanged (CDR) on rmw_zenoh's "
+           "keys with its liveliness tokens and attachments, as the camera's ROS 2 driver "
+           "would (no --camera: `evcal serve --ros2` takes the camera from each topic's "
+           "namespace)")
+    g.add_argument("--topic", action="append", default=[], metavar="TOPIC",
+                   help="with --ros2: publish only this topic (repeatable; default: all)")
     return p
+
+
+def _replay_options(args: Any) -> Any:
+    """The session options of the flags, with BLOCK publishers waiting ``--block-timeout``:
+    a receiver stalled longer than zenoh's 5 s would see its link closed and the queued
+    messages lost."""
+    zopts = options_from_args(args)
+    return replace(zopts, extra=(*zopts.extra, (
+        "transport/link/tx/queue/congestion_control/block/wait_before_close",
+        str(int(args.block_timeout * 1e6)))))
+
+
+def _main_ros2(args: Any, prog: str) -> int:
+    """``evcal replay BAG --ros2`` (see :mod:`evcal.clients.rosreplay`)."""
+    import signal
+
+    from evcal.recording import RecordingError
+
+    from .rosreplay import replay_bag, report
+
+    if args.camera is not None or args.loop or args.sensor:
+        return fail(prog, "--camera, --loop and --sensor do not go with --ros2 (a bag is "
+                          "replayed unchanged, once; its topics name the cameras)", 2)
+    try:
+        zopts = _replay_options(args)
+        domain = ros_domain(args)
+    except ValueError as exc:
+        return fail(prog, str(exc), 2)
+    stop = threading.Event()
+    old = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        with Transport(zopts) as t:
+            stats = replay_bag(t, args.recording, domain=domain,
+                               speed=None if args.max_rate else args.speed,
+                               topics=set(args.topic) or None, stop=stop, prefix=args.prefix,
+                               wait_subscriber_s=args.wait_subscriber)
+    except RecordingError as exc:
+        return fail(prog, str(exc), 2)
+    except TransportError as exc:
+        return fail(prog, str(exc))
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+    return report(prog, stats, args.wait_subscriber, domain)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -251,13 +304,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     prog = "evcal replay"
     if args.speed is not None and not args.speed > 0:
         return fail(prog, f"--speed {args.speed} must be > 0", 2)
+    if args.ros2:
+        return _main_ros2(args, prog)
+    if args.camera is None:
+        return fail(prog, "--camera is required (or --ros2 for a ROS bag)", 2)
+    if args.ros_domain is not None or args.topic:
+        return fail(prog, "--ros-domain and --topic go with --ros2", 2)
     try:
-        zopts = options_from_args(args)
-        # BLOCK publishers: a receiver stalled longer than zenoh's 5 s would see its link
-        # closed and the queued messages lost; wait as long as asked instead
-        zopts = replace(zopts, extra=(*zopts.extra, (
-            "transport/link/tx/queue/congestion_control/block/wait_before_close",
-            str(int(args.block_timeout * 1e6)))))
+        zopts = _replay_options(args)
         sensor = SensorSize.parse(args.sensor) if args.sensor else None
         rec = open_recording(args.recording, sensor=sensor)
     except (ValueError, RecordingError) as exc:

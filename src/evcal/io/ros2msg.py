@@ -141,12 +141,15 @@ class Ros2McapWriter(McapFileWriter):
         self.counts[topic] = 0
         return cid
 
-    def add(self, topic: str, msgtype: str, log_time_ns: int, data: bytes) -> None:
-        """One message (CDR) on ``topic`` at ``log_time_ns``."""
+    def add(self, topic: str, msgtype: str, log_time_ns: int, data: bytes, *,
+            publish_time_ns: int | None = None) -> None:
+        """One message (CDR) on ``topic`` at ``log_time_ns`` (published at
+        ``publish_time_ns``, default the log time)."""
         cid = self._channel(topic, msgtype)
         t = max(int(log_time_ns), 0)
+        pub = t if publish_time_ns is None else max(int(publish_time_ns), 0)
         n: int = self.counts[topic]
-        self._w.add_message(cid, log_time=t, publish_time=t, sequence=n & 0xFFFFFFFF,
+        self._w.add_message(cid, log_time=t, publish_time=pub, sequence=n & 0xFFFFFFFF,
                             data=data)
         self.counts[topic] = n + 1
 

@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import os
 import warnings
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -309,6 +310,62 @@ def _check_definition(bag: _Bag, conn: Connection, store: Typestore) -> None:
             "version), refused rather than decoded wrongly", ErrorReason.MALFORMED)
 
 
+@dataclass(frozen=True)
+class BagMessage:
+    """One message of a bag as ROS 2 sends it: topic, type, log time (ns) and CDR bytes
+    (a ROS 1 bag's message converted to CDR)."""
+
+    topic: str
+    msgtype: str
+    t_ns: int
+    data: bytes
+
+
+def bag_topics(path: str | os.PathLike[str]) -> dict[str, str]:
+    """Every topic of a bag and its type (:class:`RosbagError` for a bag that does not open
+    or a topic carrying several types)."""
+    bag = _open_bag(Path(path))
+    try:
+        topics = _topics(bag)
+    finally:
+        _close(bag)
+    several = sorted(t for t, types in topics.items() if len(types) > 1)
+    if several:
+        raise RosbagError(f"{path}: topics carry several types: {_describe(topics)}")
+    return {t: next(iter(types)) for t, types in topics.items()}
+
+
+def iter_bag_messages(path: str | os.PathLike[str], *, topics: set[str] | None = None
+                      ) -> Iterator[BagMessage]:
+    """The messages of a bag (of ``topics``, else all) in log-time order, each as CDR.
+
+    A ROS 1 bag's messages are converted (``rosbags``' ``ros1_to_cdr``, with the types
+    evcal knows: ROS 1 Noetic's standard types and :data:`MSG_DEFINITIONS`). The bag is closed
+    when the iterator is exhausted or closed. Raises :class:`RosbagError`.
+    """
+    bag = _open_bag(Path(path))
+    try:
+        store = typestore(bag.ros_version) if bag.ros_version == 1 else None
+        current = "the first message"
+        for reader in bag.readers:
+            conns = [c for c in reader.connections if topics is None or c.topic in topics]
+            if not conns:
+                continue
+            try:
+                for conn, t_ns, raw in reader.messages(connections=conns):
+                    current = f"a {conn.msgtype} message on {conn.topic} at {t_ns} ns"
+                    data = (bytes(store.ros1_to_cdr(raw, conn.msgtype)) if store is not None
+                            else bytes(raw))
+                    yield BagMessage(conn.topic, conn.msgtype, int(t_ns), data)
+            except RecordingError:
+                raise
+            except Exception as exc:  # rosbags/sqlite/zstd errors of a damaged file
+                raise RosbagError(f"{bag.path}: reading failed at {current} (truncated or "
+                                  f"corrupt bag?): {type(exc).__name__}: {exc}") from None
+    finally:
+        _close(bag)
+
+
 # ------------------------------------------------------------------------------- decoding
 
 
@@ -514,10 +571,12 @@ def _packet_events(stream: _EventStream, msg: Any, where: str) -> np.ndarray:
         raise RosbagError(f"{where} (seq {seq}): {exc}", exc.reason) from None
     stream.dropped += pk.dropped
     stream.triggers += int(pk.trigger_t_us.size)
-    return _columns(pk.t_us, pk.x, pk.y, pk.on)
+    return event_columns(pk.t_us, pk.x, pk.y, pk.on)
 
 
-def _columns(t_us: np.ndarray, x: np.ndarray, y: np.ndarray, on: np.ndarray) -> np.ndarray:
+def event_columns(t_us: np.ndarray, x: np.ndarray, y: np.ndarray, on: np.ndarray
+                  ) -> np.ndarray:
+    """Decoded columns (``on`` True for ON) as an :data:`~evcal.events.EVENTS_DTYPE` array."""
     ev = np.empty(t_us.shape[0], EVENTS_DTYPE)
     ev["t_us"] = t_us
     ev["x"] = x
@@ -718,7 +777,7 @@ def _event_message(bag: _Bag, stream: _EventStream, deser: Any, raw: bytes | mem
         except PayloadError as exc:
             raise RosbagError(f"{where}: {stream.msgtype}: {exc}", exc.reason) from None
         size = (h, w)
-        chunk = _columns(t_us, x, y, on)
+        chunk = event_columns(t_us, x, y, on)
         if h and w:
             keep = (x < w) & (y < h)
             stream.dropped += int(keep.size - np.count_nonzero(keep))

@@ -13,6 +13,7 @@ from collections.abc import Sequence
 from ..errors import ConfigError
 from ..online import OnEIConfig
 from .core import ON_FULL, ServiceConfig
+from .ros2 import Ros2Options, TopicMap, default_domain
 from .signing import SignatureError
 from .transport import TransportError, add_zenoh_arguments, check_key, options_from_args
 
@@ -64,6 +65,15 @@ def build_parser(prog: str = "evcal serve") -> argparse.ArgumentParser:
     p.add_argument("--max-pixels", type=int, default=1280 * 1024,
                    help="largest sensor accepted, in pixels (default 1280x1024)")
     p.add_argument("--max-message-mb", type=float, default=32.0)
+    g = add_ros2_arguments(
+        p, "also be a ROS 2 node over rmw_zenoh: take event_camera_msgs/EventPacket and "
+           "sensor_msgs/Image topics as camera input (camera id = the topic's namespace) and "
+           "publish each camera's calibration on /<camera>/calibration/{contrast,bias,special} "
+           "(sensor_msgs/Image)")
+    g.add_argument("--ros-topic-map", action="append", default=[], metavar="TOPIC=CAMERA",
+                   help="feed camera CAMERA from TOPIC, or from every topic below a "
+                        "namespace, e.g. /dvs/events=lab/rig1/cam0 or /dvs=lab/rig1/cam0 "
+                        "(repeatable)")
     g = p.add_argument_group("OnEI estimator")
     g.add_argument("--n-small", type=int, default=None,
                    help="events per equation (default: scaled with the sensor)")
@@ -113,6 +123,31 @@ def config_from_args(args: argparse.Namespace) -> ServiceConfig:
     )
 
 
+def add_ros2_arguments(p: argparse.ArgumentParser, ros2_help: str
+                       ) -> argparse._ArgumentGroup:
+    """``--ros2`` (what it does: ``ros2_help``) and ``--ros-domain``, the same on every
+    command; returns the group for the command's own ROS options."""
+    g = p.add_argument_group("ROS 2 (rmw_zenoh)")
+    g.add_argument("--ros2", action="store_true", help=ros2_help)
+    g.add_argument("--ros-domain", type=int, default=None, metavar="N",
+                   help="ROS domain id (default: $ROS_DOMAIN_ID, else 0)")
+    return g
+
+
+def ros_domain(args: argparse.Namespace) -> int:
+    """``--ros-domain``, else ``$ROS_DOMAIN_ID``, else 0 (ValueError for a bad variable)."""
+    return int(args.ros_domain) if args.ros_domain is not None else default_domain()
+
+
+def ros2_from_args(args: argparse.Namespace) -> Ros2Options | None:
+    """The ROS 2 options of ``--ros2`` (None without it; ValueError for bad values)."""
+    if not args.ros2:
+        if args.ros_domain is not None or args.ros_topic_map:
+            raise ValueError("--ros-domain and --ros-topic-map go with --ros2")
+        return None
+    return Ros2Options(domain=ros_domain(args), topic_map=TopicMap.parse(args.ros_topic_map))
+
+
 def setup_logging(verbose: int, quiet: bool = False) -> None:
     """stderr logging: evcal's INFO by default (the service's own account), -v INFO for all,
     -vv DEBUG, -q errors only."""
@@ -140,6 +175,7 @@ def main_serve(argv: Sequence[str] | None = None) -> int:
                              "view is of the recording the file keeps)")
         zopts = options_from_args(args)
         config = config_from_args(args)
+        ros2 = ros2_from_args(args)
     except ValueError as exc:
         print(f"evcal serve: {exc}", file=sys.stderr)
         return 2
@@ -163,7 +199,7 @@ def main_serve(argv: Sequence[str] | None = None) -> int:
                                    "connect_url": args.rerun_connect},
                       ready=lambda s: print(f"evcal serve: ready ({s.instance})",
                                             file=sys.stderr, flush=True),
-                      sign_key=args.sign_key)
+                      sign_key=args.sign_key, ros2=ros2)
     except (TransportError, SignatureError) as exc:
         print(f"evcal serve: {exc}", file=sys.stderr)
         return 1

@@ -150,9 +150,12 @@ class Service:
     def __init__(self, config: ServiceConfig, publish: PublishFn, *,
                  match: MatchFn | None = None, observer: Observer | None = None,
                  store: StateStore | None = None, instance: str = "",
-                 signer: Signer | None = None) -> None:
+                 signer: Signer | None = None,
+                 on_update: Callable[[str, CalibrationUpdate], None] | None = None) -> None:
         self.config = config
         self._publish = publish
+        # also publish each update elsewhere (the ROS 2 images); failures are counted
+        self._on_update = on_update
         self._match = match or keys.matches
         self.observer = observer
         self.store = store
@@ -218,6 +221,13 @@ class Service:
                 self.publish(key, out.message, keys.ENC_CALIBRATION,
                              attachment=self.attachment(key, out.message))
                 cam.state.published(out, time.monotonic())
+                if self._on_update is not None:
+                    try:
+                        self._on_update(cam.id, out)
+                    except Exception as exc:
+                        self.publish_errors += 1
+                        log.warning("camera %s: cannot publish the update elsewhere: %s",
+                                    cam.id, exc)
                 if self._observer_thread is not None:
                     self._observer_thread.submit(
                         "updated", (cam.id, out.calibration, out.t_us,
@@ -314,13 +324,25 @@ class Service:
         parsed = keys.split_camera_key(self.config.prefix, key)
         if parsed is None or parsed[1] not in keys.INPUT_KINDS:
             return
-        camera_id, kind = parsed
+        self._deliver(parsed[0], parsed[1], payload, t_recv, claimed=True)
+
+    def deliver(self, camera_id: str, kind: str, payload: Any, t_recv: float) -> None:
+        """Hand one ``kind`` message to a camera (any thread, returns quickly): the camera id
+        is checked, a camera outside this instance's claim ignored, the camera found or
+        created; ``payload`` is a wire message or a :class:`~evcal.service.ros2.RosSample`
+        (ROS 2 input, decoded in the camera's decoder thread)."""
+        self._deliver(camera_id, kind, payload, t_recv, claimed=False)
+
+    def _deliver(self, camera_id: str, kind: str, payload: Any, t_recv: float, *,
+                 claimed: bool) -> None:
         try:
             keys.check_camera_id(camera_id)
         except ValueError as exc:
             self.invalid_camera_ids += 1
             if self._limiter.allow():
                 log.warning("refused a %s message: %s", kind, exc)
+            return
+        if not claimed and self.config.cameras != "**" and not self.claims(camera_id):
             return
         cam = self.camera(camera_id)
         if cam is None:

@@ -26,6 +26,7 @@ from typing import Any
 from ..errors import ErrorReason, EvcalError
 from ..io.wire import decode_events, decode_frame
 from .camera import CameraState, Output, Rejected
+from .ros2 import RosDecoder, RosSample
 
 log = logging.getLogger("evcal.service")
 
@@ -82,8 +83,8 @@ class BoundedQueue:
 
 
 def _payload_bytes(item: tuple[str, Any, float]) -> int:
-    payload = item[1]
-    return len(payload) if isinstance(payload, (bytes, bytearray, memoryview)) else 0
+    payload = item[1]  # bytes, a RosSample, or an EvcalError (a refusal, 0 bytes)
+    return 0 if isinstance(payload, BaseException) else len(payload)
 
 
 class CameraQueue(BoundedQueue):
@@ -91,7 +92,8 @@ class CameraQueue(BoundedQueue):
     (``drops_before``: messages of that kind this queue refused just before this one).
 
     A payload may also be an :class:`~evcal.errors.EvcalError` (a message refused on arrival,
-    0 bytes): it goes through the queue so that the worker counts it in stream order.
+    0 bytes): it goes through the queue so that the worker counts it in stream order; or a
+    :class:`~evcal.service.ros2.RosSample` (a ROS 2 message, decoded from its CDR).
     """
 
     def __init__(self, max_bytes: int) -> None:
@@ -125,6 +127,7 @@ class Camera:
         self.started_s = time.monotonic()
         self.last_input_s = self.started_s  # monotonic time of the latest message
         self.limiter: Any = None  # the outputs' error limiter of this camera
+        self._ros: RosDecoder | None = None  # ROS 2 decoding state (decoder thread only)
         self._stop = threading.Event()
         self.decoder = threading.Thread(target=self._decode_loop,
                                         name=f"evcal-dec-{self.id}", daemon=True)
@@ -146,7 +149,7 @@ class Camera:
 
     # -- input side (receive thread) -----------------------------------------------------------
 
-    def enqueue(self, kind: str, payload: bytes, t_recv: float) -> None:
+    def enqueue(self, kind: str, payload: bytes | RosSample, t_recv: float) -> None:
         """Queue one message (any receive thread; never touches the state)."""
         self.last_input_s = t_recv
         item: Any = payload
@@ -210,6 +213,10 @@ class Camera:
             try:
                 if isinstance(payload, EvcalError):
                     decoded = payload
+                elif isinstance(payload, RosSample):
+                    if self._ros is None:
+                        self._ros = RosDecoder()
+                    decoded = self._ros.decode(kind, payload)
                 elif kind == "events":
                     decoded = decode_events(payload)
                 else:

@@ -18,6 +18,13 @@ from ..errors import EvcalError
 from . import keys
 from .core import Service, ServiceConfig
 from .outputs import error_reply
+from .ros2 import (
+    Ros2Options,
+    RosCalibrationPublisher,
+    RosNode,
+    RosRouter,
+    subscription_keys,
+)
 from .signing import Signer
 from .state import StateStore
 from .transport import Request, Transport, ZenohOptions, intersects
@@ -40,8 +47,13 @@ def run(
     ready: Callable[[Service], None] | None = None,
     tick_s: float = 0.1,
     sign_key: str | Path | None = None,
+    ros2: Ros2Options | None = None,
 ) -> Service:
-    """Serve until ``stop`` is set; returns the (closed) service for its counters."""
+    """Serve until ``stop`` is set; returns the (closed) service for its counters.
+
+    With ``ros2`` the service is also a ROS 2 node over rmw_zenoh (:mod:`.ros2`): it takes
+    EventPacket and Image topics as camera input and publishes each update as Images.
+    """
     store = StateStore(state_dir) if state_dir else None
     observer = None
     if rrd:
@@ -53,8 +65,13 @@ def run(
         with Transport(zenoh) as t:
             instance = config.instance or t.zid
             signer = Signer.from_file(instance, sign_key)
+            node = ros_out = None
+            if ros2 is not None:
+                node = RosNode(zid=t.zid, domain=ros2.domain)
+                ros_out = RosCalibrationPublisher(node, t.put, t.token)
             service = Service(config, t.put, match=intersects, observer=observer, store=store,
-                              instance=instance, signer=signer)
+                              instance=instance, signer=signer,
+                              on_update=ros_out.publish if ros_out is not None else None)
             restored = service.restore()
             if restored:
                 log.info("restored %d camera(s) from %s: %s", len(restored), state_dir,
@@ -95,6 +112,14 @@ def run(
             t.queryable(keys.cameras_key(prefix), on_cameras)
             for kind in keys.INPUT_KINDS:
                 t.subscribe(f"{claim}/{kind}", service.on_sample)
+            router = None
+            if ros2 is not None and node is not None:
+                router = RosRouter(node, service.deliver, ros2.topic_map)
+                for key in subscription_keys(ros2.domain):
+                    t.subscribe(key, router.on_sample, attachment=True)
+                t.token(node.node_token())
+                log.info("ROS 2 node /%s in domain %d: EventPacket and Image topics in, "
+                         "calibration images out", node.name, ros2.domain)
             t.token(keys.service_token_key(prefix, instance.replace("/", "_")))
             log.info("evcal service %s up: prefix %s, cameras %s, on_full=%s", instance, prefix,
                      config.cameras, config.on_full)
@@ -104,6 +129,8 @@ def run(
             try:
                 while not stop.wait(tick_s):
                     service.tick()
+                    if router is not None:
+                        router.declare_pending(t.token)
             finally:
                 log.info("shutting down: draining queues, saving state")
                 service.close()

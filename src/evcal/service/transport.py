@@ -199,8 +199,8 @@ class Publisher:
     def __init__(self, pub: Any):
         self._pub = pub
 
-    def put(self, payload: bytes) -> None:
-        self._pub.put(payload)
+    def put(self, payload: bytes, *, attachment: bytes | None = None) -> None:
+        self._pub.put(payload, attachment=attachment)
 
     @property
     def has_subscribers(self) -> bool:
@@ -264,12 +264,19 @@ class Transport:
             self._entities.append(entity)
         return entity
 
-    def subscribe(self, key: str, callback: Callable[[str, bytes, str], None]) -> None:
-        """Call ``callback(key, payload, encoding)`` for every sample on ``key`` (a glob)."""
+    def subscribe(self, key: str, callback: Callable[..., None], *,
+                  attachment: bool = False) -> None:
+        """Call ``callback(key, payload, encoding)`` for every sample on ``key`` (a glob);
+        with ``attachment``, ``callback(key, payload, encoding, attachment)`` (the sample's
+        attachment bytes, or None)."""
 
         def on_sample(sample: Any) -> None:
             try:
-                callback(str(sample.key_expr), sample.payload.to_bytes(), str(sample.encoding))
+                args = [str(sample.key_expr), sample.payload.to_bytes(), str(sample.encoding)]
+                if attachment:
+                    att = sample.attachment
+                    args.append(att.to_bytes() if att is not None else None)
+                callback(*args)
             except Exception:
                 log.exception("subscriber callback on %s failed", key)
 

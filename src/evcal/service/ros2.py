@@ -1,0 +1,525 @@
+"""ROS 2 over rmw_zenoh without ROS: the keys, liveliness tokens and attachments rmw_zenoh
+uses, and the CDR in (EventPacket, Image) and out (calibration maps as Images).
+
+No zenoh here (the session is :mod:`evcal.service.transport`'s): this module makes strings
+and bytes. The facts it relies on are rmw_zenoh_cpp's (github ros2/rmw_zenoh,
+``rmw_zenoh_cpp/src/detail/liveliness_utils.cpp``, ``attachment_helpers.cpp``,
+``rmw_publisher_data.cpp``, ``type_support_common.cpp``; the layout of rmw_zenoh 0.2+, the
+Jazzy and Rolling releases):
+
+- A topic's data key is ``<domain>/<topic without its leading and trailing '/'>/<dds
+  type>/<type hash>``, e.g. ``0/event_camera/events/event_camera_msgs::msg::dds_::
+  EventPacket_/RIHS01_d6fa...``; the dds type of ``pkg/msg/Name`` is
+  ``pkg::msg::dds_::Name_``, the hash the type's RIHS01 hash (REP 2011) as
+  ``rosidl_stringify_type_hash`` writes it: ``RIHS01_`` and 64 hex digits. Payloads are CDR
+  (4-byte encapsulation header, then the message).
+- Every sample carries an attachment in zenoh's serialization format: the publisher's
+  sequence number (int64, from 1), the source timestamp (int64 ns) and the publisher's GID
+  (16 bytes, a sequence: LEB128 length 0x10 then the bytes) -- 33 bytes.
+- A ROS entity exists for ``ros2 node list`` / ``ros2 topic list`` through a liveliness token
+  ``@ros2_lv/<domain>/<zid>/<node id>/<entity id>/<NN|MP|MS>/<enclave>/<namespace>/<node>``,
+  followed for a publisher (MP) or subscription (MS) by ``/<topic>/<dds type>/<type
+  hash>/<qos>``; names in a token have ``/`` replaced by ``%`` (the root namespace and the
+  default enclave are ``%``), the QoS is
+  ``<reliability>:<durability>:<history>,<depth>:<deadline s>,<ns>:<lifespan s>,<ns>:
+  <liveliness>,<lease s>,<ns>`` (rmw enum values; an empty field is the default).
+
+evcal subscribes with the hash chunk ``*``: any version of a type is received (rmw_zenoh
+builds without type hashes put ``TypeHashNotSupported`` there) and the CDR is decoded with
+evcal's registered definitions (:mod:`evcal.io.rosbag`), which name a message that does not
+decode. It publishes the hashes :func:`evcal.io.ros2msg.type_hash` computes.
+
+Cameras: an EventPacket topic belongs to the camera named by its namespace
+(``/lab/rig1/cam0/events`` -> ``lab/rig1/cam0``), an Image topic too when its last name
+starts with ``image`` (``image_raw``, ``image_mono``, ...); ``--ros-topic-map TOPIC=CAMERA``
+overrides that for a topic, or for a namespace (``/dvs=lab/cam0``: every topic below
+``/dvs``, Images still named ``image*``). Topics that map to no camera are ignored (counted).
+A camera's calibration goes out on ``/<camera>/calibration/contrast`` and ``.../bias``
+(``32FC1``, the maps as published on evcal's key) and ``.../special`` (``mono8``, 50 x the
+:class:`~evcal.calibration.Special` code: 0 unobserved, 50 normal, 100 hot, 150 cold,
+200 warm, 250 cool), stamped with the sensor time of the frame that closed the update.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import re
+import struct
+import threading
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from ..errors import ErrorReason
+from ..io._evcodecs import PacketDecoder, PayloadError
+from ..io.ros2msg import image_cdr, ros2_store, type_hash
+from ..io.rosbag import (
+    EVENT_PACKET,
+    IMAGE,
+    decode_packet,
+    deserialize_message,
+    event_columns,
+    image_to_gray,
+    packet_decoder,
+)
+from .camera import CalibrationUpdate, DecodedEvents, DecodedFrame, Rejected
+
+log = logging.getLogger("evcal.service")
+
+ADMIN_SPACE = "@ros2_lv"
+NODE_NAME = "evcal"
+# rmw_zenoh sets no encoding on its samples (zenoh's default); the payload is CDR
+ENCODING = "zenoh/bytes"
+# the QoS chunk of evcal's tokens: reliable, volatile, keep last 10, no deadline, lifespan
+# or lease, automatic liveliness (rmw enums: RELIABLE 1, VOLATILE 2, KEEP_LAST 1,
+# AUTOMATIC 1), written out in full so that every rmw_zenoh version parses it
+QOS = "1:2:1,10:0,0:0,0:1,0,0"
+INPUT_TYPES = {EVENT_PACKET: "events", IMAGE: "frames"}
+OUTPUT_MAPS = ("contrast", "bias", "special")
+SPECIAL_SCALE = 50  # the special image's value per class code
+_ATTACHMENT = struct.Struct("<qqB16s")  # seq, source timestamp ns, LEB128(16), GID
+
+
+def dds_type(msgtype: str) -> str:
+    """``pkg/msg/Name`` -> ``pkg::msg::dds_::Name_`` (the type chunk of rmw_zenoh keys)."""
+    pkg, sep, name = msgtype.rpartition("/")
+    if not sep or not pkg or not name:
+        raise ValueError(f"message type {msgtype!r} is not of the form pkg/msg/Name")
+    return f"{pkg.replace('/', '::')}::dds_::{name}_"
+
+
+def ros_type(dds: str) -> str | None:
+    """``pkg::msg::dds_::Name_`` -> ``pkg/msg/Name``; None for anything else."""
+    head, sep, name = dds.rpartition("::dds_::")
+    if not sep or not head or not name.endswith("_") or len(name) < 2:
+        return None
+    return f"{head.replace('::', '/')}/{name[:-1]}"
+
+
+def topic_key(domain: int, topic: str, msgtype: str, hash_: str | None = None) -> str:
+    """The data key of ``topic`` (``/a/b``) of type ``msgtype`` in ``domain``."""
+    name = topic.strip("/")
+    if not name:
+        raise ValueError(f"topic {topic!r} has no name")
+    return f"{int(domain)}/{name}/{dds_type(msgtype)}/{hash_ or type_hash(msgtype)}"
+
+
+@dataclass(frozen=True)
+class TopicKey:
+    """A parsed rmw_zenoh data key."""
+
+    domain: int
+    topic: str  # "/a/b"
+    msgtype: str  # "pkg/msg/Name"
+    type_hash: str
+
+
+def parse_topic_key(key: str) -> TopicKey | None:
+    """The parts of a concrete data key, None when it is not one."""
+    chunks = key.split("/")
+    if len(chunks) < 4 or not chunks[0].isdigit():
+        return None
+    msgtype = ros_type(chunks[-2])
+    if msgtype is None:
+        return None
+    return TopicKey(int(chunks[0]), "/" + "/".join(chunks[1:-2]), msgtype, chunks[-1])
+
+
+def subscription_keys(domain: int) -> tuple[str, ...]:
+    """The key expressions of every EventPacket and Image topic of ``domain``, any hash."""
+    return tuple(f"{int(domain)}/**/{dds_type(t)}/*" for t in INPUT_TYPES)
+
+
+def mangle(name: str) -> str:
+    """A ROS name as one key chunk (``/`` -> ``%``), as in rmw_zenoh's tokens."""
+    return name.replace("/", "%")
+
+
+def encode_attachment(seq: int, t_ns: int, gid: bytes) -> bytes:
+    """The attachment of a sample: sequence number, source timestamp (ns), 16-byte GID."""
+    if len(gid) != 16:
+        raise ValueError(f"a GID has 16 bytes, got {len(gid)}")
+    return _ATTACHMENT.pack(int(seq), int(t_ns), 16, gid)
+
+
+@dataclass(frozen=True)
+class Attachment:
+    """What rmw_zenoh attaches to a sample."""
+
+    seq: int
+    t_ns: int
+    gid: bytes
+
+
+def decode_attachment(raw: bytes | None) -> Attachment | None:
+    """The attachment of a sample (None when there is none or it is not rmw_zenoh's)."""
+    if raw is None or len(raw) != _ATTACHMENT.size or raw[16] != 16:
+        return None
+    seq, t_ns, _, gid = _ATTACHMENT.unpack(raw)
+    return Attachment(int(seq), int(t_ns), bytes(gid))
+
+
+def default_domain() -> int:
+    """``ROS_DOMAIN_ID`` as ROS 2 reads it (0 when unset or empty)."""
+    import os
+
+    text = os.environ.get("ROS_DOMAIN_ID", "").strip()
+    if not text:
+        return 0
+    if not text.isdigit():
+        raise ValueError(f"ROS_DOMAIN_ID={text!r} is not a domain number")
+    return int(text)
+
+
+@dataclass(frozen=True, kw_only=True)
+class Ros2Options:
+    """``evcal serve --ros2``: the ROS domain and which topics feed which camera."""
+
+    domain: int = 0
+    topic_map: TopicMap = field(default_factory=lambda: TopicMap())
+
+    def __post_init__(self) -> None:
+        if not 0 <= int(self.domain) <= 232:
+            raise ValueError(f"ROS domain {self.domain} is not in 0..232")
+
+
+# ----------------------------------------------------------------------------- tokens
+
+
+@dataclass
+class RosNode:
+    """evcal as one ROS 2 node: its liveliness tokens and publications' GIDs.
+
+    ``zid`` is the zenoh session id (``Transport.zid``); entity ids count from 1 (0 is the
+    node itself).
+    """
+
+    zid: str
+    domain: int = 0
+    name: str = NODE_NAME
+    namespace: str = "/"
+    enclave: str = "/"
+    node_id: int = 0
+    _next_id: int = 1
+    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+
+    def _head(self, entity_id: int, kind: str) -> str:
+        return (f"{ADMIN_SPACE}/{self.domain}/{self.zid}/{self.node_id}/{entity_id}/{kind}/"
+                f"{mangle(self.enclave)}/{mangle(self.namespace)}/{mangle(self.name)}")
+
+    def node_token(self) -> str:
+        """The token that makes the node visible (``ros2 node list``)."""
+        return self._head(self.node_id, "NN")
+
+    def entity(self, kind: str, topic: str, msgtype: str, hash_: str | None = None
+               ) -> tuple[str, bytes]:
+        """``(token, gid)`` of a new publisher (``MP``) or subscription (``MS``) on ``topic``;
+        the GID is the first 16 bytes of the SHA-256 of the token."""
+        if kind not in ("MP", "MS"):
+            raise ValueError(f"entity kind {kind!r} is not MP or MS")
+        with self._lock:
+            eid = self._next_id
+            self._next_id += 1
+        token = (f"{self._head(eid, kind)}/{mangle('/' + topic.strip('/'))}/"
+                 f"{dds_type(msgtype)}/{hash_ or type_hash(msgtype)}/{QOS}")
+        return token, hashlib.sha256(token.encode()).digest()[:16]
+
+
+class RosPublication:
+    """One topic evcal publishes: its key, token, GID and sequence numbers (thread-safe)."""
+
+    def __init__(self, node: RosNode, topic: str, msgtype: str,
+                 hash_: str | None = None) -> None:
+        self.topic = topic
+        self.msgtype = msgtype
+        self.key = topic_key(node.domain, topic, msgtype, hash_)
+        self.token, self.gid = node.entity("MP", topic, msgtype, hash_)
+        self._seq = 0
+        self._lock = threading.Lock()
+
+    def attachment(self) -> bytes:
+        """The next sample's attachment (sequence numbers from 1, as rmw_zenoh's)."""
+        with self._lock:
+            self._seq += 1
+            seq = self._seq
+        return encode_attachment(seq, time.time_ns(), self.gid)
+
+
+# ----------------------------------------------------------------------------- inputs
+
+_IMAGE_NAME = re.compile(r"^image")
+
+
+def _namespace(topic: str) -> str:
+    return topic.strip("/").rpartition("/")[0]
+
+
+@dataclass(frozen=True)
+class TopicMap:
+    """Which camera a ROS topic feeds (see the module docstring): explicit entries
+    ``(topic or namespace, camera)``, the longest matching one first, else the topic's
+    namespace."""
+
+    entries: tuple[tuple[str, str], ...] = ()
+
+    @classmethod
+    def parse(cls, items: Iterable[str]) -> TopicMap:
+        """From ``--ros-topic-map TOPIC=CAMERA`` values (ValueError naming a bad one)."""
+        from .keys import check_camera_id
+
+        out = []
+        for item in items:
+            topic, sep, camera = item.partition("=")
+            topic = "/" + topic.strip().strip("/")
+            camera = camera.strip().strip("/")
+            if not sep or topic == "/" or not camera:
+                raise ValueError(f"--ros-topic-map {item!r}: expected TOPIC=CAMERA, e.g. "
+                                 "/dvs/events=lab/rig1/cam0 or /dvs=lab/rig1/cam0")
+            try:
+                check_camera_id(camera)
+            except ValueError as exc:
+                raise ValueError(f"--ros-topic-map {item!r}: {exc}") from None
+            out.append((topic, camera))
+        return cls(tuple(sorted(out, key=lambda e: -len(e[0]))))
+
+    def camera(self, topic: str, kind: str) -> str | None:
+        """The camera of ``topic`` carrying ``kind`` ("events" or "frames"), or None."""
+        topic = "/" + topic.strip("/")
+        image_named = _IMAGE_NAME.match(topic.rpartition("/")[2]) is not None
+        for name, camera in self.entries:
+            if topic == name:
+                return camera
+            if topic.startswith(name + "/"):
+                return camera if kind == "events" or image_named else None
+        if kind == "frames" and not image_named:
+            return None
+        return _namespace(topic) or None
+
+
+@dataclass(frozen=True)
+class RosSample:
+    """A ROS 2 message for a camera's decoder thread: CDR of ``msgtype`` from ``topic``, with
+    the publisher's sequence number when its attachment said it."""
+
+    data: bytes
+    msgtype: str
+    topic: str
+    seq: int | None = None
+
+    def __len__(self) -> int:
+        return len(self.data)
+
+
+DeliverFn = Callable[[str, str, Any, float], None]  # (camera, kind, payload, t_recv_s)
+
+
+class RosRouter:
+    """Routes samples on rmw_zenoh keys to cameras (the transport's receive thread).
+
+    ``deliver(camera, kind, RosSample, t_recv_s)`` is :meth:`Service.deliver`. Keys are parsed
+    once (a bounded cache); topics that feed no camera are counted in :attr:`ignored` and
+    logged once. Each new input topic gets a subscription token (``MS``, so that
+    ``ros2 topic info`` lists evcal), declared by :meth:`declare_pending` from a thread
+    that may call the transport (never the receive thread).
+    """
+
+    MAX_ROUTES = 4096
+
+    def __init__(self, node: RosNode, deliver: DeliverFn, topic_map: TopicMap | None = None
+                 ) -> None:
+        self.node = node
+        self.deliver = deliver
+        self.topic_map = topic_map or TopicMap()
+        self._routes: dict[str, tuple[str, str, str, str] | None] = {}
+        self.ignored: dict[str, int] = {}
+        self._pending: list[tuple[str, str, str]] = []
+        self._lock = threading.Lock()
+
+    def _route(self, key: str) -> tuple[str, str, str, str] | None:
+        parsed = parse_topic_key(key)
+        if parsed is None or parsed.domain != self.node.domain:
+            return None
+        kind = INPUT_TYPES.get(parsed.msgtype)
+        camera = self.topic_map.camera(parsed.topic, kind) if kind is not None else None
+        if kind is None or camera is None:
+            log.info("ROS 2 topic %s (%s) feeds no camera: ignored (--ros-topic-map maps it)",
+                     parsed.topic, parsed.msgtype)
+            return None
+        with self._lock:
+            self._pending.append((parsed.topic, parsed.msgtype, parsed.type_hash))
+        log.info("ROS 2 topic %s (%s) -> camera %s %s", parsed.topic, parsed.msgtype, camera,
+                 kind)
+        return camera, kind, parsed.topic, parsed.msgtype
+
+    def on_sample(self, key: str, payload: bytes, encoding: str,
+                  attachment: bytes | None) -> None:
+        """A sample on a subscribed key (any receive thread; returns quickly)."""
+        t_recv = time.monotonic()
+        if key in self._routes:
+            route = self._routes[key]
+        else:
+            route = self._route(key)
+            if len(self._routes) < self.MAX_ROUTES:
+                self._routes[key] = route
+        if route is None:
+            self.ignored[key] = self.ignored.get(key, 0) + 1
+            return
+        camera, kind, topic, msgtype = route
+        att = decode_attachment(attachment)
+        self.deliver(camera, kind, RosSample(payload, msgtype, topic,
+                                             att.seq if att is not None else None), t_recv)
+
+    def declare_pending(self, declare: Callable[[str], None]) -> int:
+        """Declare the subscription tokens of the topics seen since the last call."""
+        with self._lock:
+            pending, self._pending = self._pending, []
+        for topic, msgtype, hash_ in pending:
+            declare(self.node.entity("MS", topic, msgtype, hash_)[0])
+        return len(pending)
+
+
+class RosDecoder:
+    """One camera's decoding of ROS 2 messages (its decoder thread only): CDR to the decoded
+    records :class:`~evcal.service.camera.CameraState` takes.
+
+    EventPackets: each topic has its own stateful payload decoder, started afresh when the
+    topic's ``seq`` goes back (the driver restarted); the events are sorted (stable) when a
+    packet is not; ``seq`` is the message's own (loss detection). Images: to gray
+    (:func:`~evcal.io.rosbag.image_to_gray`), time the header stamp floored to µs, ``seq`` the
+    publisher's sequence number from the attachment (None without one).
+
+    Errors are :class:`~evcal.errors.EvcalError` naming the topic (malformed CDR:
+    ``truncated``; an unknown or changed encoding, a big-endian payload: ``malformed``; a
+    size out of 1..65535: ``out_of_range``; payload errors with their own reason).
+    """
+
+    def __init__(self) -> None:
+        self._decoders: dict[str, PacketDecoder] = {}
+        self._last_seq: dict[str, int] = {}
+        self.reordered_events = 0
+        self.dropped_events = 0  # outside the declared size, dropped as the drivers' decoders do
+
+    def decode(self, kind: str, sample: RosSample) -> DecodedEvents | DecodedFrame:
+        where = f"ROS 2 topic {sample.topic}"
+        msg = deserialize_message(ros2_store().deserialize_cdr, sample.data, sample.msgtype,
+                                  where)
+        if kind == "events":
+            return self._events(msg, sample, where)
+        return self._frame(msg, sample, where)
+
+    @staticmethod
+    def _size(msg: Any, where: str) -> tuple[int, int]:
+        h, w = int(msg.height), int(msg.width)
+        if not (0 < h <= 65535 and 0 < w <= 65535):
+            raise Rejected(f"{where}: declares a {w}x{h} sensor (1..65535 each)",
+                           ErrorReason.OUT_OF_RANGE)
+        return h, w
+
+    def _events(self, msg: Any, sample: RosSample, where: str) -> DecodedEvents:
+        h, w = self._size(msg, where)
+        seq = int(msg.seq)
+        topic = sample.topic
+        dec = self._decoders.get(topic)
+        last = self._last_seq.get(topic)
+        if dec is not None and last is not None and seq <= last:
+            dec = None  # the publisher restarted: so did its encoder's state
+        try:
+            dec = packet_decoder(dec, msg)
+            pk = decode_packet(dec, msg)
+        except PayloadError as exc:
+            raise Rejected(f"{where} (seq {seq}): {exc}", exc.reason) from None
+        self._decoders[topic] = dec
+        self._last_seq[topic] = seq
+        self.dropped_events += pk.dropped
+        ev = event_columns(pk.t_us, pk.x, pk.y, pk.on)
+        t = ev["t_us"]
+        if t.size > 1 and (t[1:] < t[:-1]).any():
+            self.reordered_events += int(np.count_nonzero(t[1:] < np.maximum.accumulate(t)[:-1]))
+            ev = ev[np.argsort(t, kind="stable")]
+        return ev, {"seq": seq, "height": h, "width": w, "n": int(ev.size)}
+
+    def _frame(self, msg: Any, sample: RosSample, where: str) -> DecodedFrame:
+        h, w = self._size(msg, where)
+        try:
+            image = image_to_gray(msg)
+        except PayloadError as exc:
+            raise Rejected(f"{where}: {exc}", exc.reason) from None
+        stamp_ns = int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
+        return stamp_ns // 1000, 0, image, {"seq": sample.seq, "height": h, "width": w,
+                                            "dtype": str(image.dtype)}
+
+
+# ----------------------------------------------------------------------------- outputs
+
+_ROS_CHUNK = re.compile(r"[^A-Za-z0-9_]")
+
+
+def ros_name(camera: str) -> str:
+    """A camera id as a ROS namespace (``/lab/rig1/cam0``): characters other than letters,
+    digits and ``_`` become ``_``, a chunk starting with a digit gets a leading ``_``."""
+    chunks = []
+    for chunk in camera.strip("/").split("/"):
+        c = _ROS_CHUNK.sub("_", chunk)
+        chunks.append("_" + c if c[:1].isdigit() else c)
+    return "/" + "/".join(chunks)
+
+
+def output_topic(camera: str, name: str) -> str:
+    """The ROS 2 topic of one of a camera's calibration maps (:data:`OUTPUT_MAPS`)."""
+    return f"{ros_name(camera)}/calibration/{name}"
+
+
+PutFn = Callable[..., None]  # put(key, payload, encoding, *, attachment=...)
+
+
+class RosCalibrationPublisher:
+    """Publishes each calibration update as ROS 2 Images (see the module docstring).
+
+    Called from the cameras' worker threads (:meth:`publish`); a camera's three publications
+    and their tokens are made with its first update. ``put`` is ``Transport.put`` (congestion
+    control DROP: a slow ROS subscriber never stalls a camera), ``declare`` ``Transport.token``.
+    """
+
+    def __init__(self, node: RosNode, put: PutFn, declare: Callable[[str], None]) -> None:
+        self.node = node
+        self._put = put
+        self._declare = declare
+        self._pubs: dict[str, dict[str, RosPublication]] = {}
+        self._lock = threading.Lock()
+        self.published = 0
+
+    def _publications(self, camera: str) -> dict[str, RosPublication]:
+        with self._lock:
+            pubs = self._pubs.get(camera)
+            if pubs is None:
+                pubs = {name: RosPublication(self.node, output_topic(camera, name), IMAGE)
+                        for name in OUTPUT_MAPS}
+                for p in pubs.values():
+                    self._declare(p.token)
+                self._pubs[camera] = pubs
+        return pubs
+
+    def images(self, camera: str, upd: CalibrationUpdate) -> dict[str, bytes]:
+        """The CDR of the update's three Images, by map name."""
+        cal = upd.calibration
+        t_ns = int(upd.t_us) * 1000
+        frame_id = ros_name(camera).strip("/")
+        special = (cal.special.astype(np.uint16) * SPECIAL_SCALE).astype(np.uint8)
+        return {
+            "contrast": image_cdr(cal.contrast, t_ns=t_ns, frame_id=frame_id, encoding="32FC1"),
+            "bias": image_cdr(cal.bias, t_ns=t_ns, frame_id=frame_id, encoding="32FC1"),
+            "special": image_cdr(special, t_ns=t_ns, frame_id=frame_id, encoding="mono8"),
+        }
+
+    def publish(self, camera: str, upd: CalibrationUpdate) -> None:
+        """Publish one update (raises what the transport raises; the service counts it)."""
+        pubs = self._publications(camera)
+        for name, data in self.images(camera, upd).items():
+            p = pubs[name]
+            self._put(p.key, data, ENCODING, attachment=p.attachment())
+        self.published += 1
+
