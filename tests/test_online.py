@@ -275,3 +275,34 @@ def test_residual_lambda_blocks_cover_small_sensors_and_spread_over_large_ones()
     assert blocks.size == OnlineCalibrator.LAMBDA_BLOCKS == np.unique(blocks).size
     assert blocks[0] == 0
     assert blocks[-1] == hd._n_blocks - 1
+
+
+def test_a_live_calibrator_never_waits_for_the_offset_criterion(monkeypatch):
+    """offset_wait=False (the service): a criterion still running when its frame comes does
+    not block the frame path; its result is taken at the first frame after it is done."""
+    import threading
+
+    import evcal.online as online_mod
+
+    release = threading.Event()
+    real = online_mod._offset_criterion
+
+    def slow(*args):
+        assert release.wait(30), "the test never released the criterion"
+        return real(*args)
+
+    monkeypatch.setattr(online_mod, "_offset_criterion", slow)
+    rec = random_recording(SENSOR, 60 * SENSOR.n_pixels, 60, seed=4)
+    cal = OnlineCalibrator(SENSOR, OnEIConfig(log_offset="auto", n_small=2 * SENSOR.n_pixels,
+                                              offset_wait=False))
+    cuts = np.searchsorted(rec.events["t_us"], rec.frames.t_us)
+    for k in range(42):
+        cal.feed_events(rec.events[cuts[k - 1] if k else 0 : cuts[k]])
+        cal.feed_frame(int(rec.frames.t_us[k]), rec.frames.images[k])
+        if k == 39:  # the criterion started at frame 11 and is still running
+            assert np.isnan(cal.log_offset)
+            assert cal._offset_job is not None
+            release.set()
+            cal._offset_job[1].result(timeout=30)
+    assert np.isfinite(cal.log_offset)
+    assert cal.offset_info["method"] == "auto"

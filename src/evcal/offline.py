@@ -304,26 +304,96 @@ def _events_per_pixel(rec: Recording, t0_us: int, t1_us: int) -> np.ndarray:
 # log offset
 
 
-def _unexplained_fraction(sp: np.ndarray, se: np.ndarray, dl: np.ndarray, w: np.ndarray,
-                          dq: np.ndarray) -> float:
-    """Mean over pixels of RSS / TSS of the per-pixel fit ``dL ~ P + E + Q``.
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _unexplained_fraction(sp: np.ndarray, se: np.ndarray, dq: np.ndarray, fj: np.ndarray,
+                          fk: np.ndarray, w: np.ndarray, offset: float, lut: np.ndarray
+                          ) -> float:  # pragma: no cover - compiled
+    """Mean over pixels of RSS / TSS of the per-pixel fit ``dL ~ P + E + Q`` at ``offset``.
 
-    Columns are pixels. ``Q`` (change of last polarity) takes up the sub-threshold residual
-    so that it does not pull the offset.
+    Arrays are ``[window, pixel]``: net polarity, count, change of last polarity, the raw
+    frames at both ends and the weights; ``dL = log(I_k + offset) - log(I_j + offset)``
+    (through ``lut``, the logs of 0..255, when not empty), 0 where the weight is 0. ``Q``
+    takes up the sub-threshold residual so that it does not pull the offset. A pixel counts
+    when its 3x3 system (ridge of 1e-9 of its trace) has a condition number below 1e8 and
+    ``dL`` is not all 0. One compiled pass without the GIL (the service computes this on a
+    worker thread beside the frame path); the same values as the numpy formulation it
+    replaced (eigenvalues for the condition number, the adjugate for the solve) to 1e-15.
     """
-    x = np.stack([sp, se, dq], axis=-1)  # windows, pixels, 3
-    xw = x * w[..., None]
-    ata = np.einsum("wpi,wpj->pij", xw, x)
-    aty = np.einsum("wpi,wp->pi", xw, dl)
-    yy = (w * dl * dl).sum(0)
-    ata += np.eye(3) * 1e-9 * np.trace(ata, axis1=1, axis2=2)[:, None, None]
-    ok = (np.linalg.cond(ata) < 1e8) & (yy > 0)
-    sol = np.linalg.solve(np.where(ok[:, None, None], ata, np.eye(3)),
-                          np.where(ok[:, None], aty, 0.0)[..., None])[..., 0]
-    rss = yy - (sol * aty).sum(-1)
-    frac = np.where(ok, np.maximum(rss, 0.0) / np.where(ok, yy, 1.0), np.nan)
-    finite = frac[np.isfinite(frac)]
-    return float(finite.mean()) if finite.size else float("nan")
+    n_w, n_p = sp.shape
+    use_lut = lut.size > 0
+    total = 0.0
+    count = 0
+    for p in range(n_p):
+        a00 = a01 = a02 = a11 = a12 = a22 = 0.0
+        b0 = b1 = b2 = 0.0
+        yy = 0.0
+        for k in range(n_w):
+            wk = w[k, p]
+            dl = 0.0
+            if wk > 0:
+                if use_lut:
+                    dl = lut[np.int64(fk[k, p])] - lut[np.int64(fj[k, p])]
+                else:
+                    dl = (np.log(max(fk[k, p], 0.0) + offset)
+                          - np.log(max(fj[k, p], 0.0) + offset))
+            x0 = sp[k, p]
+            x1 = se[k, p]
+            x2 = dq[k, p]
+            x0w = x0 * wk
+            x1w = x1 * wk
+            x2w = x2 * wk
+            a00 += x0w * x0
+            a01 += x0w * x1
+            a02 += x0w * x2
+            a11 += x1w * x1
+            a12 += x1w * x2
+            a22 += x2w * x2
+            b0 += x0w * dl
+            b1 += x1w * dl
+            b2 += x2w * dl
+            yy += wk * dl * dl
+        reg = 1e-9 * (a00 + a11 + a22)
+        a00 += reg
+        a11 += reg
+        a22 += reg
+        # the extreme eigenvalues of the symmetric 3x3 (trigonometric method)
+        q = (a00 + a11 + a22) / 3.0
+        p2 = ((a00 - q) ** 2 + (a11 - q) ** 2 + (a22 - q) ** 2
+              + 2.0 * (a01 * a01 + a02 * a02 + a12 * a12))
+        if p2 <= 0.0:
+            lmax = lmin = q
+        else:
+            pp = np.sqrt(p2 / 6.0)
+            c00 = (a00 - q) / pp
+            c11 = (a11 - q) / pp
+            c22 = (a22 - q) / pp
+            c01 = a01 / pp
+            c02 = a02 / pp
+            c12 = a12 / pp
+            r = 0.5 * (c00 * (c11 * c22 - c12 * c12) - c01 * (c01 * c22 - c12 * c02)
+                       + c02 * (c01 * c12 - c11 * c02))
+            r = -1.0 if r < -1.0 else (1.0 if r > 1.0 else r)
+            phi = np.arccos(r) / 3.0
+            lmax = q + 2.0 * pp * np.cos(phi)
+            lmin = q + 2.0 * pp * np.cos(phi + 2.0 * np.pi / 3.0)
+        if not ((lmin > 0.0) and (lmax < 1e8 * lmin) and (yy > 0.0)):
+            continue
+        m00 = a11 * a22 - a12 * a12
+        m01 = a02 * a12 - a01 * a22
+        m02 = a01 * a12 - a02 * a11
+        m11 = a00 * a22 - a02 * a02
+        m12 = a01 * a02 - a00 * a12
+        m22 = a00 * a11 - a01 * a01
+        det = a00 * m00 + a01 * m01 + a02 * m02
+        s0 = (m00 * b0 + m01 * b1 + m02 * b2) / det
+        s1 = (m01 * b0 + m11 * b1 + m12 * b2) / det
+        s2 = (m02 * b0 + m12 * b1 + m22 * b2) / det
+        rss = yy - (s0 * b0 + s1 * b1 + s2 * b2)
+        frac = (rss if rss > 0.0 else 0.0) / yy
+        if np.isfinite(frac):
+            total += frac
+            count += 1
+    return total / count if count else np.nan
 
 
 def estimate_log_offset(rec: Recording, cfg: OffEIConfig) -> tuple[float, dict[str, Any]]:
@@ -378,12 +448,17 @@ def offset_from_windows(sp_a: np.ndarray, se_a: np.ndarray, dq_a: np.ndarray,
     (:meth:`evcal.online.OnlineCalibrator`, ``log_offset="auto"``)."""
     lo, hi, n = offset_grid
     grid = np.geomspace(lo, hi, int(n))
+    sp_a, se_a, dq_a, fj, fk, w = (np.ascontiguousarray(a, np.float64)
+                                   for a in (sp_a, se_a, dq_a, fj, fk, w))
+    # 8-bit frames: the logs of 0..255 once per offset instead of two per window and pixel
+    eight_bit = bool(((fj >= 0) & (fj <= 255) & (fj == np.floor(fj))).all()
+                     and ((fk >= 0) & (fk <= 255) & (fk == np.floor(fk))).all())
+    values = np.arange(256, dtype=np.float64)
 
     def crit(o: float) -> float:
-        with np.errstate(divide="ignore", invalid="ignore"):  # o = 0 at black pixels
-            dl = np.log(np.maximum(fk, 0) + o) - np.log(np.maximum(fj, 0) + o)
-        dl = np.where(w > 0, dl, 0.0)  # unusable windows weigh nothing
-        return _unexplained_fraction(sp_a, se_a, dl, w, dq_a)
+        with np.errstate(divide="ignore"):  # o = 0 at black pixels (unusable: weight 0)
+            lut = np.log(values + o) if eight_bit else np.empty(0)
+        return float(_unexplained_fraction(sp_a, se_a, dq_a, fj, fk, w, float(o), lut))
 
     vals = np.array([crit(o) for o in grid])
     # 0 is a candidate of its own (frames in DN whose log the sensor sees, as v2e's); it is

@@ -17,7 +17,7 @@ import json
 import logging
 import time
 from collections import deque
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -191,7 +191,8 @@ class CameraState:
                 # the old sensor's calibration does not describe this one
                 self.calibration = self.calibration_msg = None
                 c.restarts[kind] += 1
-            self.calibrator = OnlineCalibrator(sensor, self.onei)
+            # live: the online log offset is taken when it is ready, no frame waits for it
+            self.calibrator = OnlineCalibrator(sensor, replace(self.onei, offset_wait=False))
             self.frame_dtype = None
             log.info("camera %s: %s sensor", self.id, sensor)
         elif check.new_session:
