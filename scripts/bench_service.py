@@ -221,8 +221,12 @@ def throughput(sensor: SensorSize, n_events: int, *, mode: str, chunk: int = 100
 
 
 def latency(rate: float, seconds: float, *, chunk_ms: float = 10.0, rrd: str | None = None,
-            warmup_s: float = 3.0, size: str = "346x260") -> dict:
-    """A real-time stream at ``rate`` events/s, 25 Hz frames, OnEI's default sizes."""
+            warmup_s: float = 3.0, size: str = "346x260", settle_s: float = 0.0) -> dict:
+    """A real-time stream at ``rate`` events/s, 25 Hz frames, OnEI's default sizes.
+
+    The client's round trips are split at ``settle_s`` of the measured camera's stream: the
+    start-up (first log-offset estimate, equations formed from the whole buffer, the
+    re-checks at 44 and 176 frames) and the steady state after it."""
     sensor = SensorSize.parse(size)
     rng = np.random.default_rng(1)
     chunk_us = int(chunk_ms * 1000)
@@ -237,7 +241,7 @@ def latency(rate: float, seconds: float, *, chunk_ms: float = 10.0, rrd: str | N
     sp, ep = start_service(extra)
     cam = "bench/latency"
     sent: dict[int, float] = {}
-    got: list[float] = []
+    got: list[tuple[int, float]] = []  # (frame t_us, round trip s)
     try:
         with Transport(ZenohOptions.loopback(connect=[ep])) as t:
             wait_for(lambda: t.alive("evcal/@service/*", timeout_s=1.0), timeout_s=60)
@@ -247,7 +251,7 @@ def latency(rate: float, seconds: float, *, chunk_ms: float = 10.0, rrd: str | N
 
                 t_us = msgpack.unpackb(payload)["t_us"]
                 if t_us in sent:
-                    got.append(time.monotonic() - sent.pop(t_us))
+                    got.append((t_us, time.monotonic() - sent.pop(t_us)))
 
             t.subscribe(keys.camera_key("evcal", cam, "calibration"), on_cal)
 
@@ -280,13 +284,18 @@ def latency(rate: float, seconds: float, *, chunk_ms: float = 10.0, rrd: str | N
         rss = psutil.Process(sp.pid).memory_info().rss
     finally:
         sp.stop()
-    rt = np.array(got) * 1e3
+    t_sent = np.array([g[0] for g in got], np.int64)
+    rt_all = np.array([g[1] for g in got]) * 1e3
+    rt = rt_all[t_sent >= settle_s * 1e6]  # the steady state
+    start = rt_all[t_sent < settle_s * 1e6]
     return {"sensor": str(sensor), "rate": rate, "frames": n_frames,
-            "updates": st.get("updates"),
-            "calibrations_back": len(got),
+            "updates": st.get("updates"), "settle_s": settle_s,
+            "calibrations_back": len(got), "calibrations_steady": int(rt.size),
             "roundtrip_ms_median": float(np.median(rt)) if rt.size else float("nan"),
             "roundtrip_ms_p95": float(np.percentile(rt, 95)) if rt.size else float("nan"),
             "roundtrip_ms_p99": float(np.percentile(rt, 99)) if rt.size else float("nan"),
+            "roundtrip_ms_max": float(rt.max()) if rt.size else float("nan"),
+            "startup_ms_max": float(start.max()) if start.size else float("nan"),
             "service_latency_ms": st.get("latency_ms") or {},
             "errors": st.get("errors_total"), "dropped": st.get("dropped"),
             "recorder_dropped": recorder.get("recorder_dropped") if rrd else None,
@@ -535,10 +544,13 @@ def print_latency(r: dict) -> None:
           f"{sl.get('p99') or nan:.1f} ms, max "
           f"{sl.get('max') or nan:.1f} ms\n"
           f"    median steps: " + ", ".join(f"{k} {v:.1f}" for k, v in parts.items()) + " ms\n"
-          f"  frame put -> calibration received (client round trip): median "
+          "  frame put -> calibration received (client round trip"
+          + (f", after the first {r['settle_s']:g} s" if r["settle_s"] else "") + "): median "
           f"{r['roundtrip_ms_median']:.1f} ms, p95 {r['roundtrip_ms_p95']:.1f} ms, p99 "
-          f"{r['roundtrip_ms_p99']:.1f} ms "
-          f"({r['calibrations_back']} calibrations back); errors {r['errors']}, dropped "
+          f"{r['roundtrip_ms_p99']:.1f} ms, max {r['roundtrip_ms_max']:.1f} ms "
+          f"({r['calibrations_steady']} of {r['calibrations_back']} calibrations back)"
+          + (f"; start-up max {r['startup_ms_max']:.1f} ms" if r["settle_s"] else "")
+          + f"; errors {r['errors']}, dropped "
           f"{r['dropped']}, service RSS {r['service_rss_mb']:.0f} MiB"
           + (f"; recording, recorder dropped {r['recorder_dropped']} calls"
              if r["recorder_dropped"] is not None else "")
@@ -557,6 +569,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--events", type=float, default=40e6, help="throughput: timed events")
     p.add_argument("--rates", default="1e6,2e6,5e6", help="latency: events/s, comma-separated")
     p.add_argument("--seconds", type=float, default=20.0, help="latency: stream length")
+    p.add_argument("--settle-s", type=float, default=0.0,
+                   help="latency: the client's figures after this start-up of the stream")
     p.add_argument("--rrd", metavar="PATH", help="latency: the service also records to PATH")
     p.add_argument("--minutes", type=float, default=10.0, help="memory: stream length")
     args = p.parse_args(argv)
@@ -572,7 +586,8 @@ def main(argv: list[str] | None = None) -> int:
                       f"other processes used {r['other_load_cores']:.2f} cores)", flush=True)
     if args.what in ("latency", "all"):
         for rate in args.rates.split(","):
-            print_latency(latency(float(rate), args.seconds, rrd=args.rrd, size=args.size))
+            print_latency(latency(float(rate), args.seconds, rrd=args.rrd, size=args.size,
+                                  settle_s=args.settle_s))
     if args.what in ("scaling", "all"):
         rows = scaling(args.seconds, max(2, args.cameras if args.what == "scaling" else 2))
         one = rows[0]["events_per_s"] or float("nan")

@@ -90,7 +90,6 @@ from .calibration import (
     Diagnostics,
     OnEIDiagnostics,
     Reason,
-    Special,
 )
 from .errors import CalibrationError, ConfigError, ErrorReason, StateError
 from .events import EVENTS_DTYPE, SensorSize
@@ -179,6 +178,26 @@ def _low_pass(c_new: np.ndarray, b_new: np.ndarray, se_c_new: np.ndarray, se_b_n
         reason[i] = _VALID if seen[i] else reason_new[i]
 
 
+@numba.njit(cache=True, nogil=True)
+def _estimate_maps(c: np.ndarray, b: np.ndarray, se_c: np.ndarray, se_b: np.ndarray,
+                   valid: np.ndarray, reason: np.ndarray) -> Any:  # pragma: no cover
+    """The float32 contrast, bias and standard-error maps (inf where not valid) and a copy of
+    the reasons, in one pass (a Calibration's dtypes: it casts nothing)."""
+    n = c.size
+    c32 = np.empty(n, np.float32)
+    b32 = np.empty(n, np.float32)
+    se_c32 = np.empty(n, np.float32)
+    se_b32 = np.empty(n, np.float32)
+    reason_out = np.empty(n, np.uint8)
+    for i in range(n):
+        c32[i] = c[i]
+        b32[i] = b[i]
+        se_c32[i] = se_c[i] if valid[i] else np.inf
+        se_b32[i] = se_b[i] if valid[i] else np.inf
+        reason_out[i] = reason[i]
+    return c32, b32, se_c32, se_b32, reason_out
+
+
 class LowPassEstimate:
     """OnEI's smoothed per-pixel estimate (flat maps) and its low-pass update.
 
@@ -204,15 +223,16 @@ class LowPassEstimate:
                   self.seen, self.n_solved, self.reason)
 
     def maps(self, shape: tuple[int, int]) -> dict[str, np.ndarray]:
-        """The calibration maps of the estimate (copies; defaults where never solved)."""
+        """The calibration maps of the estimate (new arrays of the schema's dtypes; defaults
+        where never solved): :func:`~evcal.special.classify` of the estimate, the rest in
+        one compiled pass."""
         valid = self.seen.copy()
         special = classify(self.c, self.b, self.se_c, self.se_b, valid)
-        special[~valid] = Special.UNOBSERVED
-        return {"contrast": self.c.reshape(shape),  # float32 copies (Calibration casts)
-                "bias": self.b.reshape(shape), "valid": valid.reshape(shape),
-                "reason": self.reason.reshape(shape).copy(),
-                "stderr_contrast": np.where(valid, self.se_c, np.inf).reshape(shape),
-                "stderr_bias": np.where(valid, self.se_b, np.inf).reshape(shape),
+        c32, b32, se_c32, se_b32, reason = _estimate_maps(self.c, self.b, self.se_c, self.se_b,
+                                                          valid, self.reason)
+        return {"contrast": c32.reshape(shape), "bias": b32.reshape(shape),
+                "valid": valid.reshape(shape), "reason": reason.reshape(shape),
+                "stderr_contrast": se_c32.reshape(shape), "stderr_bias": se_b32.reshape(shape),
                 "special": special.reshape(shape)}
 
     def state(self) -> dict[str, np.ndarray]:
