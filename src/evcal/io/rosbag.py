@@ -98,6 +98,15 @@ MSG_DEFINITIONS: dict[str, str] = {
     EVENT_ARRAY_LEGACY: _EVENT_PACKET_MSG,
 }
 EVENT_TYPES = (EVENT_PACKET, EVENT_ARRAY_LEGACY, DVS_EVENT_ARRAY, PROPHESEE_EVENT_ARRAY)
+# the Images `evcal serve --ros2` publishes on <camera>/calibration/<name>: a bag recorded
+# from its domain holds them beside the camera's frames, which they are not
+CALIBRATION_IMAGES = ("contrast", "bias", "special")
+
+
+def is_calibration_topic(topic: str) -> bool:
+    """Whether ``topic`` is one of evcal's calibration Images (``.../calibration/bias``)."""
+    head, _, name = topic.rstrip("/").rpartition("/")
+    return name in CALIBRATION_IMAGES and head.endswith("/calibration")
 FRAME_ENCODINGS = ("mono8", "mono16", "rgb8", "bgr8")
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
@@ -278,12 +287,14 @@ def _describe(topics: dict[str, set[str]]) -> str:
 
 def _choose(bag: _Bag, topics: dict[str, set[str]], given: str | None, accepted: tuple[str, ...],
             option: str, kind: str) -> str | None:
-    candidates = sorted(t for t, types in topics.items() if types & set(accepted))
+    matching = sorted(t for t, types in topics.items() if types & set(accepted))
+    # by default, never evcal's own calibration Images (named, they are read)
+    candidates = [t for t in matching if not (accepted == (IMAGE,) and is_calibration_topic(t))]
     if given is not None:
         if given not in topics:
             raise RosbagError(f"{bag.path}: no topic {given!r} ({option}); the bag's topics: "
                               f"{_describe(topics)}")
-        if given not in candidates:
+        if given not in matching:
             raise RosbagError(f"{bag.path}: topic {given!r} ({option}) holds "
                               f"{'/'.join(sorted(topics[given]))}, not {kind} "
                               f"({', '.join(accepted)})")

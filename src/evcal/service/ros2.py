@@ -58,6 +58,7 @@ from ..errors import ErrorReason
 from ..io._evcodecs import PacketDecoder, PayloadError
 from ..io.ros2msg import image_cdr, ros2_store, type_hash
 from ..io.rosbag import (
+    CALIBRATION_IMAGES,
     EVENT_PACKET,
     IMAGE,
     decode_packet,
@@ -79,7 +80,7 @@ ENCODING = "zenoh/bytes"
 # AUTOMATIC 1), written out in full so that every rmw_zenoh version parses it
 QOS = "1:2:1,10:0,0:0,0:1,0,0"
 INPUT_TYPES = {EVENT_PACKET: "events", IMAGE: "frames"}
-OUTPUT_MAPS = ("contrast", "bias", "special")
+OUTPUT_MAPS = CALIBRATION_IMAGES
 SPECIAL_SCALE = 50  # the special image's value per class code
 _ATTACHMENT = struct.Struct("<qqB16s")  # seq, source timestamp ns, LEB128(16), GID
 
