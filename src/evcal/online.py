@@ -598,6 +598,8 @@ class OnlineCalibrator:
     # meanwhile; with OnEIConfig.offset_wait the result lands at this frame in every run
     # (offline runs wait for it there), without it at the first frame by which it is done
     OFFSET_LAG_FRAMES = 8
+    OFFSET_FIRST_FRAMES = 2 * AUTO_WINDOW + 1  # buffered frames before the first estimate
+    OFFSET_RECHECK_FACTOR = 4  # re-checked when the frames seen have grown this much
     OFFSET_PIXELS = 4000  # busiest pixels the criterion is computed on
     OFFSET_MAX_WINDOWS = 64  # the newest windows of the buffer
 
@@ -607,14 +609,14 @@ class OnlineCalibrator:
         inputs are copied here (milliseconds); the criterion runs on a worker thread and
         :meth:`_apply_offset` takes its result ``OFFSET_LAG_FRAMES`` frames later."""
         first = math.isnan(self.log_offset)
-        if first and len(self._frames) < 2 * self.AUTO_WINDOW + 1:
+        if first and len(self._frames) < self.OFFSET_FIRST_FRAMES:
             return
         inputs = self._offset_inputs()
         if inputs is None:
             if not first:
-                self._next_offset_check = self.n_frames * 4
+                self._next_offset_check = self.n_frames * self.OFFSET_RECHECK_FACTOR
             return
-        self._next_offset_check = self.n_frames * 4
+        self._next_offset_check = self.n_frames * self.OFFSET_RECHECK_FACTOR
         self._offset_job = (self.n_frames + self.OFFSET_LAG_FRAMES,
                             _offset_pool().submit(_offset_criterion, *inputs))
 
