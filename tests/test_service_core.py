@@ -554,3 +554,16 @@ def _reference_classify(c, b, se_c, se_b, valid, k=3.0, z=2.0):
     out[valid & (c + z * se_c < c_med - k * c_s)] = 2
     out[valid & (c - z * se_c > c_med + k * c_s)] = 3
     return out
+
+
+@pytest.mark.parametrize("n", [0, 1, 255, 256, 65535, 65536, 70_000])
+def test_calibration_messages_are_msgpack_s_own_bytes(n):
+    """The calibration encoder writes its maps straight into the message: the bytes are
+    those msgpack.packb gives, at the sizes where its bin header changes (8, 16, 32 bits)."""
+    from evcal.io.wire import _packb_large_bins
+
+    rng = np.random.default_rng(n)
+    msg = {"version": 1, "seq": 2**64 - 1, "t_us": -5, "method": "onei", "log_offset": 0.5,
+           "maps": {"a": rng.integers(0, 255, n).astype(np.uint8).data,
+                    "b": rng.random(n).astype(np.float32).data}}
+    assert _packb_large_bins(msg) == msgpack.packb(msg, use_bin_type=True)

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import json
 import math
+import struct
 from typing import Any
 
 import msgpack
@@ -365,8 +366,35 @@ def encode_calibration(cal: Calibration, *, t_us: int, seq: int,
         "params_json": dumps(cal.diagnostics.to_dict()),
         "maps": maps,
     }
-    result: bytes = msgpack.packb(msg, use_bin_type=True)
-    return result
+    return _packb_large_bins(msg)
+
+
+def _bin_header(n: int) -> bytes:
+    """msgpack's header of a bin of ``n`` bytes (bin 8, 16 or 32, as msgpack picks)."""
+    if n < 1 << 8:
+        return struct.pack(">BB", 0xC4, n)
+    if n < 1 << 16:
+        return struct.pack(">BH", 0xC5, n)
+    return struct.pack(">BI", 0xC6, n)
+
+
+def _packb_large_bins(msg: dict[str, Any]) -> bytes:
+    """``msgpack.packb(msg, use_bin_type=True)``, the same bytes, for a message whose
+    ``"maps"`` value is a dict of buffers: the maps are copied once, straight into the
+    result (``packb`` copies them into a buffer it grows by reallocation, then copies that
+    buffer into the result: at 1280x720, 25 MB, twice the time and a worst case 20x its
+    best on this machine)."""
+    pk = msgpack.Packer(use_bin_type=True)
+    chunks: list[Any] = [pk.pack_map_header(len(msg))]
+    for key, value in msg.items():
+        chunks.append(pk.pack(key))
+        if key != "maps":
+            chunks.append(pk.pack(value))
+            continue
+        chunks.append(pk.pack_map_header(len(value)))
+        for name, buf in value.items():
+            chunks += [pk.pack(name), _bin_header(memoryview(buf).nbytes), buf]
+    return b"".join(chunks)
 
 
 def decode_calibration_maps(
