@@ -5,6 +5,7 @@
                                             [--size 346x260]
     python scripts/bench_service.py scaling [--seconds 30] [--cameras 2]
     python scripts/bench_service.py shm [--events 40e6]
+    python scripts/bench_service.py ros2 [--events 40e6]
     python scripts/bench_service.py memory [--minutes 10]
     python scripts/bench_service.py stress [--minutes 10] [--cameras 4]
     python scripts/bench_service.py all
@@ -41,6 +42,11 @@ shm         the "events" throughput with zenoh's shared-memory transport (on by 
             (``transport/shared_memory/enabled: false`` on both sides), beside the zenoh
             loopback floor: the same messages put and received by two sessions of this
             process, nothing else done with them.
+ros2        the ROS 2 path (``serve --ros2``) at 346x260: libcaer_cmp EventPackets (100 k
+            events, CDR) and 25 Hz mono8 Images on rmw_zenoh keys, decoded in the camera's
+            decoder thread and folded into OnEI (as "frames"), beside its floors measured in
+            the same run: the decoder alone (CDR + libcaer_cmp + columns) and the zenoh
+            loopback of the same messages.
 memory      the service's RSS every 10 s while a 346x260 camera streams 1 M events/s and
             25 Hz frames in real time (re-solves every ~10 frames).
 stress      ``--cameras`` real ``evcal replay --max-rate --loop`` processes (346x260 simulated
@@ -173,8 +179,32 @@ def throughput(sensor: SensorSize, n_events: int, *, mode: str, chunk: int = 100
     img = rng.integers(0, 255, sensor.shape).astype(np.uint8)
     frames, extra = THROUGHPUT_MODES[mode]
     frame_every = max(1, int(FRAME_US * rate_hz / 1e6 / chunk))  # 25 Hz of sensor time
-    sp, ep = start_service(extra + ([] if shm else SHM_OFF))
     cam = f"bench/{sensor}"
+
+    def sender(t: Transport):
+        s = Stream(t, cam, sensor)
+
+        def send(i0: int, i1: int) -> None:
+            for i in range(i0, i1):
+                ev = base[i % 4].copy()
+                ev["t_us"] += i * span
+                if frames and i % frame_every == 0:
+                    s.frame(int(ev["t_us"][0]), img)
+                s.events(ev)
+        return send
+
+    r = timed_stream(extra, cam, sender, n_events=n_events, chunk=chunk,
+                     warmup_events=warmup_events, shm=shm)
+    return {"sensor": str(sensor), "mode": mode, **r}
+
+
+def timed_stream(service_args: list[str], camera: str, sender, *, n_events: int, chunk: int,
+                 warmup_events: int, shm: bool = True) -> dict:
+    """Sustained events/s into a service started with ``service_args``: ``sender(t)`` returns
+    ``send(i0, i1)``, which publishes messages ``i0..i1`` of ``chunk`` events each for
+    ``camera``; a warm-up that is not timed (the camera's state allocated, compiled kernels
+    loaded), then the time from the first timed put to the service's event counter."""
+    sp, ep = start_service(service_args + ([] if shm else SHM_OFF))
     zopts = ZenohOptions.loopback(connect=[ep])
     if not shm:
         zopts = ZenohOptions(mode="peer", connect=(ep,), multicast_scouting=False,
@@ -182,39 +212,29 @@ def throughput(sensor: SensorSize, n_events: int, *, mode: str, chunk: int = 100
     try:
         with Transport(zopts) as t:
             wait_for(lambda: t.alive("evcal/@service/*", timeout_s=1.0), timeout_s=60)
-            s = Stream(t, cam, sensor)
-
-            def send(i0: int, i1: int) -> None:
-                for i in range(i0, i1):
-                    ev = base[i % 4].copy()
-                    ev["t_us"] += i * span
-                    if frames and i % frame_every == 0:
-                        s.frame(int(ev["t_us"][0]), img)
-                    s.events(ev)
-
-            # warm-up, not timed: the camera's state is allocated, kernels are loaded
+            send = sender(t)
             n_warm = warmup_events // chunk
             send(0, n_warm)
-            wait_for(lambda: status(t, cam).get("events", 0) >= n_warm * chunk, timeout_s=120,
-                     interval_s=0.05)
+            wait_for(lambda: status(t, camera).get("events", 0) >= n_warm * chunk,
+                     timeout_s=120, interval_s=0.05)
             n_msgs = n_events // chunk
             with OtherLoad(sp.pid) as load:
                 t0 = time.monotonic()
                 send(n_warm, n_warm + n_msgs)
                 t_pub = time.monotonic() - t0
                 total = (n_warm + n_msgs) * chunk
-                wait_for(lambda: status(t, cam).get("events", 0) >= total, timeout_s=600,
+                wait_for(lambda: status(t, camera).get("events", 0) >= total, timeout_s=600,
                          interval_s=0.02)
                 t_all = time.monotonic() - t0
-            st = status(t, cam)
+            st = status(t, camera)
         rss = psutil.Process(sp.pid).memory_info().rss
     finally:
         sp.stop()
     timed = n_msgs * chunk
-    return {"sensor": str(sensor), "mode": mode, "events": timed, "shm": shm,
-            "publish_s": t_pub, "total_s": t_all, "events_per_s": timed / t_all,
-            "updates": st.get("updates"), "errors": st.get("errors_total"),
-            "service_rss_mb": rss / 2**20, "other_load_cores": load.cores}
+    return {"events": timed, "shm": shm, "publish_s": t_pub, "total_s": t_all,
+            "events_per_s": timed / t_all, "updates": st.get("updates"),
+            "errors": st.get("errors_total"), "service_rss_mb": rss / 2**20,
+            "other_load_cores": load.cores}
 
 
 # ----------------------------------------------------------------------------- latency
@@ -356,17 +376,86 @@ def scaling(seconds: float, max_cameras: int) -> list[dict]:
     return out
 
 
+# ----------------------------------------------------------------------------- ros2
+
+
+def ros2(n_events: int, *, chunk: int = 100_000, warmup_events: int = 4_000_000) -> dict:
+    """The ROS 2 path at 346x260 (``serve --ros2``): libcaer_cmp EventPackets of ``chunk``
+    events and 25 Hz mono8 Images as CDR on rmw_zenoh keys with attachments, every event
+    decoded in the camera's decoder thread and folded into OnEI (the "frames" mode: no
+    re-solve); beside it, measured in this run on the same messages, the decoder alone
+    (CDR + payload decoding + columns, one thread of this process) and the zenoh loopback."""
+    from evcal.io.evencode import encode_libcaer_cmp
+    from evcal.io.ros2msg import event_packet_cdr, image_cdr
+    from evcal.io.rosbag import EVENT_PACKET, IMAGE
+    from evcal.service import ros2 as r2
+
+    sensor = SensorSize(260, 346)
+    rng = np.random.default_rng(0)
+    rate_hz = 20e6
+    span = int(chunk / rate_hz * 1e6)
+    t_base = 1_744_227_144_000_000  # µs: ROS time, as drivers stamp
+    base = [synthetic_chunk(rng, sensor, chunk, 0, span) for _ in range(4)]
+    payloads = [encode_libcaer_cmp(b) for b in base]  # times relative to time_base
+    img = rng.integers(0, 255, sensor.shape).astype(np.uint8)
+    frame_every = max(1, int(FRAME_US * rate_hz / 1e6 / chunk))
+
+    def packet(i: int) -> bytes:
+        t0 = t_base + i * span + int(base[i % 4]["t_us"][0])
+        return event_packet_cdr(payloads[i % 4], encoding="libcaer_cmp", seq=i,
+                                time_base_ns=t0 * 1000, t_ns=t0 * 1000, height=260,
+                                width=346, frame_id="bench")
+
+    def frame(i: int) -> bytes:
+        return image_cdr(img, t_ns=(t_base + i * span) * 1000, frame_id="bench",
+                         encoding="mono8")
+
+    # the decoder alone, on the messages the service gets
+    dec = r2.RosDecoder()
+    msgs = [packet(i) for i in range(40)]
+    for m in msgs[:4]:  # warm-up: the typestore is built, numpy's paths are hot
+        dec.decode("events", r2.RosSample(m, EVENT_PACKET, "/bench/ros2/events"))
+    t0 = time.perf_counter()
+    for m in msgs:
+        dec.decode("events", r2.RosSample(m, EVENT_PACKET, "/bench/ros2/events"))
+    decoder_eps = len(msgs) * chunk / (time.perf_counter() - t0)
+    floor_eps = zenoh_loopback_floor(n_events, chunk, payload=msgs[0])
+    node = r2.RosNode(zid="bench", name="bench_driver")
+
+    def sender(t: Transport):
+        ev_pub = r2.RosPublication(node, "/bench/ros2/events", EVENT_PACKET)
+        fr_pub = r2.RosPublication(node, "/bench/ros2/image_raw", IMAGE)
+        zev = t.publisher(ev_pub.key, r2.ENCODING, block=True)
+        zfr = t.publisher(fr_pub.key, r2.ENCODING, block=True)
+        wait_for(lambda: zev.has_subscribers and zfr.has_subscribers, timeout_s=10)
+
+        def send(i0: int, i1: int) -> None:
+            for i in range(i0, i1):
+                if i % frame_every == 0:
+                    zfr.put(frame(i), attachment=fr_pub.attachment())
+                zev.put(packet(i), attachment=ev_pub.attachment())
+        return send
+
+    r = timed_stream(["--ros2", *THROUGHPUT_MODES["frames"][1]], "bench/ros2", sender,
+                     n_events=n_events, chunk=chunk, warmup_events=warmup_events)
+    return {**r, "decoder_events_per_s": decoder_eps, "zenoh_floor_events_per_s": floor_eps,
+            "bytes_per_event": len(msgs[0]) / chunk}
+
+
 # ----------------------------------------------------------------------------- shm
 
 
-def zenoh_loopback_floor(n_events: int, chunk: int = 100_000, shm: bool = True) -> float:
-    """Events/s of the same messages put by one session and received by another of this
-    process (the transport alone: nothing decoded)."""
+def zenoh_loopback_floor(n_events: int, chunk: int = 100_000, shm: bool = True,
+                         payload: bytes | None = None) -> float:
+    """Events/s of the same messages (``payload``, else an evcal events message of ``chunk``
+    events) put by one session and received by another of this process (the transport
+    alone: nothing decoded)."""
     import threading as th
 
     rng = np.random.default_rng(0)
-    payload = encode_events(synthetic_chunk(rng, SensorSize(260, 346), chunk, 0, 5000),
-                            height=260, width=346, seq=0)
+    if payload is None:
+        payload = encode_events(synthetic_chunk(rng, SensorSize(260, 346), chunk, 0, 5000),
+                                height=260, width=346, seq=0)
     n_msgs = max(1, n_events // chunk)
     ep = endpoint(free_port())
     extra = () if shm else (("transport/shared_memory/enabled", "false"),)
@@ -560,7 +649,7 @@ def print_latency(r: dict) -> None:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=(__doc__ or "").split("\n")[0])
     p.add_argument("what", choices=["throughput", "latency", "memory", "stress", "scaling",
-                                    "shm", "all"])
+                                    "shm", "ros2", "all"])
     p.add_argument("--size", default="346x260", help="latency: sensor size WxH")
     p.add_argument("--cameras", type=int, default=4, help="stress: replays at once")
     p.add_argument("--sizes", default="346x260,1280x720", help="throughput: sensor sizes")
@@ -605,6 +694,16 @@ def main(argv: list[str] | None = None) -> int:
                   f"events/s (events mode, 346x260); zenoh loopback floor "
                   f"{floor / 1e6:.1f} M events/s; ratio {r['events_per_s'] / floor:.2f}; "
                   f"other processes used {r['other_load_cores']:.2f} cores", flush=True)
+    if args.what in ("ros2", "all"):
+        r = ros2(int(args.events))
+        print(f"ros2 346x260 frames: {r['events_per_s'] / 1e6:.1f} M events/s decoded and "
+              f"folded (libcaer_cmp EventPackets of 100 k events, {r['bytes_per_event']:.2f} "
+              f"bytes/event, + 25 Hz mono8 Images, over rmw_zenoh keys; {r['events'] / 1e6:.0f}"
+              f" M events in {r['total_s']:.2f} s; {r['errors']} errors); floors in this run: "
+              f"decoder alone {r['decoder_events_per_s'] / 1e6:.1f} M events/s (one thread), "
+              f"zenoh loopback of the same messages {r['zenoh_floor_events_per_s'] / 1e6:.1f} "
+              f"M events/s; other processes used {r['other_load_cores']:.2f} cores",
+              flush=True)
     if args.what in ("memory", "all"):
         r = memory(args.minutes)
         print(f"memory 346x260, 1 M ev/s and 25 Hz in real time for {r['minutes']:g} min: "
