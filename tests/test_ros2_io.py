@@ -209,3 +209,36 @@ def test_ros2_mcap_layout_is_what_foxglove_and_rosbag2_read(tmp_path: Path) -> N
     assert res.returncode == 0, res.stderr
     assert "40x30" in res.stdout
     assert "20000" in res.stdout
+
+
+def test_bag_messages_come_out_as_cdr_from_ros1_and_ros2_bags(tmp_path: Path) -> None:
+    from rosbags.rosbag1 import Writer as Writer1
+
+    from evcal.io.rosbag import bag_topics, iter_bag_messages, typestore
+
+    ev = _events(300, seed=6)
+    cdr = event_packet_cdr(encode_packet(ev, "mono"), encoding="mono", seq=3,
+                           time_base_ns=int(ev["t_us"][0]) * 1000, t_ns=5, height=260,
+                           width=346, frame_id="cam")
+    msg = ros2_store().deserialize_cdr(cdr, EVENT_PACKET)
+    store1 = typestore(1)
+    t1 = store1.types
+    msg1 = t1[EVENT_PACKET](
+        header=t1["std_msgs/msg/Header"](seq=0, stamp=t1["builtin_interfaces/msg/Time"](
+            sec=0, nanosec=5), frame_id="cam"),
+        height=260, width=346, seq=3, time_base=msg.time_base, encoding="mono",
+        is_bigendian=False, events=msg.events)
+    path1 = tmp_path / "x.bag"
+    with Writer1(path1) as w:
+        conn = w.add_connection("/cam/events", EVENT_PACKET, typestore=store1)
+        w.write(conn, 42, store1.serialize_ros1(msg1, EVENT_PACKET))
+    path2 = tmp_path / "x.mcap"
+    with Ros2McapWriter(path2) as out:
+        out.add("/cam/events", EVENT_PACKET, 42, cdr)
+    for path in (path1, path2):
+        assert bag_topics(path) == {"/cam/events": EVENT_PACKET}
+        (m,) = list(iter_bag_messages(path))
+        assert (m.topic, m.msgtype, m.t_ns) == ("/cam/events", EVENT_PACKET, 42)
+        back = ros2_store().deserialize_cdr(m.data, EVENT_PACKET)
+        assert (back.seq, back.encoding, bytes(back.events)) == (3, "mono", bytes(msg.events))
+    assert list(iter_bag_messages(path2, topics={"/other"})) == []

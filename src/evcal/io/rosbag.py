@@ -350,13 +350,14 @@ def iter_bag_messages(path: str | os.PathLike[str], *, topics: set[str] | None =
                       ) -> Iterator[BagMessage]:
     """The messages of a bag (of ``topics``, else all) in log-time order, each as CDR.
 
-    A ROS 1 bag's messages are converted (``rosbags``' ``ros1_to_cdr``, with the types
-    evcal knows: ROS 1 Noetic's standard types and :data:`MSG_DEFINITIONS`). The bag is closed
-    when the iterator is exhausted or closed. Raises :class:`RosbagError`.
+    A ROS 1 bag's messages are converted to their ROS 2 form (``rosbags``' ``ros1_to_cdr``
+    with the ROS 2 types: a ``Header`` loses its ``seq``) for the types evcal knows (ROS 2
+    Humble's standard types and :data:`MSG_DEFINITIONS`). The bag is closed when the iterator
+    is exhausted or closed. Raises :class:`RosbagError`.
     """
     bag = _open_bag(Path(path))
     try:
-        store = typestore(bag.ros_version) if bag.ros_version == 1 else None
+        store = typestore(2) if bag.ros_version == 1 else None
         current = "the first message"
         for reader in bag.readers:
             conns = [c for c in reader.connections if topics is None or c.topic in topics]
