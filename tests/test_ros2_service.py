@@ -278,6 +278,12 @@ def test_service_calibrates_from_ros_samples_and_publishes_images() -> None:
         np.testing.assert_array_equal(special.data.reshape(H, W) // SPECIAL_SCALE, cal.special)
         t_ns = special.header.stamp.sec * 10**9 + special.header.stamp.nanosec
         assert t_ns == cam.state.calibration_t_us * 1000
+        svc.tick(force=True)
+        status = json.loads([p for k, p, _ in puts.on("evcal/lab/cam0/status")][-1])
+        assert status["ros2"]["messages"] == {"/lab/cam0/events": seqs["/lab/cam0/events"],
+                                              "/lab/cam0/image_raw": len(sim.recording.frames)}
+        assert status["ros2"]["encodings"] == {"/lab/cam0/events": "libcaer_cmp"}
+        assert status["ros2"]["dropped_events"] == 0
         assert len(puts.tokens) == 3  # the three publications' liveliness tokens
         assert router.declare_pending(puts.tokens.append) == 2  # events and image_raw: MS
         assert all("/MS/" in t for t in puts.tokens[3:])
@@ -361,3 +367,29 @@ def test_a_recording_with_float_frames_still_feeds_the_service() -> None:
         assert cam.state.frame_dtype == np.float32
     finally:
         svc.close()
+
+
+def test_serve_ros2_flags(monkeypatch: pytest.MonkeyPatch) -> None:
+    from evcal.service.cli import build_parser, ros2_from_args
+
+    p = build_parser()
+    monkeypatch.delenv("ROS_DOMAIN_ID", raising=False)
+    assert ros2_from_args(p.parse_args([])) is None
+    with pytest.raises(ValueError, match="go with --ros2"):
+        ros2_from_args(p.parse_args(["--ros-domain", "3"]))
+    opts = ros2_from_args(p.parse_args(["--ros2"]))
+    assert opts is not None
+    assert opts.domain == 0
+    monkeypatch.setenv("ROS_DOMAIN_ID", "5")
+    opts = ros2_from_args(p.parse_args(["--ros2", "--ros-topic-map", "/dvs=lab/cam0"]))
+    assert opts is not None
+    assert opts.domain == 5
+    assert opts.topic_map.camera("/dvs/events", "events") == "lab/cam0"
+    opts = ros2_from_args(p.parse_args(["--ros2", "--ros-domain", "2"]))
+    assert opts is not None
+    assert opts.domain == 2
+    with pytest.raises(ValueError, match="0..232"):
+        ros2_from_args(p.parse_args(["--ros2", "--ros-domain", "999"]))
+    monkeypatch.setenv("ROS_DOMAIN_ID", "x")
+    with pytest.raises(ValueError, match="ROS_DOMAIN_ID"):
+        ros2_from_args(p.parse_args(["--ros2"]))

@@ -147,6 +147,11 @@ class Camera:
     def sensor(self) -> Any:
         return self.state.sensor
 
+    @property
+    def ros(self) -> RosDecoder | None:
+        """The camera's ROS 2 decoding state (None until a ROS 2 message came)."""
+        return self._ros
+
     # -- input side (receive thread) -----------------------------------------------------------
 
     def enqueue(self, kind: str, payload: bytes | RosSample, t_recv: float) -> None:

@@ -401,11 +401,19 @@ class RosDecoder:
     def __init__(self) -> None:
         self._decoders: dict[str, PacketDecoder] = {}
         self._last_seq: dict[str, int] = {}
+        self.messages: dict[str, int] = {}  # per topic, refused ones included
         self.reordered_events = 0
         self.dropped_events = 0  # outside the declared size, dropped as the drivers' decoders do
 
+    def status(self) -> dict[str, Any]:
+        """The camera's ROS 2 input, for its ``status`` document."""
+        return {"messages": dict(self.messages), "dropped_events": self.dropped_events,
+                "reordered_events": self.reordered_events,
+                "encodings": {t: d.encoding for t, d in self._decoders.items()}}
+
     def decode(self, kind: str, sample: RosSample) -> DecodedEvents | DecodedFrame:
         where = f"ROS 2 topic {sample.topic}"
+        self.messages[sample.topic] = self.messages.get(sample.topic, 0) + 1
         msg = deserialize_message(ros2_store().deserialize_cdr, sample.data, sample.msgtype,
                                   where)
         if kind == "events":
