@@ -36,11 +36,14 @@ examples:
   evcal gap road.aedat4 --out gap/                      # what the sensor model lacks
   evcal demo                                            # service + simulated camera
   evcal serve --listen tcp/0.0.0.0:7447                 # the live calibration service
+  evcal serve --ros2 --connect tcp/localhost:7447       # ... also a ROS 2 node (rmw_zenoh)
 
 environment:
   EVCAL_CONNECT, EVCAL_LISTEN, EVCAL_ZENOH_CONFIG, EVCAL_MODE
       defaults of --connect, --listen, --config and --mode of the service and clients
       (serve, replay, query, record, forget); a flag on the command line wins
+  ROS_DOMAIN_ID
+      the ROS 2 domain of --ros2 (serve, replay, record) when --ros-domain is not given
 
 exit codes: 0 success, 1 failure (a bad file, a failed calibration), 2 bad usage.
 Run 'evcal COMMAND -h' for a command's options; docs/ holds the formats, the service, the
