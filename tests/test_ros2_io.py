@@ -133,12 +133,15 @@ def test_event_packet_cdr_and_negative_stamps() -> None:
 
 
 def test_type_hashes_and_definitions() -> None:
-    # the RIHS01 hash of std_msgs/msg/String as ROS 2 Jazzy reports it (`ros2 topic info -v
-    # /chatter`); the others are what rmw_zenoh keys of these types carry
+    # RIHS01 hashes as ROS 2 (Jazzy) reports them (`ros2 topic info -v`): rmw_zenoh's keys of
+    # these types carry them, so a ROS 2 subscriber of evcal's Images matches exactly
     assert type_hash("std_msgs/msg/String") == (
         "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18")
-    assert type_hash(IMAGE).startswith("RIHS01_")
-    assert len(type_hash(IMAGE)) == 71
+    assert type_hash("std_msgs/msg/Header") == (
+        "RIHS01_f49fb3ae2cf070f793645ff749683ac6b06203e41c891e17701b1cb597ce6a01")
+    assert type_hash(IMAGE) == (
+        "RIHS01_d31d41a9a4c4bc8eae9be757b0beed306564f7526c88ea6a4588fb9582527d47")
+    assert type_hash(EVENT_PACKET).startswith("RIHS01_")  # computed alike (not published)
     text = message_definition(EVENT_PACKET)
     assert text.startswith("std_msgs/Header header\n")
     assert "\n" + "=" * 80 + "\nMSG: std_msgs/Header\n" in text
