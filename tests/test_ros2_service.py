@@ -86,6 +86,13 @@ def test_attachment_is_zenoh_serialization_of_seq_time_gid() -> None:
     assert (att.seq, att.t_ns, att.gid) == (41, 1_744_227_144_000_000_123, gid)
     for junk in (None, b"", ours[:-1], ours[:16] + b"\x11" + ours[17:]):
         assert decode_attachment(junk) is None
+    # the layout of rmw_zenoh's first zenoh-1.0 releases: each field after its name
+    named = ext.z_serialize(("sequence_number", ext.Int64(7), "source_timestamp",
+                             ext.Int64(-5), "source_gid", gid)).to_bytes()
+    att = decode_attachment(named)
+    assert att is not None
+    assert (att.seq, att.t_ns, att.gid) == (7, -5, gid)
+    assert decode_attachment(named.replace(b"source_gid", b"source_gix")) is None
 
 
 def test_liveliness_tokens_have_rmw_zenohs_layout() -> None:

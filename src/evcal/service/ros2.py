@@ -15,7 +15,10 @@ Jazzy and Rolling releases):
   (4-byte encapsulation header, then the message).
 - Every sample carries an attachment in zenoh's serialization format: the publisher's
   sequence number (int64, from 1), the source timestamp (int64 ns) and the publisher's GID
-  (16 bytes, a sequence: LEB128 length 0x10 then the bytes) -- 33 bytes.
+  (16 bytes, a sequence: LEB128 length 0x10 then the bytes) -- 33 bytes. rmw_zenoh's first
+  zenoh-1.0 releases put each field after its name (``"sequence_number"``,
+  ``"source_timestamp"``, ``"source_gid"`` as strings): evcal reads both and writes the
+  current one.
 - A ROS entity exists for ``ros2 node list`` / ``ros2 topic list`` through a liveliness token
   ``@ros2_lv/<domain>/<zid>/<node id>/<entity id>/<NN|MP|MS>/<enclave>/<namespace>/<node>``,
   followed for a publisher (MP) or subscription (MS) by ``/<topic>/<dds type>/<type
@@ -156,12 +159,25 @@ class Attachment:
     gid: bytes
 
 
+# the same three fields each after its name as a string (LEB128 length, UTF-8), as rmw_zenoh
+# wrote them with zenoh 1.0 before its AttachmentData class (and rmw_zenoh_pico, PX4 still do)
+_NAMED_ATTACHMENT = struct.Struct("<16sq17sq11s17s")
+_NAMES = (b"\x0fsequence_number", b"\x10source_timestamp", b"\x0asource_gid")
+
+
 def decode_attachment(raw: bytes | None) -> Attachment | None:
-    """The attachment of a sample (None when there is none or it is not rmw_zenoh's)."""
-    if raw is None or len(raw) != _ATTACHMENT.size or raw[16] != 16:
+    """The attachment of a sample, in either layout rmw_zenoh has used with zenoh 1.x (None
+    when there is none or it is neither)."""
+    if raw is None:
         return None
-    seq, t_ns, _, gid = _ATTACHMENT.unpack(raw)
-    return Attachment(int(seq), int(t_ns), bytes(gid))
+    if len(raw) == _ATTACHMENT.size and raw[16] == 16:
+        seq, t_ns, _, gid = _ATTACHMENT.unpack(raw)
+        return Attachment(int(seq), int(t_ns), bytes(gid))
+    if len(raw) == _NAMED_ATTACHMENT.size:
+        n_seq, seq, n_ts, t_ns, n_gid, gid = _NAMED_ATTACHMENT.unpack(raw)
+        if (n_seq, n_ts, n_gid) == _NAMES and gid[0] == 16:
+            return Attachment(int(seq), int(t_ns), bytes(gid[1:]))
+    return None
 
 
 def default_domain() -> int:
