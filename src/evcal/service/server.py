@@ -130,7 +130,11 @@ def run(
                 while not stop.wait(tick_s):
                     service.tick()
                     if router is not None:
-                        router.declare_pending(t.token)
+                        try:  # subscription tokens of new ROS 2 topics (never fatal)
+                            router.declare_pending(t.token)
+                        except Exception:
+                            service.tick_errors += 1
+                            log.exception("declaring ROS 2 subscription tokens failed")
             finally:
                 log.info("shutting down: draining queues, saving state")
                 service.close()
