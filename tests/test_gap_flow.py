@@ -26,7 +26,7 @@ from evcal.sim.effects import (
     Refractory,
     TimestampQuantisation,
     make_effect,
-    quantise_timestamps,
+    quantise_events,
 )
 from evcal.sim.ideal import SimConfig
 from evcal.sim.nonideal import SimResult, simulate
@@ -63,23 +63,68 @@ def c_rmse(contrast: np.ndarray, valid: np.ndarray, truth: np.ndarray) -> float:
 # ------------------------------------------------------------------ timestamp quantisation
 
 
-def test_quantise_timestamps_follows_the_spread_and_end_schemes() -> None:
-    t = np.array([100, 200, 300, 950, 1000, 1001, 1500, 1999, 2000, 2600])
-    pix = np.array([0, 0, 1, 0, 0, 1, 2, 2, 2, 0])
-    # step (0, 1000]: pixel 0 has 4 events (n_max 4), pixel 1 one; (1000, 2000]: pixel 2 three
-    spread = quantise_timestamps(t, pix, TimestampQuantisation(step_us=1000.0), 0)
-    assert spread.tolist() == [250, 500, 250, 750, 1000, 1333, 1333, 1667, 2000, 3000]
-    end = quantise_timestamps(t, pix, TimestampQuantisation(step_us=1000.0, scheme="end"), 0)
-    assert end.tolist() == [1000] * 5 + [2000] * 4 + [3000]
-    shifted = quantise_timestamps(
-        t, pix, TimestampQuantisation(step_us=1000.0, phase_us=500.0), 0)
-    assert shifted.tolist() == [0, 500, 0, 1000, 1500, 1000, 1000, 2000, 2500, 3500]
-    assert quantise_timestamps(np.zeros(0, np.int64), np.zeros(0, np.int64),
-                               TimestampQuantisation(), 0).size == 0
+def _quantised(t: list[int], pix: list[int], q: TimestampQuantisation, *,
+               pol: list[int] | None = None, lab: list[int] | None = None,
+               refractory: Refractory | None = None, t_end_us: float | None = None
+               ) -> list[tuple[int, int, int]]:
+    n = len(t)
+    out = quantise_events(np.array(t, np.int64), np.array(pix, np.int32),
+                          np.array(pol or [1] * n, np.int8), np.array(lab or [0] * n, np.uint8),
+                          q, 0, n_pix=4, t_end_us=t_end_us, refractory=refractory)
+    return list(zip(out[0].tolist(), out[1].tolist(), out[2].tolist(), strict=True))
+
+
+def test_quantise_events_follows_the_spread_and_end_schemes() -> None:
+    t = [100, 200, 300, 950, 1000, 1001, 1500, 1999, 2000, 2600]
+    pix = [0, 0, 1, 0, 0, 1, 2, 2, 2, 0]
+    # step (0, 1000]: pixel 0 has 4 crossings (N = 4), pixel 1 one; (1000, 2000]: pixel 2
+    # three (N = 3), pixel 1 one; a pixel's events take the first slots
+    spread = _quantised(t, pix, TimestampQuantisation(step_us=1000.0))
+    assert [e[0] for e in spread] == [250, 250, 500, 750, 1000, 1333, 1333, 1667, 2000, 3000]
+    assert [e[1] for e in spread] == [0, 1, 0, 0, 0, 1, 2, 2, 2, 0]
+    end = _quantised(t, pix, TimestampQuantisation(step_us=1000.0, scheme="end"))
+    assert [e[0] for e in end] == [1000] * 5 + [2000] * 4 + [3000]
+    shifted = _quantised(t, pix, TimestampQuantisation(step_us=1000.0, phase_us=500.0))
+    assert [e[0] for e in shifted] == [0, 0, 500, 1000, 1000, 1000, 1500, 2000, 2500, 3500]
+    # crossings of opposite sign in one step cancel (the step's end is compared)
+    assert _quantised([100, 200, 300], [0, 0, 0], TimestampQuantisation(step_us=1000.0),
+                      pol=[1, -1, 1]) == [(1000, 0, 1)]
+    # shot noise: at the step's end, after the signal events
+    assert _quantised([100, 200, 300], [0, 1, 2], TimestampQuantisation(step_us=1000.0),
+                      lab=[0, 2, 0]) == [(1000, 0, 1), (1000, 2, 1), (1000, 1, 1)]
+    empty = quantise_events(np.zeros(0, np.int64), np.zeros(0, np.int32), np.zeros(0, np.int8),
+                            np.zeros(0, np.uint8), TimestampQuantisation(), 0, n_pix=1)
+    assert all(a.size == 0 for a in empty)
     with pytest.raises(ValueError, match="scheme"):
         TimestampQuantisation(scheme="middle")
     with pytest.raises(ValueError, match="step_us"):
         TimestampQuantisation(step_us=0.0)
+
+
+def test_a_stepped_dead_time_counts_blocked_crossings_in_the_slots() -> None:
+    """v2e's refractory period (v2ecore/emulator.py, generate_events): the slots of a step
+    come from the counts *before* the dead time is applied, an event passes at the first slot
+    more than the period after the pixel's last stamp, and what is blocked stays pending."""
+    q = TimestampQuantisation(step_us=100.0)
+    t, pix = [10, 20, 30, 150], [0, 0, 0, 1]
+    delay = _quantised(t, pix, q, refractory=Refractory(period_us=250.0, mode="delay"),
+                       t_end_us=1000.0)
+    # step 1: slots 33, 67, 100 -> pixel 0 fires at 33, two crossings wait; step 2: pixel 0
+    # still counts 2, so pixel 1 takes the first of 2 slots (150), not the step's end;
+    # pixel 0 fires at 300 (> 33 + 250) and 600 (> 300 + 250)
+    assert delay == [(33, 0, 1), (150, 1, 1), (300, 0, 1), (600, 0, 1)]
+    drop = _quantised(t, pix, q, refractory=Refractory(period_us=250.0, mode="drop"),
+                      t_end_us=1000.0)
+    assert drop == [(33, 0, 1), (200, 1, 1)]
+    # shot noise resets the reference: nothing stays pending (without it: 50, 400)
+    refr = Refractory(period_us=250.0, mode="delay")
+    assert _quantised([10, 20], [0, 0], q, refractory=refr, t_end_us=1000.0) == [
+        (50, 0, 1), (400, 0, 1)]
+    assert _quantised([10, 20, 150], [0, 0, 0], q, lab=[0, 0, 2], refractory=refr,
+                      t_end_us=1000.0) == [(50, 0, 1), (200, 0, 1)]
+    # a dead time shorter than a slot is not applied (as in v2e)
+    short = _quantised([10, 20], [0, 0], q, refractory=Refractory(period_us=40.0))
+    assert [e[0] for e in short] == [50, 100]
 
 
 # ------------------------------------------------------------------ interpolation

@@ -326,7 +326,7 @@ def _fit_shot_noise(meas: Observation, sims: list[Observation], model: Model,
     for e in np.arange(0.0, 1.51, 0.25):
         rates, ss = [], 0.0
         for ex, i, ws in parts:
-            x = 0.5 * (ref / np.maximum(i, 0.1 * ref)) ** e * ws
+            x = 0.5 * (ref / np.maximum(i, ShotNoise().min_dn)) ** e * ws
             r_e = float((x * ex).sum() / max((x * x).sum(), 1e-12))
             rates.append(r_e)
             ss += float(((ex - r_e * x) ** 2).sum())
@@ -336,7 +336,7 @@ def _fit_shot_noise(meas: Observation, sims: list[Observation], model: Model,
     _, e, rate = best
     if rate <= 0:
         return None
-    return ShotNoise(rate_hz=round(rate, 4), light_exponent=e)
+    return ShotNoise(rate_hz=round(rate, 4), ref_dn=ref, light_exponent=e)
 
 
 def _fit_hot_pixels(meas: Observation, sims: list[Observation], model: Model,
@@ -670,6 +670,17 @@ FITTERS = {
     "timestamp_jitter": _fit_timestamp_jitter,
     "timestamp_quantisation": _fit_timestamp_quantisation,
 }
+
+
+def variants(eff: Effect) -> list[Effect]:
+    """``eff`` and the alternatives of its discrete parameters that its moment estimate
+    cannot tell apart reliably (the gap workflow evaluates each): a dead time that drops
+    crossings or delays them (the pile of intervals just above the period, which tells them
+    apart, is blurred where timestamps are quantised)."""
+    if isinstance(eff, Refractory):
+        other = "drop" if eff.mode == "delay" else "delay"
+        return [eff, eff.with_params(mode=other)]
+    return [eff]
 
 
 def fit_candidate(name: str, meas: Observation, sims: list[Observation], model: Model,

@@ -34,6 +34,7 @@ from .model import (
     fit_candidate,
     population,
     simulate_model,
+    variants,
 )
 from .stats import Discrepancy, GapError, Observation, discrepancy, observe, summarise
 
@@ -226,6 +227,66 @@ class _Runner:
         info["value"] = float(cur_eff.parameters()[key])
         return cur_eff, cur_ev, info
 
+    def scheme_candidate(self, current: Evaluation, tried: dict[str, dict[str, Any]]
+                         ) -> tuple[Effect, Evaluation] | None:
+        """The timestamp scheme fitted and evaluated, when it is a candidate not yet in the
+        model and its fitter sees it."""
+        if SCHEME_EFFECT not in self.cfg.candidates or SCHEME_EFFECT in current.model.effects:
+            return None
+        eff = fit_candidate(SCHEME_EFFECT, self.meas, current.sims, current.model, self.rec)
+        if eff is None:
+            tried[SCHEME_EFFECT] = {"parameters": None, "gap": None}
+            return None
+        ev = self.evaluate(self.candidate_model(current.model, eff), f"candidate {eff.name}")
+        tried[SCHEME_EFFECT] = {"parameters": eff.parameters(), "gap": ev.gap,
+                                "score": ev.gap + self.cfg.penalty_per_parameter * eff.n_fitted}
+        return eff, ev
+
+    def best_candidate(self, current: Evaluation, tried: dict[str, dict[str, Any]], *,
+                       skip: str) -> tuple[float, Effect, Evaluation] | None:
+        """Every candidate but ``skip`` not in ``current``'s model, fitted from its
+        simulations and evaluated on top of it; the one of the lowest score."""
+        best: tuple[float, Effect, Evaluation] | None = None
+        for name in self.cfg.candidates:
+            if name in current.model.effects or name == skip:
+                continue
+            fitted = fit_candidate(name, self.meas, current.sims, current.model, self.rec)
+            if fitted is None:
+                tried[name] = {"parameters": None, "gap": None}
+                continue
+            for eff in variants(fitted):  # discrete alternatives: the gap decides
+                ev = self.evaluate(self.candidate_model(current.model, eff),
+                                   f"candidate {name}")
+                score = ev.gap + self.cfg.penalty_per_parameter * eff.n_fitted
+                if name in tried and tried[name]["score"] <= score:
+                    tried[name].setdefault("variants", []).append(
+                        {"parameters": eff.parameters(), "gap": ev.gap})
+                    continue
+                tried[name] = {"parameters": eff.parameters(), "gap": ev.gap, "score": score,
+                               "variants": [{"parameters": e["parameters"], "gap": e["gap"]}
+                                            for e in [tried.get(name)] if e is not None]}
+                if best is None or score < best[0]:
+                    best = (score, eff, ev)
+        return best
+
+    def finish(self, current: Evaluation, ev: Evaluation, eff: Effect,
+               tried: dict[str, dict[str, Any]]) -> tuple[Effect, Evaluation]:
+        """A named candidate's estimate bias-corrected and refined (as configured; not
+        parameters read off the data)."""
+        if eff.read_off:
+            return eff, ev
+        if self.cfg.debias:
+            eff, ev, info = self.debias(current, ev, eff)
+            tried[eff.name]["debias"] = info
+            if info["steps"] and abs(np.log(info["steps"][0]["factor"])) < 0.05:
+                # the fitter gives back its own value on the model's simulations: the
+                # estimate is consistent, and a search of the gap would trade it against
+                # what the model misses elsewhere (interpolated frames)
+                return eff, ev
+        if self.cfg.refine:
+            eff, ev = self.refine(current.model, ev, eff)
+        return eff, ev
+
     def refine(self, current: Model, best: Evaluation, eff: Effect) -> tuple[Effect, Evaluation]:
         key = eff.primary
         v0 = float(eff.parameters()[key])
@@ -261,6 +322,18 @@ class _Runner:
         if gaps[i] < best.gap - max(0.3, 0.1 * best.gap):
             return evals[i]
         return eff, best
+
+
+SCHEME_EFFECT = "timestamp_quantisation"  # a simulator's timestamp scheme, not a sensor effect
+
+
+def _need(cfg: GapConfig, current: Evaluation) -> float:
+    """The least gain that names a candidate against ``current``."""
+    return max(cfg.min_improvement, cfg.min_relative_improvement * (current.gap - 1.0))
+
+
+def _gain(cfg: GapConfig, current: Evaluation, gap: float, eff: Effect) -> float:
+    return current.gap - (gap + cfg.penalty_per_parameter * eff.n_fitted)
 
 
 def _cast(eff: Effect, key: str, value: float) -> Any:
@@ -299,32 +372,35 @@ def run_gap(rec: Recording, config: GapConfig | None = None, *,
     rejected: dict[str, dict[str, Any]] = {}
     while len(steps) < cfg.max_effects:
         tried: dict[str, dict[str, Any]] = {}
-        best: tuple[float, Effect, Evaluation] | None = None
-        for name in cfg.candidates:
-            if name in current.model.effects:
+        # the timestamp scheme first: once the timestamps are seen to lie on a step grid,
+        # every sensor candidate is fitted and simulated with the scheme (how a frame-driven
+        # simulator stamps its events changes what its dead time, noise and jitter look like:
+        # v2e's refractory period shows only in its slots, neither alone)
+        scheme = run.scheme_candidate(current, tried)
+        on = scheme[1] if scheme is not None else current
+        best = run.best_candidate(on, tried, skip=SCHEME_EFFECT)
+        if scheme is not None:
+            eff_q, ev_q = scheme
+            q_alone = _gain(cfg, current, ev_q.gap, eff_q) > _need(cfg, current)
+            joint = best is not None and best[0] < ev_q.gap - _need(cfg, ev_q) and \
+                _gain(cfg, current, best[0], eff_q) > _need(cfg, current)
+            if not (q_alone or joint):
+                rejected = tried
+                break
+            eff_q, ev_q = run.finish(current, ev_q, eff_q, tried)
+            steps.append(Step(eff_q, current, ev_q, tried))
+            if ev_q is not scheme[1]:
+                current = ev_q  # refined: the candidates must be evaluated again
                 continue
-            eff = fit_candidate(name, run.meas, current.sims, current.model, rec)
-            if eff is None:
-                tried[name] = {"parameters": None, "gap": None}
-                continue
-            ev = run.evaluate(run.candidate_model(current.model, eff), f"candidate {name}")
-            score = ev.gap + cfg.penalty_per_parameter * eff.n_fitted
-            tried[name] = {"parameters": eff.parameters(), "gap": ev.gap, "score": score}
-            if best is None or score < best[0]:
-                best = (score, eff, ev)
-        if best is None:
+            current = ev_q
+            if len(steps) >= cfg.max_effects:
+                break
+            tried = {k: v for k, v in tried.items() if k != SCHEME_EFFECT}
+        if best is None or current.gap - best[0] <= _need(cfg, current):
             rejected = tried
             break
-        score, eff, ev = best
-        gain = current.gap - score
-        need = max(cfg.min_improvement, cfg.min_relative_improvement * (current.gap - 1.0))
-        if gain <= need:
-            rejected = tried
-            break
-        if cfg.debias:
-            eff, ev, tried[eff.name]["debias"] = run.debias(current, ev, eff)
-        if cfg.refine:
-            eff, ev = run.refine(current.model, ev, eff)
+        _, eff, ev = best
+        eff, ev = run.finish(current, ev, eff, tried)
         steps.append(Step(eff, current, ev, tried))
         current = ev
     info = {"sensor": str(rec.sensor), "n_events": rec.n_events,

@@ -16,9 +16,10 @@ name                      what the sensor does                                  
                           ON events at a per-pixel rate, log-normal across pixels
                           (mean ``rate_hz``, ``spread_log`` = sigma of ln rate),
                           optionally growing with light as ``(I / ref_dn)**light_exponent``
-``shot_noise``            random ON and OFF events (50/50) at ``rate_hz * ref_dn / I``   rate_hz
-                          per pixel (capped at 10x ``rate_hz``): more in the dark; each
-                          one resets the reference to the present log intensity
+``shot_noise``            random ON and OFF events (50/50) at                           rate_hz
+                          ``rate_hz (ref_dn / I)**light_exponent`` per pixel (``I``
+                          floored at ``min_dn``): more in the dark; each one resets the
+                          reference to the present log intensity
 ``bandwidth``             first-order low-pass of log intensity before the comparator;   cutoff_hz
                           cutoff ``cutoff_hz * (I + dark) / ref_dn`` (photocurrent-
                           limited: slower in low light)
@@ -68,6 +69,9 @@ class Effect:
     name: ClassVar[str] = ""
     primary: ClassVar[str] = ""  # the parameter the gap workflow's tolerance refers to
     n_fitted: ClassVar[int] = 1  # parameters the gap workflow fits (complexity penalty)
+    # True: the gap workflow reads the parameters off the data (no moment estimate to
+    # bias-correct or refine by the gap)
+    read_off: ClassVar[bool] = False
 
     def parameters(self) -> dict[str, Any]:
         return asdict(self)
@@ -126,6 +130,7 @@ class ShotNoise(Effect):
     # rate ~ (ref / I)**light_exponent: 1 is photon shot noise's 1/I; sensors and simulators
     # differ (v2e's falls only 4x from black to white: about 0.6)
     light_exponent: float = 1.0
+    min_dn: float = 1.6  # the law's intensity floor (DN): the rate stops growing below it
 
     def __post_init__(self) -> None:
         _check(self.name, np.isfinite(self.rate_hz) and self.rate_hz >= 0,
@@ -133,11 +138,20 @@ class ShotNoise(Effect):
         _check(self.name, self.ref_dn > 0, "ref_dn must be > 0", self.ref_dn)
         _check(self.name, 0 <= self.light_exponent <= 2, "light_exponent must be in [0, 2]",
                self.light_exponent)
+        _check(self.name, np.isfinite(self.min_dn) and self.min_dn > 0,
+               "min_dn must be finite and > 0", self.min_dn)
 
     def rate_at(self, intensity_dn: np.ndarray) -> np.ndarray:
         """Noise-event rate (Hz, ON and OFF together) at intensity ``I`` (DN)."""
-        i = np.maximum(np.asarray(intensity_dn, np.float64), 0.1 * self.ref_dn)
+        i = np.maximum(np.asarray(intensity_dn, np.float64), self.min_dn)
         return np.asarray(self.rate_hz * (self.ref_dn / i) ** self.light_exponent)
+
+    def kernel_law(self) -> tuple[float, float, float]:
+        """``(rate, ref, exponent)`` of the same law with ``ref = 10 min_dn`` (the simulator
+        kernel floors the intensity at a tenth of its reference)."""
+        ref = 10.0 * float(self.min_dn)
+        rate = float(self.rate_hz) * (float(self.ref_dn) / ref) ** float(self.light_exponent)
+        return rate, ref, float(self.light_exponent)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -211,15 +225,17 @@ class TimestampJitter(Effect):
 
 @dataclass(frozen=True, kw_only=True)
 class TimestampQuantisation(Effect):
-    """Timestamps assigned per simulation step rather than at the crossing (a property of
+    """Events decided per simulation step rather than at the crossing (a property of
     frame-driven simulators, not of a sensor): steps of ``step_us`` from the recording's
-    first time; ``scheme="spread"``: the i-th event (i = 1..n) of a pixel in a step gets
-    ``start + step_us i / n_max``, ``n_max`` the most events any pixel has in that step (v2e's
-    scheme, v2ecore/emulator.py ``generate_events``); ``scheme="end"``: every event of a step
-    gets its end."""
+    first time; ``scheme="spread"``: a pixel with ``n`` pending crossings at a step's end
+    fires at the first ``n`` of ``N`` slots ``start + step_us i / N`` (i = 1..N), ``N`` the
+    most any pixel has pending in that step, and a dead time (``refractory``) is applied to
+    those stamps (v2e's scheme, v2ecore/emulator.py ``generate_events``; see
+    :func:`quantise_events`); ``scheme="end"``: every event of a step gets its end."""
 
     name: ClassVar[str] = "timestamp_quantisation"
     primary: ClassVar[str] = "step_us"
+    read_off: ClassVar[bool] = True  # the grid the timestamps lie on
     step_us: float = 1000.0
     scheme: str = "spread"
     phase_us: float = 0.0  # step ends at t0 + phase_us + k step_us
@@ -233,37 +249,39 @@ class TimestampQuantisation(Effect):
         _check(self.name, np.isfinite(self.phase_us), "phase_us must be finite", self.phase_us)
 
 
-def quantise_timestamps(t_us: np.ndarray, pix: np.ndarray, q: TimestampQuantisation,
-                        t0_us: int) -> np.ndarray:
-    """The times of events ``(t_us, pix)`` (sorted by time) under ``q``, integer us (steps end
-    at ``t0_us + q.phase_us + k q.step_us``); the order
-    of the events is kept (the result is sorted again by the caller where it needs to be)."""
+def quantise_events(t_us: np.ndarray, pix: np.ndarray, pol: np.ndarray, lab: np.ndarray,
+                    q: TimestampQuantisation, t0_us: int, *, n_pix: int,
+                    t_end_us: float | None = None, refractory: Refractory | None = None
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The events ``(t_us, pix, pol, lab)`` (sorted by time; crossings of pixels without a
+    dead time) as a frame-driven simulator under ``q`` emits them, sorted by time (steps end
+    at ``t0_us + q.phase_us + k q.step_us``, up to ``t_end_us``, default the last event).
+
+    ``scheme="spread"`` (v2e, v2ecore/emulator.py ``generate_events``): per step, each
+    pixel's signed count of pending crossings, slots at ``start + i step / N`` (``N`` the
+    largest count of any pixel), a pixel's events at its first slots, and ``refractory``
+    applied to these stamps (:func:`evcal.sim.kernel.step_events`): blocked crossings stay
+    pending in ``delay`` mode (v2e's), are lost in ``drop`` mode. ``scheme="end"``: every
+    event at its step's end (a dead time, if any, must have been applied to the crossings).
+    """
     t = np.asarray(t_us, np.int64)
-    n = t.size
-    if n == 0:
-        empty: np.ndarray = t.copy()
-        return empty
+    if t.size == 0:
+        return t.copy(), np.asarray(pix).copy(), np.asarray(pol).copy(), np.asarray(lab).copy()
     step = float(q.step_us)
     origin = t0_us + float(q.phase_us) % step - step  # a grid point at or before t0
-    # a step is (start, end]: an event exactly at a step's end belongs to that step
-    k = np.maximum(np.ceil((t - origin) / step).astype(np.int64) - 1, 0)
-    start = origin + k * step
     if q.scheme == "end":
-        ends: np.ndarray = np.rint(start + step).astype(np.int64)
-        return ends
-    order = np.lexsort((t, pix, k))
-    ks, ps = k[order], np.asarray(pix)[order]
-    new = np.ones(n, bool)
-    new[1:] = (ks[1:] != ks[:-1]) | (ps[1:] != ps[:-1])
-    starts = np.flatnonzero(new)
-    gid = np.cumsum(new) - 1
-    rank = np.arange(n) - starts[gid]  # 0-based rank of the event in its pixel's step
-    size = np.diff(np.append(starts, n))[gid]
-    kmin = int(ks.min())
-    n_max = np.zeros(int(ks.max()) - kmin + 1, np.int64)
-    np.maximum.at(n_max, ks - kmin, size)
-    out = np.empty(n, np.int64)
-    out[order] = np.rint(start[order] + step * (rank + 1) / n_max[ks - kmin]).astype(np.int64)
+        # a step is (start, end]: an event exactly at a step's end belongs to that step
+        k = np.maximum(np.ceil((t - origin) / step).astype(np.int64) - 1, 0)
+        ends: np.ndarray = np.rint(origin + (k + 1) * step).astype(np.int64)
+        return ends, np.asarray(pix).copy(), np.asarray(pol).copy(), np.asarray(lab).copy()
+    from .kernel import step_events  # noqa: PLC0415 - the kernel imports this module
+
+    refr_us = float(refractory.period_us) if refractory is not None else 0.0
+    drop = bool(refractory is not None and refractory.mode == "drop")
+    end = float(t[-1]) if t_end_us is None else float(t_end_us)
+    out: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] = step_events(
+        t, np.ascontiguousarray(pix, np.int32), np.ascontiguousarray(pol, np.int8),
+        np.ascontiguousarray(lab, np.uint8), int(n_pix), origin, step, end, refr_us, drop)
     return out
 
 

@@ -496,3 +496,127 @@ def fill_events(t_out: np.ndarray, x_out: np.ndarray, y_out: np.ndarray, p_out: 
         y_out[j] = y
         x_out[j] = q - y * width
         p_out[j] = pol[j]
+
+
+@numba.njit(cache=True, nogil=True)
+def step_events(t_us: np.ndarray, pix: np.ndarray, pol: np.ndarray, lab: np.ndarray,
+                n_pix: int, origin_us: float, step_us: float, t_end_us: float,
+                refr_us: float, refr_drop: bool) -> Any:  # pragma: no cover - compiled
+    """The events of a frame-driven simulator that decides per step of ``step_us`` (steps
+    ``(origin + k step, origin + (k + 1) step]``) from the crossings ``t_us`` (sorted, with
+    their pixel, polarity and label) of the same pixels run without a dead time.
+
+    In each step a pixel's count ``n`` is its signed number of crossings not yet emitted
+    (crossings of opposite sign cancel: the simulator compares the log intensity at the step's
+    end with its reference). ``N``, the largest ``|n|`` of any pixel (at least 1), defines
+    ``N`` slots at ``start + i step / N`` (i = 1..N); slot i emits one event of every pixel
+    with ``|n| >= i``, unless the pixel is in its dead time: with ``refr_us > step / N``, an
+    event passes only more than ``refr_us`` after the pixel's last emitted one (its last
+    stamp, not its last crossing). What the dead time blocks stays pending into the next steps
+    (``refr_drop``: it is lost). Noise events (labels other than signal and leak) are
+    stamped at the step's end after the signal events and do not start a dead time; shot
+    noise clears the pixel's pending count (it resets the reference). The label of an emitted
+    signal event is that of the pixel's latest crossing.
+
+    Returns ``(t_us, pix, pol, lab)`` sorted by time; with ``refr_us = 0`` and one crossing
+    sign per pixel and step, the same events with new times.
+    """
+    n = t_us.size
+    cap = n + 16
+    o_t = np.empty(cap, np.int64)
+    o_p = np.empty(cap, np.int32)
+    o_s = np.empty(cap, np.int8)
+    o_l = np.empty(cap, np.uint8)
+    m = 0
+    pend = np.zeros(n_pix, np.int64)
+    plab = np.zeros(n_pix, np.uint8)
+    mem = np.full(n_pix, -np.inf)
+    active = np.empty(n_pix, np.int64)
+    is_act = np.zeros(n_pix, np.bool_)
+    n_act = 0
+    cnt = np.empty(n_pix, np.int64)
+    noise = np.empty(0, np.int64)
+    k_last = np.int64(math.ceil((t_end_us - origin_us) / step_us)) - 1
+    j = 0
+    k = np.int64(0)
+    if n > 0:
+        k = max(np.int64(0), np.int64(math.ceil((t_us[0] - origin_us) / step_us)) - 1)
+    while k <= k_last and (j < n or n_act > 0):
+        if n_act == 0 and j < n:
+            # nothing pending: jump to the step of the next crossing
+            k = max(k, np.int64(math.ceil((t_us[j] - origin_us) / step_us)) - 1)
+        start = origin_us + k * step_us
+        end = start + step_us
+        j0 = j
+        n_noise = 0
+        while j < n and t_us[j] <= end:
+            q = pix[j]
+            if lab[j] == LABEL_SIGNAL or lab[j] == LABEL_LEAK:
+                pend[q] += pol[j]
+                plab[q] = lab[j]
+                if not is_act[q]:
+                    is_act[q] = True
+                    active[n_act] = q
+                    n_act += 1
+            else:
+                n_noise += 1
+            j += 1
+        if n_noise > noise.size:
+            noise = np.empty(2 * n_noise, np.int64)
+        r = 0
+        for jj in range(j0, j):
+            if not (lab[jj] == LABEL_SIGNAL or lab[jj] == LABEL_LEAK):
+                noise[r] = jj
+                r += 1
+        n_max = 0
+        for a in range(n_act):
+            q = active[a]
+            cnt[q] = abs(pend[q])
+            n_max = max(n_max, cnt[q])
+        slots = max(n_max, 1)
+        gate = refr_us > step_us / slots
+        if m + n_max * n_act + n_noise > cap:
+            cap = 2 * (m + n_max * n_act + n_noise) + 1024
+            o_t, o_p, o_s, o_l = (_grow(o_t, cap), _grow(o_p, cap), _grow(o_s, cap),
+                                  _grow(o_l, cap))
+            cap = o_t.size
+        for i in range(n_max):
+            ts = start + (i + 1) * step_us / slots
+            ti = np.int64(np.rint(ts))
+            for a in range(n_act):
+                q = active[a]
+                if cnt[q] <= i or (gate and not ts - mem[q] > refr_us):
+                    continue
+                mem[q] = ts
+                s = 1 if pend[q] > 0 else -1
+                pend[q] -= s
+                o_t[m] = ti
+                o_p[m] = q
+                o_s[m] = s
+                o_l[m] = plab[q]
+                m += 1
+        if refr_drop:
+            for a in range(n_act):
+                pend[active[a]] = 0
+        te = np.int64(np.rint(end))
+        for r in range(n_noise):
+            jj = noise[r]
+            q = pix[jj]
+            if lab[jj] == LABEL_SHOT_NOISE:
+                pend[q] = 0
+            o_t[m] = te
+            o_p[m] = q
+            o_s[m] = pol[jj]
+            o_l[m] = lab[jj]
+            m += 1
+        b = 0
+        for a in range(n_act):
+            q = active[a]
+            if pend[q] != 0:
+                active[b] = q
+                b += 1
+            else:
+                is_act[q] = False
+        n_act = b
+        k += 1
+    return o_t[:m], o_p[:m], o_s[:m], o_l[:m]

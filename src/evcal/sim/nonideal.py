@@ -42,7 +42,7 @@ from .effects import (
     TimestampQuantisation,
     describe,
     effect_set,
-    quantise_timestamps,
+    quantise_events,
 )
 from .ideal import SimConfig, SimResult, draw_maps, frame_times_us, internal_times_us
 from .kernel import fill_events, run_steps
@@ -165,7 +165,11 @@ def simulate(
         th_on = th_on_nom * np.maximum(0.2, 1 + th_sigma * r_kernel.standard_normal(npix))
         th_off = th_off_nom * np.maximum(0.2, 1 + th_sigma * r_kernel.standard_normal(npix))
     refr = eff.get(Refractory.name)
-    refr_us = float(refr.period_us) if isinstance(refr, Refractory) else 0.0
+    tq = eff.get(TimestampQuantisation.name)
+    # a frame-driven simulator applies its dead time to the stamps of its steps: then the
+    # kernel's crossings come without one and quantise_events applies it
+    stepped = isinstance(tq, TimestampQuantisation) and tq.scheme == "spread"
+    refr_us = float(refr.period_us) if isinstance(refr, Refractory) and not stepped else 0.0
     refr_delay = bool(isinstance(refr, Refractory) and refr.mode == "delay")
     leak = eff.get(Leak.name)
     leak_rate = np.zeros(npix)
@@ -175,8 +179,7 @@ def simulate(
         leak_exp, leak_ref = float(leak.light_exponent), float(leak.ref_dn)
     shot = eff.get(ShotNoise.name)
     shot_rate, shot_ref, shot_exp = (
-        (float(shot.rate_hz), float(shot.ref_dn), float(shot.light_exponent))
-        if isinstance(shot, ShotNoise) else (0.0, 16.0, 1.0))
+        shot.kernel_law() if isinstance(shot, ShotNoise) else (0.0, 16.0, 1.0))
     bw = eff.get(Bandwidth.name)
     bw_cut, bw_ref, bw_min = (float(bw.cutoff_hz), float(bw.ref_dn), float(bw.min_cutoff_hz)
                               ) if isinstance(bw, Bandwidth) else (0.0, 128.0, 0.5)
@@ -271,9 +274,11 @@ def simulate(
 
     if t_origin_us:
         t_int = t_int + int(t_origin_us)
-    tq = eff.get(TimestampQuantisation.name)
     if isinstance(tq, TimestampQuantisation):
-        t_int = quantise_timestamps(t_int, pix, tq, int(times[0]) + int(t_origin_us))
+        t_int, pix, pol, lab = quantise_events(
+            t_int, pix, pol, lab, tq, int(times[0]) + int(t_origin_us), n_pix=npix,
+            t_end_us=float(times[-1]) + int(t_origin_us),
+            refractory=refr if stepped and isinstance(refr, Refractory) else None)
         order = np.argsort(t_int, kind="stable")
         t_int, pix, pol, lab = t_int[order], pix[order], pol[order], lab[order]
     jit = eff.get(TimestampJitter.name)
