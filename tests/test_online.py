@@ -279,7 +279,8 @@ def test_residual_lambda_blocks_cover_small_sensors_and_spread_over_large_ones()
 
 def test_a_live_calibrator_never_waits_for_the_offset_criterion(monkeypatch):
     """offset_wait=False (the service): a criterion still running when its frame comes does
-    not block the frame path; its result is taken at the first frame after it is done."""
+    not block the frame path; its result is taken as soon as it is done, at the next frame or
+    between frames (poll_offset)."""
     import threading
 
     import evcal.online as online_mod
@@ -296,13 +297,19 @@ def test_a_live_calibrator_never_waits_for_the_offset_criterion(monkeypatch):
     cal = OnlineCalibrator(SENSOR, OnEIConfig(log_offset="auto", n_small=2 * SENSOR.n_pixels,
                                               offset_wait=False))
     cuts = np.searchsorted(rec.events["t_us"], rec.frames.t_us)
-    for k in range(42):
+    for k in range(40):
         cal.feed_events(rec.events[cuts[k - 1] if k else 0 : cuts[k]])
         cal.feed_frame(int(rec.frames.t_us[k]), rec.frames.images[k])
-        if k == 39:  # the criterion started at frame 11 and is still running
-            assert np.isnan(cal.log_offset)
-            assert cal._offset_job is not None
-            release.set()
-            cal._offset_job[1].result(timeout=30)
+    # the criterion started at frame 11 and is still running: nothing waited for it
+    assert np.isnan(cal.log_offset)
+    assert cal.n_updates == 0
+    assert not cal.poll_offset()
+    release.set()
+    cal._offset_job[1].result(timeout=30)
+    # the stream has stopped: between frames the estimate is taken and solved at once
+    assert cal.poll_offset()
     assert np.isfinite(cal.log_offset)
+    assert cal.n_updates == 1
+    assert cal.calibration().valid.any()  # random frames: a fifth of the pixels fit
     assert cal.offset_info["method"] == "auto"
+    assert not cal.poll_offset()  # nothing more to take

@@ -273,7 +273,8 @@ class OnEIConfig:
     rebuild_every: int = 100_000
     # log_offset="auto": True applies an online estimate exactly OFFSET_LAG_FRAMES frames
     # after it was started, waiting for it there if need be (runs are reproducible); False
-    # at the first frame from then on by which it is done (a live stream never waits)
+    # as soon as it is done: at the next frame, or at poll_offset() (a live stream never
+    # waits)
     offset_wait: bool = True
     limits: SolveLimits = field(default_factory=lambda: SolveLimits(min_events=10,
                                                                     min_equations=3.0))
@@ -513,8 +514,9 @@ class OnlineCalibrator:
         if self._frame_cap is None:
             self._frame_cap = self.config.frame_cap(self.sensor, img.dtype.itemsize)
         self._push(t_us, img.ravel().copy())
-        if self._offset_job is not None and self.n_frames >= self._offset_job[0] and (
-                self.config.offset_wait or self._offset_job[1].done()):
+        job = self._offset_job
+        if job is not None and (self.n_frames >= job[0] if self.config.offset_wait
+                                else job[1].done()):
             self._apply_offset()
         if self._offset_job is None and (math.isnan(self.log_offset)
                                          or self.n_frames >= self._next_offset_check > 0):
@@ -596,7 +598,8 @@ class OnlineCalibrator:
     # frames after a check is started at which its result is applied: the criterion (a
     # fraction of a second at 4 k pixels, more on a busy machine) runs on a worker thread
     # meanwhile; with OnEIConfig.offset_wait the result lands at this frame in every run
-    # (offline runs wait for it there), without it at the first frame by which it is done
+    # (offline runs wait for it there), without it as soon as it is done (at the next frame,
+    # or at poll_offset between frames)
     OFFSET_LAG_FRAMES = 8
     OFFSET_FIRST_FRAMES = 2 * AUTO_WINDOW + 1  # buffered frames before the first estimate
     OFFSET_RECHECK_FACTOR = 4  # re-checked when the frames seen have grown this much
@@ -619,6 +622,22 @@ class OnlineCalibrator:
         self._next_offset_check = self.n_frames * self.OFFSET_RECHECK_FACTOR
         self._offset_job = (self.n_frames + self.OFFSET_LAG_FRAMES,
                             _offset_pool().submit(_offset_criterion, *inputs))
+
+    def poll_offset(self) -> bool:
+        """Between frames: take an online offset estimate that has finished (only with
+        ``offset_wait=False``; a stream that stops would otherwise never see it). True when
+        the estimate was re-solved: read :meth:`calibration`."""
+        job = self._offset_job
+        if self.config.offset_wait or job is None or not job[1].done():
+            return False
+        before = self.n_updates
+        first = math.isnan(self.log_offset)
+        self._apply_offset()
+        if (first and not math.isnan(self.log_offset) and self.n_equations > 0
+                and self._since_resolve >= self.n_small):
+            self._resolve()
+            self._since_resolve = 0
+        return self.n_updates > before
 
     def _apply_offset(self) -> None:
         """Take the started estimate. A changed estimate (by more than 10 % in

@@ -62,6 +62,7 @@ class CalibrationUpdate:
     t_fed_s: float  # OnEI done
     t_cal_s: float  # maps built
     t_enc_s: float  # encoded
+    from_frame: bool = True  # triggered by a frame (else between frames: no latency)
 
 
 @dataclass(frozen=True)
@@ -254,8 +255,18 @@ class CameraState:
             out.append(Observed("frame", (self.id, t_us, image)))
         return out
 
+    def on_idle(self, *, now_s: float) -> list[Output]:
+        """Between messages (the worker found its queue empty): an online log-offset
+        estimate finished since the last frame is taken now, and its calibration published
+        (a stream that stopped, or a replay that outran the estimate, is not left without
+        one)."""
+        cal = self.calibrator
+        if cal is None or cal.last_frame_t_us is None or not cal.poll_offset():
+            return []
+        return [self._update(cal, cal.last_frame_t_us, now_s, now_s, from_frame=False)]
+
     def _update(self, cal_state: OnlineCalibrator, t_us: int, t_recv_s: float,
-                t_start_s: float) -> CalibrationUpdate:
+                t_start_s: float, *, from_frame: bool = True) -> CalibrationUpdate:
         """The calibration of the update a frame triggered, built and encoded once: the
         published message, the query cache and the recorder share it."""
         t_fed = time.monotonic()
@@ -264,7 +275,7 @@ class CameraState:
         msg = encode_calibration(cal, t_us=t_us, seq=self.calibration_seq)
         t_enc = time.monotonic()
         upd = CalibrationUpdate(self.id, t_us, self.calibration_seq, cal, msg, t_recv_s,
-                                t_start_s, t_fed, t_cal, t_enc)
+                                t_start_s, t_fed, t_cal, t_enc, from_frame)
         self.calibration_seq += 1
         self.calibration = cal
         self.calibration_msg = msg
@@ -275,6 +286,8 @@ class CameraState:
 
     def published(self, upd: CalibrationUpdate, t_pub_s: float) -> None:
         """Record the latency of a published update (the outputs layer calls this)."""
+        if not upd.from_frame:
+            return
         self.latency_ms.append((t_pub_s - upd.t_recv_s) * 1e3)
         # where the time went: queue wait, OnEI (fold + re-solve), maps, encode, publish
         self.latency_parts_ms.append((upd.t_start_s - upd.t_recv_s, upd.t_fed_s - upd.t_start_s,

@@ -237,6 +237,16 @@ class Camera:
                 self._done()
                 return
 
+    def _idle(self) -> None:
+        """The worker's work between messages (:meth:`CameraState.on_idle`)."""
+        with self.lock:
+            try:
+                out = self.state.on_idle(now_s=time.monotonic())
+                if out:
+                    self._emit(self, out)
+            except Exception:  # a bug must not kill the camera's worker
+                log.exception("camera %s: unexpected error between messages", self.id)
+
     def _run(self) -> None:
         """Worker thread: the state machine, then the outputs."""
         while True:
@@ -244,6 +254,7 @@ class Camera:
             if item is None:
                 if self.handoff.closed:
                     return
+                self._idle()
                 continue
             kind, decoded, nbytes, t_recv, drops_before = item
             # the outputs go out under the lock: a status that counts a frame comes after the
