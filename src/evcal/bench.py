@@ -141,6 +141,7 @@ def bench_onei(sensor: SensorSize, n_frames: int, events_per_frame: int) -> dict
             "updates": len(update_s), "n_small": n_small, "n_large": n_large,
             "buffer_frames": cal.status()["buffer_frames"],
             "buffer_MiB": cal.buffer_bytes / 2**20,
+            "state_MiB_per_Mpx": cal.state_bytes / 2**20 / (sensor.n_pixels / 1e6),
             "feed_events_per_s": float(cuts[-1] / t_feed)}
 
 
@@ -181,6 +182,8 @@ def run_bench(*, quick: bool = False, progress: bool = True) -> dict[str, Any]:
         out[f"onei_ms_per_update ({sensor})"] = round(r["update_s_median"] * 1e3, 1)
         out[f"onei_buffer_MiB ({sensor}, {r['buffer_frames']} frames)"] = round(
             r["buffer_MiB"], 1)
+        out[f"onei_memory_MiB_per_megapixel ({sensor}, buffer and state)"] = round(
+            r["state_MiB_per_Mpx"], 1)
         out[f"onei_feed_Mev_per_s ({sensor})"] = round(r["feed_events_per_s"] / 1e6, 1)
     from .sim.bench import bench_simulator  # noqa: PLC0415
 
