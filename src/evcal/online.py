@@ -998,9 +998,10 @@ class OnlineCalibrator:
     def state_bytes(self) -> int:
         """Bytes of all the calibrator holds: the large buffer and the per-pixel state (normal
         equations, queued equations, sliding sums, open interval, counts, estimate)."""
-        arrays = [self._m, self._counts_pad, self._wins, self._code, self._spill, self._last_p,
-                  self._slot_sums, self._slot_qa, self._slot_raw, self._slot_dl,
-                  self._lam_terms, *self.estimate.state().values()]
+        arrays: list[np.ndarray] = [
+            self._m, self._counts_pad, self._wins, self._code, self._spill, self._last_p,
+            self._slot_sums, self._slot_qa, self._slot_raw, self._slot_dl, self._lam_terms,
+            *self.estimate.state().values()]
         return self.buffer_bytes + int(sum(a.nbytes for a in arrays))
 
     # -- persistence -------------------------------------------------------------------------
