@@ -264,6 +264,75 @@ def _apply1(mb: np.ndarray, nb: int, on: np.ndarray, off: np.ndarray, q: np.ndar
 
 
 @_jit
+def _apply2(mb: np.ndarray, nb: int, on1: np.ndarray, off1: np.ndarray, q1: np.ndarray,
+            a1: np.ndarray, dl1: np.ndarray, sign1: float, on2: np.ndarray, off2: np.ndarray,
+            q2: np.ndarray, a2: np.ndarray, dl2: np.ndarray,
+            sign2: float) -> None:  # pragma: no cover
+    """:func:`_apply1` of two equations in one pass over the block: ``m = (m + x1) + x2``,
+    the same operations in the same order as two passes (bit-identical), with half the loads
+    and stores of the block's sums."""
+    B = BLOCK
+    for i in range(nb):
+        c1 = on1[i]
+        o1 = off1[i]
+        ok1 = ((c1 + o1) > 0) & (dl1[i] == dl1[i])
+        ws1 = sign1 if ok1 else 0.0
+        d1 = dl1[i] if ok1 else 0.0
+        p1 = np.float64(c1 - o1)
+        e1 = np.float64(c1 + o1)
+        qq1 = np.float64(q1[i])
+        aa1 = np.float64(a1[i])
+        wp1 = ws1 * p1
+        we1 = ws1 * e1
+        wq1 = ws1 * qq1
+        wa1 = ws1 * aa1
+        c2 = on2[i]
+        o2 = off2[i]
+        ok2 = ((c2 + o2) > 0) & (dl2[i] == dl2[i])
+        ws2 = sign2 if ok2 else 0.0
+        d2 = dl2[i] if ok2 else 0.0
+        p2 = np.float64(c2 - o2)
+        e2 = np.float64(c2 + o2)
+        qq2 = np.float64(q2[i])
+        aa2 = np.float64(a2[i])
+        wp2 = ws2 * p2
+        we2 = ws2 * e2
+        wq2 = ws2 * qq2
+        wa2 = ws2 * aa2
+        mb[i] = (mb[i] + wp1 * p1) + wp2 * p2
+        mb[B + i] = (mb[B + i] + wp1 * e1) + wp2 * e2
+        mb[2 * B + i] = (mb[2 * B + i] + wp1 * qq1) + wp2 * qq2
+        mb[3 * B + i] = (mb[3 * B + i] + wp1 * aa1) + wp2 * aa2
+        mb[4 * B + i] = (mb[4 * B + i] + we1 * e1) + we2 * e2
+        mb[5 * B + i] = (mb[5 * B + i] + we1 * qq1) + we2 * qq2
+        mb[6 * B + i] = (mb[6 * B + i] + we1 * aa1) + we2 * aa2
+        mb[7 * B + i] = (mb[7 * B + i] + wq1 * qq1) + wq2 * qq2
+        mb[8 * B + i] = (mb[8 * B + i] + wq1 * aa1) + wq2 * aa2
+        mb[9 * B + i] = (mb[9 * B + i] + wa1 * aa1) + wa2 * aa2
+        mb[10 * B + i] = (mb[10 * B + i] + wp1 * d1) + wp2 * d2
+        mb[11 * B + i] = (mb[11 * B + i] + we1 * d1) + we2 * d2
+        mb[12 * B + i] = (mb[12 * B + i] + wq1 * d1) + wq2 * d2
+        mb[13 * B + i] = (mb[13 * B + i] + wa1 * d1) + wa2 * d2
+        mb[14 * B + i] = (mb[14 * B + i] + ws1 * d1 * d1) + ws2 * d2 * d2
+        mb[15 * B + i] = (mb[15 * B + i] + ws1) + ws2
+
+
+@_jit
+def _slot_dl(raw: np.ndarray, dl: np.ndarray, kinds: np.ndarray, lut: np.ndarray, k: int,
+             s: int, nb: int, buf: np.ndarray) -> None:  # pragma: no cover
+    """Slot ``k``'s ``dL`` of the ``nb`` pixels from ``s`` into ``buf``."""
+    if kinds[k]:
+        r_j = raw[k, 0]
+        r_k = raw[k, 1]
+        for ii in range(nb):
+            buf[ii] = lut[r_k[s + ii]] - lut[r_j[s + ii]]
+    else:
+        d = dl[k]
+        for ii in range(nb):
+            buf[ii] = d[s + ii]
+
+
+@_jit
 def apply_blocks(m: np.ndarray, n: int, b_start: int, b_stop: int, sums: np.ndarray,
                  qa: np.ndarray, raw: np.ndarray, dl: np.ndarray, kinds: np.ndarray,
                  lut: np.ndarray, slots: np.ndarray, signs: np.ndarray,
@@ -273,24 +342,27 @@ def apply_blocks(m: np.ndarray, n: int, b_start: int, b_stop: int, sums: np.ndar
     stays in cache while its equations are added). A slot's ``dL`` is ``lut[raw[1]] -
     lut[raw[0]]`` (``kinds`` True: 8-bit frames, ``lut`` NaN at the values not usable;
     computed per block into ``buf``, a table look-up does not vectorise) or ``dl`` (other
-    frames, 0 where not usable, and so their counts)."""
+    frames, 0 where not usable, and so their counts). Equations go two at a time
+    (:func:`_apply2`, ``buf`` holds two blocks' ``dL``), the same sums as one by one."""
     for b in range(b_start, b_stop):
         s = b * BLOCK
         nb = min(BLOCK, n - s)
         mb = m[b]
-        for r in range(slots.size):
+        r = 0
+        while r < slots.size:
             k = slots[r]
-            if kinds[k]:
-                r_j = raw[k, 0]
-                r_k = raw[k, 1]
-                for ii in range(nb):
-                    buf[ii] = lut[r_k[s + ii]] - lut[r_j[s + ii]]
+            _slot_dl(raw, dl, kinds, lut, k, s, nb, buf[0])
+            if r + 1 < slots.size:
+                k2 = slots[r + 1]
+                _slot_dl(raw, dl, kinds, lut, k2, s, nb, buf[1])
+                _apply2(mb, nb, sums[k, 0, s:], sums[k, 1, s:], qa[k, 0, s:], qa[k, 1, s:],
+                        buf[0], signs[r], sums[k2, 0, s:], sums[k2, 1, s:], qa[k2, 0, s:],
+                        qa[k2, 1, s:], buf[1], signs[r + 1])
+                r += 2
             else:
-                d = dl[k]
-                for ii in range(nb):
-                    buf[ii] = d[s + ii]
-            _apply1(mb, nb, sums[k, 0, s:], sums[k, 1, s:], qa[k, 0, s:], qa[k, 1, s:], buf,
-                    signs[r])
+                _apply1(mb, nb, sums[k, 0, s:], sums[k, 1, s:], qa[k, 0, s:], qa[k, 1, s:],
+                        buf[0], signs[r])
+                r += 1
 
 
 @_jit

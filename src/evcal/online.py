@@ -376,7 +376,7 @@ class OnlineCalibrator:
         self._slot_raw = np.zeros((k, 2, n), np.uint8)
         self._slot_dl = np.zeros((k, n), np.float64)
         self._slot_kind = np.zeros(k, bool)
-        self._dl_buf = np.zeros(BLOCK, np.float64)  # one block's dL while it is updated
+        self._dl_buf = np.zeros((2, BLOCK), np.float64)  # two blocks' dL while updated
         self._lut = np.zeros(256)  # log_intensity of the 8-bit values at self._lut_offset
         self._lut_offset = math.nan
         self._no_reason = np.zeros(BLOCK, np.uint8)  # solve_pixels' extra_reason, per block
