@@ -12,6 +12,7 @@ from collections.abc import Sequence
 
 from ..errors import ConfigError
 from ..online import OnEIConfig
+from . import keys
 from .core import ON_FULL, ServiceConfig
 from .ros2 import Ros2Options, TopicMap, default_domain
 from .signing import SignatureError
@@ -33,6 +34,20 @@ def build_parser(prog: str = "evcal serve") -> argparse.ArgumentParser:
                         "prefix, e.g. 'lab/rig1/**' (default: ** = all)")
     p.add_argument("--instance", default="", help="instance name in the liveliness token "
                                                   "(default: the zenoh session id)")
+    p.add_argument("--workers", type=_workers_arg, default=1, metavar="N|auto",
+                   help="worker processes (default 1: this process serves every camera). "
+                        "N > 1: this process routes (a zenoh router on the endpoints given) "
+                        "and supervises N workers, each serving the cameras whose id hashes "
+                        "to it, so that several cameras use several cores; a worker that dies "
+                        "is restarted from --state-dir. Each worker is instance NAME-w<i>, "
+                        "writes its own --rrd file (PATH.w<i>.rrd) and has its own "
+                        "--max-cameras and --queue-mb. auto: one per core")
+    p.add_argument("--shard", type=_shard_arg, default=None, metavar="I/N",
+                   help="serve only the cameras whose id hashes to I of N (BLAKE2b of the id "
+                        "mod N): what worker I of --workers N does; also for N instances "
+                        "on several hosts")
+    p.add_argument("--supervised", type=int, default=None, metavar="PID",
+                   help=argparse.SUPPRESS)  # a worker of --workers: stop when PID goes away
     p.add_argument("--rrd", metavar="PATH", help="write a Rerun recording of the run")
     p.add_argument("--rrd-map-period", type=float, default=2.0, metavar="S",
                    help="log maps at most every S seconds of sensor time (default 2)")
@@ -94,6 +109,27 @@ def build_parser(prog: str = "evcal serve") -> argparse.ArgumentParser:
     return p
 
 
+def _workers_arg(text: str) -> int:
+    if text == "auto":
+        from .workers import available_cores
+
+        return available_cores()
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number or 'auto'") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"{text!r} must be >= 1")
+    return n
+
+
+def _shard_arg(text: str) -> tuple[int, int]:
+    try:
+        return keys.parse_shard(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
 def _offset_arg(text: str) -> float | str:
     if text == "auto":
         return text
@@ -114,7 +150,7 @@ def config_from_args(args: argparse.Namespace) -> ServiceConfig:
         raise ConfigError(f"--window-frames {args.window_frames} must be >= 0")
     onei["window_frames"] = args.window_frames or None
     return ServiceConfig(
-        prefix=args.prefix, cameras=args.cameras, instance=args.instance,
+        prefix=args.prefix, cameras=args.cameras, instance=args.instance, shard=args.shard,
         queue_bytes=int(args.queue_mb * (1 << 20)), on_full=args.on_full,
         max_cameras=args.max_cameras, max_pixels=args.max_pixels,
         max_message_bytes=int(args.max_message_mb * (1 << 20)),
@@ -148,13 +184,14 @@ def ros2_from_args(args: argparse.Namespace) -> Ros2Options | None:
     return Ros2Options(domain=ros_domain(args), topic_map=TopicMap.parse(args.ros_topic_map))
 
 
-def setup_logging(verbose: int, quiet: bool = False) -> None:
+def setup_logging(verbose: int, quiet: bool = False, *, tag: str = "") -> None:
     """stderr logging: evcal's INFO by default (the service's own account), -v INFO for all,
-    -vv DEBUG, -q errors only."""
+    -vv DEBUG, -q errors only; ``tag`` after each logger's name (a worker's ``w0``)."""
     level = (logging.ERROR if quiet else logging.WARNING if verbose <= 0
              else logging.INFO if verbose == 1 else logging.DEBUG)
     logging.basicConfig(level=level, stream=sys.stderr,
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+                        format="%(asctime)s %(levelname)s %(name)s"
+                               + (f"[{tag}]" if tag else "") + ": %(message)s")
     logging.getLogger("evcal").setLevel(level if quiet else min(level, logging.INFO))
 
 
@@ -167,12 +204,17 @@ def add_verbosity(p: argparse.ArgumentParser) -> None:
 
 
 def main_serve(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    setup_logging(args.verbose, args.quiet)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    setup_logging(args.verbose, args.quiet,
+                  tag=f"w{args.shard[0]}" if args.supervised is not None and args.shard else "")
     try:
         if (args.rerun_serve is not None or args.rerun_connect) and not args.rrd:
             raise ValueError("--rerun-serve and --rerun-connect go with --rrd PATH (the live "
                              "view is of the recording the file keeps)")
+        if args.workers > 1 and args.shard is not None:
+            raise ValueError(f"--shard goes with one worker: --workers {args.workers} gives "
+                             "each of its workers its shard")
         zopts = options_from_args(args)
         config = config_from_args(args)
         ros2 = ros2_from_args(args)
@@ -190,6 +232,19 @@ def main_serve(argv: Sequence[str] | None = None) -> int:
         stop.set()
 
     old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    if args.workers > 1:
+        from .workers import serve_workers
+
+        try:
+            return serve_workers(parser, args, zenoh=zopts, prefix=config.prefix,
+                                 instance=config.instance, claims=config.cameras, stop=stop)
+        finally:
+            for s, h in old.items():
+                signal.signal(s, h)
+    if args.supervised is not None:
+        from .workers import watch_parent
+
+        watch_parent(args.supervised, stop)
     try:
         service = run(zopts, config, stop=stop, state_dir=args.state_dir, rrd=args.rrd,
                       rrd_options={"map_period_s": args.rrd_map_period,

@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -83,6 +84,10 @@ class ServiceConfig:
     prefix: str = "evcal"
     cameras: str = "**"  # key expression of the camera ids this instance claims
     instance: str = ""  # name in the liveliness token; "" = the zenoh session id
+    # (index, count): serve only the cameras with keys.shard_of(id, count) == index, the
+    # others' messages are ignored before anything is queued or counted (serve --workers N
+    # runs N such shards); None: every camera of the claim
+    shard: tuple[int, int] | None = None
     queue_bytes: int = 64 << 20
     on_full: str = "drop"
     max_cameras: int = 64
@@ -109,6 +114,10 @@ class ServiceConfig:
             raise ConfigError(f"on_full={self.on_full!r} must be one of {ON_FULL}")
         if not self.prefix.strip("/"):
             raise ConfigError("prefix must not be empty")
+        if self.shard is not None and not (
+                len(self.shard) == 2 and self.shard[1] >= 1 and 0 <= self.shard[0] < self.shard[1]):
+            raise ConfigError(f"shard={self.shard!r} must be (index, count) with "
+                              "0 <= index < count")
         for name in ("queue_bytes", "max_cameras", "max_pixels", "max_message_bytes"):
             if int(getattr(self, name)) < 1:
                 raise ConfigError(f"{name}={getattr(self, name)} must be >= 1")
@@ -252,7 +261,24 @@ class Service:
         self.publish(self.key(rec.camera, "errors"), error_body(rec, st), keys.ENC_ERROR)
 
     def claims(self, camera: str) -> bool:
-        return self._match(self.claim, f"{self.config.prefix.strip('/')}/{camera}")
+        """Whether this instance serves ``camera``: inside its ``cameras`` claim and, with a
+        shard, the shard's own."""
+        return self.owns(camera) and self._match(self.claim,
+                                                 f"{self.config.prefix.strip('/')}/{camera}")
+
+    def owns(self, camera: str) -> bool:
+        """Whether ``camera`` falls in this instance's shard (always, without a shard)."""
+        shard = self.config.shard
+        return shard is None or keys.shard_of(camera, shard[1]) == shard[0]
+
+    def accepts_key(self, key: str) -> bool:
+        """Whether a sample on ``key`` is for this instance's shard, judged from the key alone
+        (the transport asks before copying the payload). Keys that are not
+        ``<prefix>/<camera>/<kind>`` are accepted, for :meth:`on_sample` to refuse."""
+        if self.config.shard is None:
+            return True
+        parsed = keys.split_camera_key(self.config.prefix, key)
+        return parsed is None or self.owns(parsed[0])
 
     def _new_camera(self, camera_id: str, *, observe: bool) -> Camera:
         cfg = self.config
@@ -327,14 +353,17 @@ class Service:
         self._deliver(parsed[0], parsed[1], payload, t_recv, claimed=True)
 
     def deliver(self, camera_id: str, kind: str, payload: Any, t_recv: float) -> None:
-        """Hand one ``kind`` message to a camera (any thread, returns quickly): the camera id
-        is checked, a camera outside this instance's claim ignored, the camera found or
+        """Hand one ``kind`` message to a camera (any thread, returns quickly): a camera of
+        another shard is ignored, the camera id checked, a camera outside this instance's
+        claim ignored, the camera found or
         created; ``payload`` is a wire message or a :class:`~evcal.service.ros2.RosSample`
         (ROS 2 input, decoded in the camera's decoder thread)."""
         self._deliver(camera_id, kind, payload, t_recv, claimed=False)
 
     def _deliver(self, camera_id: str, kind: str, payload: Any, t_recv: float, *,
                  claimed: bool) -> None:
+        if not self.owns(camera_id):  # another shard's camera: not ours to count or refuse
+            return
         try:
             keys.check_camera_id(camera_id)
         except ValueError as exc:
@@ -391,6 +420,9 @@ class Service:
             "instance": self.instance,
             "prefix": self.config.prefix,
             "claims": self.config.cameras,
+            "shard": (f"{self.config.shard[0]}/{self.config.shard[1]}"
+                      if self.config.shard is not None else None),
+            "pid": os.getpid(),
             "rejected_cameras": self.rejected_cameras,
             "invalid_camera_ids": self.invalid_camera_ids,
             "evicted_cameras": self.evicted_cameras,

@@ -14,6 +14,8 @@ A camera id is one or more key chunks (``cam0``, ``lab/rig1/cam0``). Under a pre
 
 from __future__ import annotations
 
+import hashlib
+
 INPUT_KINDS = ("events", "frames")
 OUTPUT_KINDS = ("calibration", "status", "errors")
 
@@ -97,3 +99,28 @@ def matches(expr: str, key: str) -> bool:
         return e[i] == k[j] and rec(i + 1, j + 1)
 
     return rec(0, 0)
+
+
+def shard_of(camera: str, n_shards: int) -> int:
+    """The shard (``0 .. n_shards - 1``) that serves ``camera``: the first 8 bytes of the
+    BLAKE2b hash of its UTF-8 id, big-endian, modulo ``n_shards``. Stable across processes,
+    runs and machines (unlike ``hash()``), so a camera always has the same owner among the
+    workers of ``evcal serve --workers N`` and among instances started with ``--shard i/N``.
+    Not CRC-32: it is linear, and ids that differ in one character (``cam0`` .. ``cam3``)
+    share their low bits, hence their shard."""
+    if n_shards < 1:
+        raise ValueError(f"n_shards={n_shards} must be >= 1")
+    digest = hashlib.blake2b(camera.encode("utf-8", "surrogatepass"), digest_size=8).digest()
+    return int.from_bytes(digest, "big") % n_shards
+
+
+def parse_shard(text: str) -> tuple[int, int]:
+    """``"i/N"`` -> ``(i, N)`` with ``0 <= i < N``; ValueError otherwise."""
+    index, sep, count = text.partition("/")
+    try:
+        i, n = int(index), int(count)
+    except ValueError:
+        i = n = -1
+    if not sep or n < 1 or not 0 <= i < n:
+        raise ValueError(f"shard {text!r} is not I/N with 0 <= I < N, e.g. 0/2")
+    return i, n

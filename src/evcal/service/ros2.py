@@ -342,26 +342,53 @@ class RosRouter:
     logged once. Each new input topic gets a subscription token (``MS``, so that
     ``ros2 topic info`` lists evcal), declared by :meth:`declare_pending` from a thread
     that may call the transport (never the receive thread).
+
+    ``owns(camera)`` (a shard's :meth:`Service.owns`) leaves other shards' cameras alone:
+    their topics are neither delivered, counted as ignored, logged nor given a token, and
+    :meth:`accepts` tells the transport so before it copies a payload.
     """
 
     MAX_ROUTES = 4096
 
-    def __init__(self, node: RosNode, deliver: DeliverFn, topic_map: TopicMap | None = None
-                 ) -> None:
+    def __init__(self, node: RosNode, deliver: DeliverFn, topic_map: TopicMap | None = None,
+                 *, owns: Callable[[str], bool] | None = None) -> None:
         self.node = node
         self.deliver = deliver
         self.topic_map = topic_map or TopicMap()
+        self._owns = owns
         self._routes: dict[str, tuple[str, str, str, str] | None] = {}
+        self._foreign: set[str] = set()  # keys of other shards' cameras (bounded as _routes)
         self.ignored: dict[str, int] = {}
         self._pending: list[tuple[str, str, str]] = []
         self._lock = threading.Lock()
 
-    def _route(self, key: str) -> tuple[str, str, str, str] | None:
+    def accepts(self, key: str) -> bool:
+        """False for a key whose topic feeds another shard's camera (any thread)."""
+        if self._owns is None:
+            return True
+        if key in self._foreign:
+            return False
+        target = self._target(key)
+        if target is None or target[2] is None or self._owns(target[2]):
+            return True  # on_sample delivers it or counts it as ignored
+        if len(self._foreign) < self.MAX_ROUTES:
+            self._foreign.add(key)
+        return False
+
+    def _target(self, key: str) -> tuple[TopicKey, str | None, str | None] | None:
+        """``(parsed key, input kind, camera)`` of a data key of this node's domain."""
         parsed = parse_topic_key(key)
         if parsed is None or parsed.domain != self.node.domain:
             return None
         kind = INPUT_TYPES.get(parsed.msgtype)
-        camera = self.topic_map.camera(parsed.topic, kind) if kind is not None else None
+        return parsed, kind, (self.topic_map.camera(parsed.topic, kind) if kind is not None
+                              else None)
+
+    def _route(self, key: str) -> tuple[str, str, str, str] | None:
+        target = self._target(key)
+        if target is None:
+            return None
+        parsed, kind, camera = target
         if kind is None or camera is None:
             log.info("ROS 2 topic %s (%s) feeds no camera: ignored (--ros-topic-map maps it)",
                      parsed.topic, parsed.msgtype)
@@ -376,6 +403,8 @@ class RosRouter:
                   attachment: bytes | None) -> None:
         """A sample on a subscribed key (any receive thread; returns quickly)."""
         t_recv = time.monotonic()
+        if self._owns is not None and not self.accepts(key):
+            return
         if key in self._routes:
             route = self._routes[key]
         else:

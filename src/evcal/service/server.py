@@ -19,6 +19,7 @@ from . import keys
 from .core import Service, ServiceConfig
 from .outputs import error_reply
 from .ros2 import (
+    NODE_NAME,
     Ros2Options,
     RosCalibrationPublisher,
     RosNode,
@@ -66,8 +67,11 @@ def run(
             instance = config.instance or t.zid
             signer = Signer.from_file(instance, sign_key)
             node = ros_out = None
+            shard = config.shard
             if ros2 is not None:
-                node = RosNode(zid=t.zid, domain=ros2.domain)
+                # the workers of `serve --workers N` are nodes /evcal_w0, /evcal_w1, ...
+                node = RosNode(zid=t.zid, domain=ros2.domain,
+                               name=(NODE_NAME if shard is None else f"{NODE_NAME}_w{shard[0]}"))
                 ros_out = RosCalibrationPublisher(node, t.put, t.token)
             service = Service(config, t.put, match=intersects, observer=observer, store=store,
                               instance=instance, signer=signer,
@@ -101,28 +105,38 @@ def run(
                     req.reply_err(json.dumps({"reason": "bad_query", "message":
                                               "forget one camera: <prefix>/<camera>/forget"}))
                     return
+                if not service.owns(parsed[0]):
+                    return  # another shard's camera: its owner answers (and removes the file)
                 found = service.forget(parsed[0])
                 req.reply(req.key, json.dumps({"camera": parsed[0], "forgotten": found,
                                                "instance": service.instance}).encode(),
                           keys.ENC_STATUS)
 
-            t.queryable(f"{claim}/calibration", on_calibration)
-            t.queryable(f"{claim}/status", on_status)
-            t.queryable(f"{claim}/forget", on_forget)
-            t.queryable(keys.cameras_key(prefix), on_cameras)
+            # a shard answers for some cameras of these keys only: not "complete", so that
+            # a query with zenoh's default target reaches every shard
+            complete = shard is None
+            t.queryable(f"{claim}/calibration", on_calibration, complete=complete)
+            t.queryable(f"{claim}/status", on_status, complete=complete)
+            t.queryable(f"{claim}/forget", on_forget, complete=complete)
+            t.queryable(keys.cameras_key(prefix), on_cameras, complete=complete)
+            accept = service.accepts_key if shard is not None else None
             for kind in keys.INPUT_KINDS:
-                t.subscribe(f"{claim}/{kind}", service.on_sample)
+                t.subscribe(f"{claim}/{kind}", service.on_sample, accept=accept)
             router = None
             if ros2 is not None and node is not None:
-                router = RosRouter(node, service.deliver, ros2.topic_map)
+                router = RosRouter(node, service.deliver, ros2.topic_map,
+                                   owns=service.owns if shard is not None else None)
                 for key in subscription_keys(ros2.domain):
-                    t.subscribe(key, router.on_sample, attachment=True)
+                    t.subscribe(key, router.on_sample, attachment=True,
+                                accept=router.accepts if shard is not None else None)
                 t.token(node.node_token())
                 log.info("ROS 2 node /%s in domain %d: EventPacket and Image topics in, "
                          "calibration images out", node.name, ros2.domain)
             t.token(keys.service_token_key(prefix, instance.replace("/", "_")))
-            log.info("evcal service %s up: prefix %s, cameras %s, on_full=%s", instance, prefix,
-                     config.cameras, config.on_full)
+            log.info("evcal service %s up: prefix %s, cameras %s%s, on_full=%s", instance,
+                     prefix, config.cameras,
+                     f" (shard {shard[0]}/{shard[1]})" if shard is not None else "",
+                     config.on_full)
             service.tick(force=True)
             if ready is not None:
                 ready(service)

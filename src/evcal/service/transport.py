@@ -265,14 +265,19 @@ class Transport:
         return entity
 
     def subscribe(self, key: str, callback: Callable[..., None], *,
-                  attachment: bool = False) -> None:
+                  attachment: bool = False, accept: Callable[[str], bool] | None = None
+                  ) -> None:
         """Call ``callback(key, payload, encoding)`` for every sample on ``key`` (a glob);
         with ``attachment``, ``callback(key, payload, encoding, attachment)`` (the sample's
-        attachment bytes, or None)."""
+        attachment bytes, or None). ``accept(sample_key)`` False skips a sample before its
+        payload is copied (another shard's camera costs a key comparison, not a copy)."""
 
         def on_sample(sample: Any) -> None:
             try:
-                args = [str(sample.key_expr), sample.payload.to_bytes(), str(sample.encoding)]
+                sample_key = str(sample.key_expr)
+                if accept is not None and not accept(sample_key):
+                    return
+                args = [sample_key, sample.payload.to_bytes(), str(sample.encoding)]
                 if attachment:
                     att = sample.attachment
                     args.append(att.to_bytes() if att is not None else None)
@@ -283,8 +288,12 @@ class Transport:
         self._keep(self.session.declare_subscriber(
             key, zenoh.handlers.Callback(on_sample, indirect=False)))
 
-    def queryable(self, key: str, callback: Callable[[Request], None]) -> None:
-        """Call ``callback(request)`` for every query intersecting ``key``."""
+    def queryable(self, key: str, callback: Callable[[Request], None], *,
+                  complete: bool = True) -> None:
+        """Call ``callback(request)`` for every query intersecting ``key``. ``complete``
+        says this queryable has every answer for ``key``: a query with zenoh's default target
+        (best matching) is then sent to it alone; a shard holds only some cameras of ``key``
+        and declares ``complete=False``, so that such a query reaches every shard."""
 
         def on_query(query: Any) -> None:
             # ``with query`` drops it at the end: the querier stops waiting once every
@@ -300,7 +309,7 @@ class Transport:
                         pass
 
         self._keep(self.session.declare_queryable(
-            key, zenoh.handlers.Callback(on_query, indirect=False), complete=True))
+            key, zenoh.handlers.Callback(on_query, indirect=False), complete=complete))
 
     def publisher(self, key: str, encoding: str, *, block: bool = False,
                   express: bool = False) -> Publisher:
@@ -373,6 +382,42 @@ class Transport:
 
         self._keep(self.session.liveliness().declare_subscriber(
             key, zenoh.handlers.Callback(on_sample, indirect=False), history=True))
+
+
+# where zenoh listens when nothing says (its default configuration, per mode)
+DEFAULT_LISTEN = {"router": ("tcp/[::]:7447",), "peer": ("tcp/[::]:0",), "client": ()}
+
+
+def as_router(options: ZenohOptions, local_endpoint: str) -> ZenohOptions:
+    """Options for a router that stands where a session opened with ``options`` would have
+    stood (``evcal serve --workers N``: the supervisor routes for its workers).
+
+    It listens where that session would have listened -- the endpoints of ``--listen``,
+    ``--cfg`` or the configuration file, else zenoh's default for the session's mode (a peer
+    on a free TCP port, found by scouting; a router on 7447; a client nowhere) -- and also on
+    ``local_endpoint`` (the workers'); it connects where that session would have connected.
+    Everything else (TLS, scouting, shared memory, ...) is the user's.
+    """
+    conf = options.to_config()
+    try:
+        mode = json.loads(conf.get_json("mode")) or "peer"
+        endpoints = {section: json.loads(conf.get_json(f"{section}/endpoints"))
+                     for section in ("listen", "connect")}
+    except Exception as exc:
+        raise TransportError(f"cannot read the zenoh configuration: {exc}") from None
+
+    def of_mode(value: Any, default: tuple[str, ...]) -> tuple[str, ...]:
+        if isinstance(value, dict):  # {"router": [...], "peer": [...]}
+            value = value.get(mode)
+        return tuple(value) if value is not None else default
+
+    listen = of_mode(endpoints["listen"], DEFAULT_LISTEN.get(mode, ()))
+    connect = of_mode(endpoints["connect"], ())
+    own = {"mode", "listen/endpoints", "connect/endpoints"}
+    return ZenohOptions(
+        mode="router", listen=(*listen, local_endpoint), connect=connect,
+        config_file=options.config_file, multicast_scouting=options.multicast_scouting,
+        extra=tuple((k, v) for k, v in options.extra if k.strip("/") not in own))
 
 
 def router_session(listen: Iterable[str]) -> Transport:

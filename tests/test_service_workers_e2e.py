@@ -1,0 +1,151 @@
+"""``evcal serve --workers 2`` as a real process tree on loopback: three cameras replayed and
+split over two workers, each calibration published and queryable, a killed worker restarted
+from the state directory, SIGTERM leaving no process behind."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+
+import pytest
+
+pytest.importorskip("zenoh")
+
+from evcal.io import write_recording  # noqa: E402
+from evcal.service import keys  # noqa: E402
+from evcal.service.state import StateStore  # noqa: E402
+from evcal.service.transport import Transport, ZenohOptions  # noqa: E402
+from evcal.sim.ideal import SimConfig, simulate_ideal  # noqa: E402
+from evcal.testing import ServiceProcess, endpoint, free_port, python_env, wait_for  # noqa: E402
+
+pytestmark = pytest.mark.timeout(240)
+
+ZARGS = ["--no-multicast-scouting"]
+CAMERAS = ["lab/rig1/cam0", "lab/rig1/cam1", "lab/rig2/cam0"]
+
+
+def gone(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    return False
+
+
+def test_two_workers_split_restart_and_stop(tmp_path):
+    owner = {cam: f"lab-w{keys.shard_of(cam, 2)}" for cam in CAMERAS}
+    assert set(owner.values()) == {"lab-w0", "lab-w1"}  # both workers get cameras
+    sim = simulate_ideal(SimConfig(height=36, width=48, duration_s=2.0, seed=6))
+    path = write_recording(sim.recording, tmp_path / "sim.npz")
+    n_frames = len(sim.recording.frames)
+    ep = endpoint(free_port())
+    state = tmp_path / "state"
+    args = ["--workers", "2", "--instance", "lab", "--listen", ep, *ZARGS, "--state-dir",
+            str(state), "--snapshot-period", "0.5", "--status-period", "0.2", "--n-small",
+            "3000", "--n-large", "1000000", "--on-full", "block", "-v"]
+
+    def replies(t, key):
+        return [json.loads(r.payload) for r in t.get(key, timeout_s=2.0) if r.ok]
+
+    def split(t):
+        return {i["instance"]: sorted(c["id"] for c in i["cameras"])
+                for i in replies(t, "evcal/cameras") if not i.get("supervisor")}
+
+    def supervisor(t):
+        found = [i for i in replies(t, "evcal/cameras") if i.get("supervisor")]
+        return found[0] if found else None
+
+    def frames_of(t, cam):
+        st = replies(t, f"evcal/{cam}/status")
+        return st[0]["frames"] if len(st) == 1 else 0
+
+    published: set[str] = set()
+    lock = threading.Lock()
+
+    def on_calibration(key: str, payload: bytes, enc: str) -> None:
+        with lock:
+            published.add(key)
+
+    with ServiceProcess(args, log_path=tmp_path / "serve.log") as sp, \
+            Transport(ZenohOptions.loopback(connect=[ep])) as t:
+        wait_for(lambda: len(t.alive("evcal/@service/lab-w$*", timeout_s=1.0)) == 2,
+                 timeout_s=60, what="two workers")
+        t.subscribe("evcal/**/calibration", on_calibration)
+        procs = [subprocess.Popen(
+            [sys.executable, "-m", "evcal.clients.replay", str(path), "--camera", cam,
+             "--connect", ep, *ZARGS, "--max-rate"], stderr=subprocess.PIPE, text=True,
+            env=python_env()) for cam in CAMERAS]
+        for p in procs:
+            _, err = p.communicate(timeout=120)
+            assert p.returncode == 0, err
+        for cam in CAMERAS:
+            wait_for(lambda: frames_of(t, cam) >= n_frames, timeout_s=60,  # noqa: B023
+                     what=f"{cam} processed")
+        with lock:
+            assert published == {f"evcal/{cam}/calibration" for cam in CAMERAS}
+        assert split(t) == {w: sorted(c for c in CAMERAS if owner[c] == w)
+                            for w in ("lab-w0", "lab-w1")}
+        before = {}
+        for cam in CAMERAS:  # one answer each, from its owner
+            (r,) = t.get(f"evcal/{cam}/calibration", timeout_s=3.0)
+            assert r.ok
+            before[cam] = r.payload
+        sup = supervisor(t)
+        assert sup is not None
+        assert sup["worker_restarts"] == 0
+        pids = {w["instance"]: w["pid"] for w in sup["workers"]}
+
+        # worker w1 is killed once its snapshots hold its last calibrations
+        victim = [c for c in CAMERAS if owner[c] == "lab-w1"]
+        store = StateStore(state)
+        wait_for(lambda: all((s := store.load(c)) is not None  # noqa: B023
+                             and s.arrays["calibration_msg"].tobytes() == before[c]
+                             for c in victim), timeout_s=30, what="the snapshots")
+        os.kill(pids["lab-w1"], signal.SIGKILL)
+        wait_for(lambda: (s := supervisor(t)) and s["worker_restarts"] == 1
+                 and all(w["alive"] for w in s["workers"]), timeout_s=30, what="a restart")
+        wait_for(lambda: split(t).get("lab-w1") == victim, timeout_s=60,
+                 what="w1 back with its cameras")
+        for cam in CAMERAS:  # answered at once from the restored state
+            (r,) = t.get(f"evcal/{cam}/calibration", timeout_s=3.0)
+            assert r.payload == before[cam], cam
+        sup = supervisor(t)
+        assert sup["workers"][1]["last_exit"] == "signal 9 (SIGKILL)"
+        assert sup["workers"][1]["starts"] == 2
+        pids = [pids["lab-w0"], sup["workers"][1]["pid"]]
+
+        assert sp.stop() == 0, sp.log_text()
+        assert all(gone(pid) for pid in pids), sp.log_text()
+    log = sp.log_text()
+    assert "worker lab-w1 exited (signal 9 (SIGKILL))" in log
+    assert "evcal serve: stopped; 2 workers, 1 restart(s)" in log
+
+
+def test_workers_exit_when_the_supervisor_is_killed(tmp_path):
+    ep = endpoint(free_port())
+    with ServiceProcess(["--workers", "2", "--instance", "orphan", "--listen", ep, *ZARGS],
+                        log_path=tmp_path / "serve.log") as sp, \
+            Transport(ZenohOptions.loopback(connect=[ep])) as t:
+        wait_for(lambda: len(t.alive("evcal/@service/orphan-w$*", timeout_s=1.0)) == 2,
+                 timeout_s=60, what="two workers")
+        (sup,) = [json.loads(r.payload) for r in t.get("evcal/cameras", timeout_s=2.0)
+                  if r.ok and json.loads(r.payload).get("supervisor")]
+        pids = [w["pid"] for w in sup["workers"]]
+        sp.kill()  # SIGKILL: no clean-up in the supervisor at all
+        wait_for(lambda: all(gone(p) or _zombie(p) for p in pids), timeout_s=30,
+                 what="the workers gone")
+    assert sp.log_text().count("shutting down: draining queues") == 2  # both stopped cleanly
+
+
+def _zombie(pid: int) -> bool:
+    """An exited process not reaped yet (its parent, the killed supervisor, is gone and
+    init reaps it shortly)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] == "Z"
+    except OSError:
+        return True
