@@ -134,13 +134,15 @@ def test_service_defaults_on_v2e_at_offset_zero() -> None:
 
 def test_model_corrected_offei_under_v2e_shot_noise() -> None:
     """``calibrate --model`` with shot noise named: the measurement and the simulations with
-    the effect are cleaned by the background-activity filter (10 ms), then the bias removed.
-    The model: v2e's 2 Hz shot noise falls to 0.5 Hz at white (scripts/v2e_data/README.md),
-    1.35 Hz at these scenes' typical 100 DN, which evcal's 1/I law gives with ref_dn 100 (the
-    gap workflow fits its own). c RMSE against the same scene without noise, measured 1.49,
-    1.35, 1.40, 1.41x (plain OffEI 2.36, 1.75, 1.82, 1.71x; the correction without the filter
-    1.7-2.2x). The residual is variance, not bias: the corrected median c / true c is within
-    3 % of the noise-free fit's."""
+    the effect are cleaned (support by a same-polarity neighbour within 10 ms either side,
+    and no events where the frames show less than a tenth of a threshold of change), then the
+    bias removed. The model: v2e's 2 Hz shot noise falls to 0.5 Hz at white
+    (scripts/v2e_data/README.md), 1.35 Hz at these scenes' typical 100 DN, which evcal's 1/I
+    law gives with ref_dn 100 (the gap workflow fits its own: docs/GAP.md has both). c RMSE
+    against the same scene without noise, measured 1.28, 1.19, 1.14, 1.28x (plain OffEI 2.36,
+    1.75, 1.82, 1.71x; with the plain background-activity filter 1.35-1.49x). What remains
+    is variance of the noise events the filter cannot tell from an edge's: the corrected
+    median c / true c is within 3 % of the noise-free fit's."""
     from evcal.gap.correct import model_corrected  # noqa: PLC0415
     from evcal.sim.effects import ShotNoise  # noqa: PLC0415
 
@@ -165,7 +167,7 @@ def test_model_corrected_offei_under_v2e_shot_noise() -> None:
                    - np.median(fit_clean.contrast[w] / tc[w])) < 0.03
         ratios.append(rmse(cor) / ref)
         plain.append(rmse(offei(noisy, cfg)) / ref)
-    assert max(ratios) < 1.6, ratios
+    assert max(ratios) <= 1.3, ratios
     assert all(r < p for r, p in zip(ratios, plain, strict=True)), (ratios, plain)
 
 

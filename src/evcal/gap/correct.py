@@ -47,12 +47,13 @@ from typing import Any
 import numpy as np
 
 from ..calibration import Calibration
-from ..denoise import background_activity_filter
+from ..denoise import background_activity_filter, still_interval_mask
 from ..errors import ConfigError
 from ..offline import OffEIConfig, offei
 from ..recording import Recording
 from ..sim.effects import Effect, LogOffset, effect_set, make_effect
 from .model import Model, SimSettings, _shrink, estimate_read_noise, simulate_model
+from .stats import NOMINAL_LOG_OFFSET_DN
 
 
 class ModelFileError(ConfigError):
@@ -107,6 +108,12 @@ class CorrectionConfig:
     # background-activity filter window (µs) for models with noise events; "auto": 10 ms
     # when the model names shot_noise or leak, else none; None: never
     denoise_us: int | str | None = "auto"
+    # the filter's support: from a neighbour's event of the same polarity, before or after
+    denoise_same_polarity: bool = True
+    denoise_two_sided: bool = True
+    # with the filter, events of frame intervals whose change of log intensity is below this
+    # fraction of the median threshold are dropped too (None: not)
+    still_fraction: float | None = 0.1
 
     def __post_init__(self) -> None:
         for name in ("n_seeds", "iterations", "activity_bins", "intensity_bins",
@@ -116,6 +123,9 @@ class CorrectionConfig:
         d = self.denoise_us
         if not (d is None or d == "auto" or (isinstance(d, int) and d > 0)):
             raise ConfigError(f"denoise_us={d!r} must be 'auto', None or a window > 0 µs")
+        f = self.still_fraction
+        if f is not None and not 0 < f < 1:
+            raise ConfigError(f"still_fraction={f!r} must be None or in (0, 1)")
 
     def denoise_window_us(self, effects: Mapping[str, Effect]) -> int | None:
         """The filter window for a model with ``effects`` (None: no filtering)."""
@@ -127,11 +137,27 @@ class CorrectionConfig:
 NOISE_EFFECTS = frozenset({"shot_noise", "leak"})  # isolated events a filter can remove
 
 
-def _denoised(rec: Recording, window_us: int | None) -> Recording:
-    if window_us is None:
-        return rec
-    return rec.with_events(rec.events[background_activity_filter(rec.events, rec.sensor,
-                                                                 window_us)])
+@dataclass(frozen=True)
+class _Denoiser:
+    """The filters of :func:`model_corrected`, applied alike to the measurement and to the
+    simulations with the effects."""
+
+    window_us: int | None
+    same_polarity: bool
+    two_sided: bool
+    still_dl: float | None  # log-intensity change below which a frame interval is still
+    log_offset: float
+
+    def __call__(self, rec: Recording) -> Recording:
+        if self.window_us is None:
+            return rec
+        keep = background_activity_filter(rec.events, rec.sensor, self.window_us,
+                                          same_polarity=self.same_polarity,
+                                          two_sided=self.two_sided)
+        if self.still_dl is not None:
+            keep &= still_interval_mask(rec.events, rec.frames, rec.sensor, self.still_dl,
+                                        self.log_offset)
+        return rec.with_events(rec.events[keep])
 
 
 def _quantile_bins(v: np.ndarray, ok: np.ndarray, n: int) -> np.ndarray:
@@ -187,7 +213,18 @@ def model_corrected(rec: Recording, effects: Mapping[str, Effect] | list[Effect]
         return offei(rec, base_cfg).with_warning("model has no effects: nothing to correct")
     window_us = cfg.denoise_window_us(eff)
     n_in = rec.n_events
-    rec = _denoised(rec, window_us)
+    still_dl = None
+    offset_in = base_cfg.log_offset
+    if window_us is not None and (cfg.still_fraction is not None or offset_in == "auto"):
+        # the median threshold and the offset, from the unfiltered data
+        pre = offei(rec, base_cfg)
+        offset_in = float(pre.log_offset)
+        base_cfg = replace(base_cfg, log_offset=offset_in)
+        if cfg.still_fraction is not None and pre.valid.any():
+            still_dl = cfg.still_fraction * float(np.median(pre.contrast[pre.valid]))
+    denoise = _Denoiser(window_us, cfg.denoise_same_polarity, cfg.denoise_two_sided, still_dl,
+                        float(offset_in) if offset_in != "auto" else NOMINAL_LOG_OFFSET_DN)
+    rec = denoise(rec)
     cal_m = offei(rec, base_cfg)
     offset = float(cal_m.log_offset)
     sim_cfg = replace(base_cfg, log_offset=offset)
@@ -216,7 +253,7 @@ def model_corrected(rec: Recording, effects: Mapping[str, Effect] | list[Effect]
                 sim = simulate_model(Model(c0, b0, offset, with_eff), rec,
                                      cfg.seed * 1000 + k, settings)
                 if label == "effects":  # filtered as the measurement was; the ideal not
-                    sim = _denoised(sim, window_us)
+                    sim = denoise(sim)
                 fit = offei(sim, sim_cfg)
                 ok &= fit.valid.ravel()
                 cs += fit.contrast.astype(np.float64).ravel() / cfg.n_seeds
@@ -242,6 +279,9 @@ def model_corrected(rec: Recording, effects: Mapping[str, Effect] | list[Effect]
         "effects": {n: e.parameters() for n, e in eff.items()},
         "n_seeds": cfg.n_seeds, "iterations": cfg.iterations,
         "denoise_us": window_us,
+        "denoise_same_polarity": cfg.denoise_same_polarity,
+        "denoise_two_sided": cfg.denoise_two_sided,
+        "still_max_dl": still_dl,
         "denoise_kept_fraction": rec.n_events / n_in if n_in else 1.0,
         "cells": int(np.unique(cells).size),
         "gain_median": float(np.median(gain[valid])) if valid.any() else 1.0,
