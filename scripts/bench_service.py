@@ -3,7 +3,7 @@
     python scripts/bench_service.py throughput [--sizes 346x260,1280x720] [--events 40e6]
     python scripts/bench_service.py latency [--rates 1e6,2e6,5e6] [--seconds 20] [--rrd]
                                             [--size 346x260]
-    python scripts/bench_service.py scaling [--seconds 30] [--cameras 2]
+    python scripts/bench_service.py scaling [--seconds 10] [--cameras 2] [--workers 1,2]
     python scripts/bench_service.py shm [--events 40e6]
     python scripts/bench_service.py ros2 [--events 40e6]
     python scripts/bench_service.py memory [--minutes 10]
@@ -31,12 +31,14 @@ latency     a DAVIS346-like real-time stream: 346x260, 25 Hz frames, events at `
             the median of each step (queue wait, OnEI fold + re-solve, calibration maps,
             encode, publish). Also the round trip seen by the client: frame put -> that
             calibration received back.
-scaling     1, then 2 (``--cameras``) cameras streamed at once into one service at full rate
-            (each a ``evcal replay --max-rate --loop`` of a 346x260 simulated recording, its
-            own process), for ``--seconds``: the service's aggregate events/s and updates/s
-            from its status counters over the timed part, and the ratio to one camera. Each
-            camera has its own decoder and estimator threads (numba kernels release the GIL),
-            so cameras run on different cores; the replays share the cores too.
+scaling     1, then 2 (``--cameras``) cameras streamed at once at full rate into
+            ``serve --workers W`` for each W of ``--workers`` (each camera a
+            ``evcal replay --max-rate --loop`` of a 346x260 simulated recording, its own
+            process; camera ids chosen so that camera c is served by worker c mod W), for
+            ``--seconds``: the aggregate events/s and updates/s from the status counters over
+            the timed part, the ratio to one camera into one worker, and the cores used by
+            the service (supervisor and workers), by the replays (which share the machine's
+            cores) and by every other process.
 shm         the "events" throughput with zenoh's shared-memory transport (on by default
             between local processes for messages above 3 KiB) and with it disabled
             (``transport/shared_memory/enabled: false`` on both sides), beside the zenoh
@@ -102,6 +104,24 @@ def start_service(extra: list[str]) -> tuple[ServiceProcess, str]:
     return sp, ep
 
 
+def cpu_seconds(procs: list[psutil.Process]) -> float:
+    """User + system CPU seconds of ``procs`` so far (processes gone count 0)."""
+    total = 0.0
+    for p in procs:
+        try:
+            c = p.cpu_times()
+            total += c.user + c.system
+        except psutil.Error:
+            pass
+    return total
+
+
+def process_tree(pid: int) -> list[psutil.Process]:
+    """``pid`` and its descendants (a service with ``--workers``: supervisor and workers)."""
+    root = psutil.Process(pid)
+    return [root, *root.children(recursive=True)]
+
+
 class OtherLoad:
     """CPU used by other processes while a figure is measured (in cores), to flag runs that
     shared the machine: ``with OtherLoad(pid) as load: ...; load.cores``."""
@@ -117,14 +137,7 @@ class OtherLoad:
                                            for k in ("iowait", "guest", "guest_nice")))
 
     def _ours(self) -> float:
-        total = 0.0
-        for p in self.procs:
-            try:
-                c = p.cpu_times()
-                total += c.user + c.system
-            except psutil.Error:
-                pass
-        return total
+        return cpu_seconds(self.procs)
 
     def __enter__(self) -> OtherLoad:
         self._t0, self._busy0, self._ours0 = time.monotonic(), self._busy(), self._ours()
@@ -325,8 +338,24 @@ def latency(rate: float, seconds: float, *, chunk_ms: float = 10.0, rrd: str | N
 # ----------------------------------------------------------------------------- scaling
 
 
-def scaling(seconds: float, max_cameras: int) -> list[dict]:
-    """Aggregate service throughput with 1..max_cameras cameras at full rate."""
+def spread_camera_ids(n: int, workers: int, stem: str = "scale/cam") -> list[str]:
+    """``n`` camera ids, camera ``c`` on worker ``c % workers`` of ``serve --workers``
+    (ids are spread by a hash: without choosing them, 2 cameras share one of 2 workers half
+    of the time)."""
+    out = []
+    for c in range(n):
+        out.append(next(f"{stem}{c}" + (f"-{k}" if k else "") for k in range(1000)
+                        if keys.shard_of(f"{stem}{c}" + (f"-{k}" if k else ""), workers)
+                        == c % workers))
+    return out
+
+
+def scaling(seconds: float, max_cameras: int, workers: list[int], *, shm: bool = True
+            ) -> list[dict]:
+    """Aggregate service throughput with 1..max_cameras cameras at full rate into
+    ``serve --workers W`` for each W of ``workers``; CPU in cores of the service (supervisor
+    and workers), of the replays and of every other process. ``shm=False``: the replays'
+    shared memory off, their payloads reach the service as a remote publisher's would."""
     import subprocess
     import tempfile
     from pathlib import Path
@@ -339,40 +368,59 @@ def scaling(seconds: float, max_cameras: int) -> list[dict]:
     sim = simulate_ideal(SimConfig(height=260, width=346, duration_s=4.0, seed=11))
     path = write_recording(sim.recording, d / "cam.npz")
     out = []
-    for n in range(1, max_cameras + 1):
-        sp, ep = start_service([])
-        reps: list[subprocess.Popen[str]] = []
-        cams = [f"scale/cam{c}" for c in range(n)]
-        try:
-            with Transport(ZenohOptions.loopback(connect=[ep])) as t:
-                wait_for(lambda: t.alive("evcal/@service/*", timeout_s=1.0), timeout_s=60)
-                for cam in cams:
-                    reps.append(subprocess.Popen(
-                        [sys.executable, "-m", "evcal.clients.replay", str(path), "--camera",
-                         cam, "--connect", ep, *ZARGS, "--max-rate", "--loop"],
-                        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                        env=python_env()))
-                time.sleep(5.0)  # warm-up: cameras created, kernels loaded
+    for w in workers:
+        for n in range(1, max_cameras + 1):
+            sp, ep = start_service(["--workers", str(w)])
+            reps: list[subprocess.Popen[str]] = []
+            cams = spread_camera_ids(n, w)
+            try:
+                with Transport(ZenohOptions.loopback(connect=[ep])) as t:
+                    wait_for(lambda w=w: len(t.alive("evcal/@service/*", timeout_s=1.0)) >= w,
+                             timeout_s=60)
+                    for cam in cams:
+                        reps.append(subprocess.Popen(
+                            [sys.executable, "-m", "evcal.clients.replay", str(path),
+                             "--camera", cam, "--connect", ep, *ZARGS, "--max-rate", "--loop",
+                             *([] if shm else SHM_OFF)],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            env=python_env()))
+                    time.sleep(5.0)  # warm-up: cameras created, kernels loaded
 
-                def totals(cams: list[str] = cams) -> tuple[int, int]:
-                    sts = [status(t, c) for c in cams]
-                    return (sum(x.get("events", 0) for x in sts),
-                            sum(x.get("updates", 0) for x in sts))
+                    def counters(cams: list[str] = cams) -> list[tuple[int, int]]:
+                        sts = [status(t, c) for c in cams]
+                        return [(x.get("events", 0), x.get("updates", 0)) for x in sts]
 
-                with OtherLoad(sp.pid) as load:
-                    e0, u0 = totals()
-                    t0 = time.monotonic()
-                    time.sleep(seconds)
-                    e1, u1 = totals()
-                    dt = time.monotonic() - t0
-                cpu = psutil.Process(sp.pid).cpu_percent(interval=1.0) / 100.0
-        finally:
-            for r in reps:
-                r.kill()
-            sp.stop()
-        out.append({"cameras": n, "events_per_s": (e1 - e0) / dt,
-                    "updates_per_s": (u1 - u0) / dt, "service_cores": cpu,
-                    "other_load_cores": load.cores})
+                    service = process_tree(sp.pid)
+                    replays = [psutil.Process(r.pid) for r in reps]
+                    with OtherLoad(*(p.pid for p in service + replays)) as load:
+                        c0 = counters()
+                        cpu0 = (cpu_seconds(service), cpu_seconds(replays),
+                                *(cpu_seconds([p]) for p in service))
+                        t0 = time.monotonic()
+                        time.sleep(seconds)
+                        c1 = counters()
+                        cpu1 = (cpu_seconds(service), cpu_seconds(replays),
+                                *(cpu_seconds([p]) for p in service))
+                        dt = time.monotonic() - t0
+            finally:
+                for r in reps:
+                    r.kill()
+                    r.wait()
+                sp.stop()
+            per_camera = [(b[0] - a[0]) / dt for a, b in zip(c0, c1, strict=True)]
+            out.append({"workers": w, "cameras": n, "events_per_s": sum(per_camera),
+                        "per_camera_events_per_s": per_camera,
+                        "updates_per_s": sum(b[1] - a[1] for a, b in zip(c0, c1, strict=True))
+                        / dt,
+                        "service_cores": (cpu1[0] - cpu0[0]) / dt,
+                        "replay_cores": (cpu1[1] - cpu0[1]) / dt,
+                        # with workers: the supervisor alone (zenoh routing to the workers),
+                        # then each worker (one without cameras only leaves others' samples)
+                        "supervisor_cores": (cpu1[2] - cpu0[2]) / dt if w > 1 else None,
+                        "worker_cores": [(b - a) / dt for a, b in zip(cpu0[3:], cpu1[3:],
+                                                                      strict=True)]
+                        if w > 1 else None,
+                        "other_load_cores": load.cores})
     return out
 
 
@@ -651,7 +699,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("what", choices=["throughput", "latency", "memory", "stress", "scaling",
                                     "shm", "ros2", "all"])
     p.add_argument("--size", default="346x260", help="latency: sensor size WxH")
-    p.add_argument("--cameras", type=int, default=4, help="stress: replays at once")
+    p.add_argument("--cameras", type=int, default=4,
+                   help="stress: replays at once; scaling: 1 .. this many cameras (give 2)")
+    p.add_argument("--workers", default="1,2",
+                   help="scaling: the service's --workers values, comma-separated")
+    p.add_argument("--no-shm", action="store_true",
+                   help="scaling: replays without zenoh's shared memory (as remote cameras)")
     p.add_argument("--sizes", default="346x260,1280x720", help="throughput: sensor sizes")
     p.add_argument("--modes", default=",".join(THROUGHPUT_MODES),
                    help="throughput: modes (events, frames, updates)")
@@ -678,14 +731,23 @@ def main(argv: list[str] | None = None) -> int:
             print_latency(latency(float(rate), args.seconds, rrd=args.rrd, size=args.size,
                                   settle_s=args.settle_s))
     if args.what in ("scaling", "all"):
-        rows = scaling(args.seconds, max(2, args.cameras if args.what == "scaling" else 2))
+        rows = scaling(args.seconds, args.cameras if args.what == "scaling" else 2,
+                       [int(w) for w in args.workers.split(",")], shm=not args.no_shm)
         one = rows[0]["events_per_s"] or float("nan")
+        how = ", replays without shared memory" if args.no_shm else ""
         for r in rows:
-            print(f"scaling {r['cameras']} camera(s) at full rate (346x260, default OnEI): "
+            print(f"scaling --workers {r['workers']}, {r['cameras']} camera(s) at full rate "
+                  f"(346x260, default OnEI{how}): "
                   f"{r['events_per_s'] / 1e6:.1f} M events/s in all "
-                  f"({r['events_per_s'] / one:.2f}x one camera), {r['updates_per_s']:.1f} "
-                  f"updates/s, service {r['service_cores']:.2f} cores, other processes "
-                  f"{r['other_load_cores']:.2f} cores", flush=True)
+                  f"({r['events_per_s'] / one:.2f}x one camera into one worker; per camera "
+                  + ", ".join(f"{e / 1e6:.1f}" for e in r["per_camera_events_per_s"])
+                  + f"), {r['updates_per_s']:.1f} updates/s; cores used: service "
+                  f"{r['service_cores']:.2f}"
+                  + (f" (supervisor {r['supervisor_cores']:.2f}, workers "
+                     + ", ".join(f"{c:.2f}" for c in r["worker_cores"]) + ")"
+                     if r["supervisor_cores"] is not None else "")
+                  + f", replays {r['replay_cores']:.2f}, other "
+                  f"processes {r['other_load_cores']:.2f}", flush=True)
     if args.what in ("shm", "all"):
         for shm in (True, False):
             floor = zenoh_loopback_floor(int(args.events), shm=shm)

@@ -19,7 +19,7 @@ from evcal.online import OnEIConfig
 from evcal.service import keys
 from evcal.service.cli import build_parser, config_from_args
 from evcal.service.core import Service, ServiceConfig
-from evcal.service.state import StateStore
+from evcal.service.state import StateStore, snapshot_name
 from evcal.service.workers import (
     OWN_OPTIONS,
     Supervisor,
@@ -96,6 +96,15 @@ def test_each_shard_restores_only_its_own_snapshots(tmp_path):
             assert part.restore() == [cam]
         finally:
             part.close()
+    # a damaged file is judged by its camera's shard alone (never read by the other)
+    (tmp_path / "x").mkdir()
+    theirs = ids_of_shard(1, 2, 1)[0]
+    (tmp_path / "x" / snapshot_name(theirs)).write_bytes(b"not a zip")
+    other = StateStore(tmp_path / "x")
+    assert other.snapshots(want=lambda cam: keys.shard_of(cam, 2) == 0) == []
+    assert other.bad == 0
+    assert other.snapshots() == []
+    assert other.bad == 1
 
 
 def test_ros_router_leaves_other_shards_topics_alone():

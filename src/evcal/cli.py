@@ -36,6 +36,8 @@ examples:
   evcal gap road.aedat4 --out gap/                      # what the sensor model lacks
   evcal demo                                            # service + simulated camera
   evcal serve --listen tcp/0.0.0.0:7447                 # the live calibration service
+  evcal serve --workers auto --listen tcp/0.0.0.0:7447  # ... one process per core, cameras
+                                                        #     split among them
   evcal serve --ros2 --connect tcp/localhost:7447       # ... also a ROS 2 node (rmw_zenoh)
 
 environment:

@@ -547,7 +547,8 @@ class Service:
         if self.store is None:
             return []
         done = []
-        for snap in self.store.snapshots():
+        # a shard reads only its own cameras' files (the directory is shared)
+        for snap in self.store.snapshots(want=self.owns if self.config.shard else None):
             camera_id = snap.camera
             try:
                 keys.check_camera_id(camera_id)

@@ -21,6 +21,7 @@ import itertools
 import logging
 import os
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from urllib.parse import quote, unquote
@@ -150,8 +151,10 @@ class StateStore:
             return None
         return Snapshot(camera, p, arrays)
 
-    def snapshots(self) -> list[Snapshot]:
-        """Every readable snapshot; removes stale temp files, moves unreadable ones aside."""
+    def snapshots(self, want: Callable[[str], bool] | None = None) -> list[Snapshot]:
+        """Every readable snapshot (with ``want``, of the cameras it accepts); removes stale
+        temp files, moves unreadable ones aside. A file whose name gives its camera id and
+        ``want`` refuses is not read at all (another shard's, sharing the directory)."""
         out: list[Snapshot] = []
         for p in sorted(self.dir.iterdir()):
             if ".tmp-" in p.name:
@@ -165,8 +168,12 @@ class StateStore:
                 continue
             if not p.name.endswith(SUFFIX):
                 continue
+            if want is not None:
+                named = unquote(p.name[: -len(SUFFIX)])
+                if snapshot_name(named) == p.name and not want(named):
+                    continue
             snap = self._read(p)
-            if snap is not None:
+            if snap is not None and (want is None or want(snap.camera)):
                 out.append(snap)
         return out
 
