@@ -252,3 +252,31 @@ def test_parser_has_the_supervisor_options():
     dests = {a.dest for a in parser._actions}
     assert OWN_OPTIONS <= dests | {"help"}
     assert isinstance(parser, argparse.ArgumentParser)
+
+
+def test_an_update_between_frames_is_snapshotted(tmp_path):
+    """A calibration published by ``on_idle`` (an offset estimate that finished after the
+    last frame) marks the camera changed: the next snapshot keeps it, so a restarted worker
+    answers with it (it used to be lost: only messages marked a camera changed)."""
+    store = StateStore(tmp_path)
+    svc = Service(ServiceConfig(onei=OnEIConfig(n_small=50, n_large=10_000)), Collector(),
+                  store=store)
+    try:
+        feed(svc, "lab/cam0", stream(n_frames=6))
+        settle(svc)
+        cam = svc.cameras["lab/cam0"]
+        svc.snapshot()
+        with cam.lock:
+            assert not cam.state.dirty
+            cal = cam.state.calibrator
+            assert cal is not None
+            finished = iter([True])  # an estimate just finished, once
+            cal.poll_offset = lambda: next(finished, False)
+            (upd,) = cam.state.on_idle(now_s=0.0)
+            assert cam.state.dirty
+        assert svc.snapshot() == 1
+        snap = store.load("lab/cam0")
+        assert snap is not None
+        assert snap.arrays["calibration_msg"].tobytes() == upd.message
+    finally:
+        svc.close()

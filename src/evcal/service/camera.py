@@ -282,6 +282,7 @@ class CameraState:
         self.calibration_t_us = t_us
         self.last_update_wall = time.time()
         self.counters.updates += 1
+        self.dirty = True  # also an update between frames (on_idle): the snapshot must keep it
         return upd
 
     def published(self, upd: CalibrationUpdate, t_pub_s: float) -> None:
