@@ -21,7 +21,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("recording", help="ECD folder, .aedat4, .mcap or .npz (needs frames)")
     p.add_argument("--out", required=True, help="output directory (report.json, report.md, "
                    "PNG plots, gap.rrd)")
-    p.add_argument("--max-effects", type=int, default=3, help="at most this many effects named")
+    p.add_argument("--max-effects", type=int, default=3,
+                   help="at most this many sensor effects named (the timestamp scheme of a "
+                   "frame-driven simulator is named apart)")
     p.add_argument("--seed", type=int, default=0, help="seed of the simulations")
     p.add_argument("--n-seeds", type=int, default=3, help="simulations per model (spread)")
     p.add_argument("--internal-rate-hz", type=float, default=1000.0,

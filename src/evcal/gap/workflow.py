@@ -7,10 +7,16 @@
 3. For each effect not in the model yet: estimate its parameters (:func:`.model.fit_candidate`),
    anchor, simulate with the same seeds, and compute the gap. The score is the gap plus
    ``penalty_per_parameter`` per fitted parameter.
-4. The best candidate is named if it lowers the gap by more than its penalty plus
-   ``min_improvement`` and by at least ``min_relative_improvement`` of the part of the gap
-   above 1 (what a perfect model would leave). Its main parameter is then refined by a
-   three-point search. Repeat from 3 until nothing is named or ``max_effects`` are.
+4. The best candidate is named if it lowers the gap (counted down to 1, what a model that
+   explains the data leaves) by more than its penalty plus ``min_improvement`` and by at
+   least ``min_relative_improvement`` of the part of the gap above 1. Its moment estimate is
+   bias-corrected by simulation and, unless that confirms it, refined by a three-point
+   search. Repeat from 3 until nothing is named or ``max_effects`` are.
+
+The timestamp scheme of a frame-driven simulator (``timestamp_quantisation``) is not a
+sensor effect: once its fitter sees the timestamps on a step grid, the sensor candidates are
+evaluated on top of it, and it is named when it closes the gap alone or with the best of
+them.
 """
 
 from __future__ import annotations
@@ -332,8 +338,11 @@ def _need(cfg: GapConfig, current: Evaluation) -> float:
     return max(cfg.min_improvement, cfg.min_relative_improvement * (current.gap - 1.0))
 
 
-def _gain(cfg: GapConfig, current: Evaluation, gap: float, eff: Effect) -> float:
-    return current.gap - (gap + cfg.penalty_per_parameter * eff.n_fitted)
+def _gain(gap: float, score: float) -> float:
+    """How much a candidate of ``score`` (its gap plus penalty) takes off ``gap``, counted
+    down to 1 only: a model that explains the data leaves a gap of about 1, and what a
+    candidate takes off below that fits the noise of the comparison."""
+    return gap - max(score, 1.0)
 
 
 def _cast(eff: Effect, key: str, value: float) -> Any:
@@ -370,7 +379,10 @@ def run_gap(rec: Recording, config: GapConfig | None = None, *,
     initial = current
     steps: list[Step] = []
     rejected: dict[str, dict[str, Any]] = {}
-    while len(steps) < cfg.max_effects:
+    def n_sensor() -> int:  # max_effects counts sensor effects, not the timestamp scheme
+        return sum(s.effect.name != SCHEME_EFFECT for s in steps)
+
+    while n_sensor() < cfg.max_effects:
         tried: dict[str, dict[str, Any]] = {}
         # the timestamp scheme first: once the timestamps are seen to lie on a step grid,
         # every sensor candidate is fitted and simulated with the scheme (how a frame-driven
@@ -381,9 +393,10 @@ def run_gap(rec: Recording, config: GapConfig | None = None, *,
         best = run.best_candidate(on, tried, skip=SCHEME_EFFECT)
         if scheme is not None:
             eff_q, ev_q = scheme
-            q_alone = _gain(cfg, current, ev_q.gap, eff_q) > _need(cfg, current)
-            joint = best is not None and best[0] < ev_q.gap - _need(cfg, ev_q) and \
-                _gain(cfg, current, best[0], eff_q) > _need(cfg, current)
+            pen_q = cfg.penalty_per_parameter * eff_q.n_fitted
+            q_alone = _gain(current.gap, ev_q.gap + pen_q) > _need(cfg, current)
+            joint = best is not None and _gain(ev_q.gap, best[0]) > _need(cfg, ev_q) and \
+                _gain(current.gap, best[0] + pen_q) > _need(cfg, current)
             if not (q_alone or joint):
                 rejected = tried
                 break
@@ -393,10 +406,8 @@ def run_gap(rec: Recording, config: GapConfig | None = None, *,
                 current = ev_q  # refined: the candidates must be evaluated again
                 continue
             current = ev_q
-            if len(steps) >= cfg.max_effects:
-                break
             tried = {k: v for k, v in tried.items() if k != SCHEME_EFFECT}
-        if best is None or current.gap - best[0] <= _need(cfg, current):
+        if best is None or _gain(current.gap, best[0]) <= _need(cfg, current):
             rejected = tried
             break
         _, eff, ev = best
