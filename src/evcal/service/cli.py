@@ -48,14 +48,17 @@ def build_parser(prog: str = "evcal serve") -> argparse.ArgumentParser:
                         "on several hosts")
     p.add_argument("--supervised", type=int, default=None, metavar="PID",
                    help=argparse.SUPPRESS)  # a worker of --workers: stop when PID goes away
-    p.add_argument("--rrd", metavar="PATH", help="write a Rerun recording of the run")
+    p.add_argument("--rrd", metavar="PATH", help="write a Rerun recording of the run (with "
+                                                 "--workers N: one per worker, PATH with "
+                                                 ".w<i> before its suffix)")
     p.add_argument("--rrd-map-period", type=float, default=2.0, metavar="S",
                    help="log maps at most every S seconds of sensor time (default 2)")
     p.add_argument("--rrd-recon-period", type=float, default=2.0, metavar="S",
                    help="log a reconstruction at most every S seconds of sensor time")
     p.add_argument("--rerun-serve", type=int, default=None, metavar="PORT",
                    help="also serve the recording live on this gRPC port (with --rrd): "
-                        "`rerun --connect rerun+http://HOST:PORT/proxy` shows it as it grows")
+                        "`rerun --connect rerun+http://HOST:PORT/proxy` shows it as it grows "
+                        "(with --workers N: worker i on PORT + i)")
     p.add_argument("--rerun-connect", default=None, metavar="URL",
                    help="also stream the recording to a running viewer (with --rrd), e.g. "
                         "rerun+http://127.0.0.1:9876/proxy")

@@ -62,7 +62,7 @@ from typing import Any
 
 from . import keys
 from .signing import SignatureError, Signer
-from .transport import Transport, TransportError, ZenohOptions, as_router
+from .transport import Request, Transport, TransportError, ZenohOptions, as_router
 
 log = logging.getLogger("evcal.service.workers")
 
@@ -401,7 +401,7 @@ def _declare(t: Transport, sup: Supervisor, *, prefix: str, name: str, claims: s
     """The supervisor's reply on ``<prefix>/cameras`` and its watch of the workers' tokens
     (a log line when one comes or goes; the ``ready`` line once all are up)."""
 
-    def on_cameras(req: Any) -> None:
+    def on_cameras(req: Request) -> None:
         doc = {"instance": name, "prefix": prefix, "claims": claims, "supervisor": True,
                "pid": os.getpid(), **sup.info(), "cameras": []}
         req.reply(keys.cameras_key(prefix), json.dumps(doc).encode(), keys.ENC_CAMERAS)
