@@ -21,8 +21,9 @@ This process, the supervisor, does not touch the data:
   answers with its own cameras;
 - a worker that exits while the supervisor runs is restarted after a back-off (0.5 s,
   doubling up to 30 s; a worker that ran 30 s starts its count afresh) and resumes its
-  cameras from the shared ``--state-dir``; after 5 quick failures in a row, or a usage error,
-  the supervisor stops every worker and exits 1;
+  cameras from the shared ``--state-dir``; when it fails again after 5 such restarts in a
+  row (each within 30 s of its start), or with a usage error, the supervisor stops every
+  worker and exits 1;
 - SIGINT or SIGTERM: SIGTERM to every worker, which drains its queues, publishes a last
   status and writes its snapshots and ``.rrd``; after 60 s a worker still running is killed.
   Then the session closes; exit 0 when every worker stopped cleanly.
@@ -69,7 +70,7 @@ log = logging.getLogger("evcal.service.workers")
 RESTART_FIRST_S = 0.5  # back-off before the first restart of a worker, doubled each time
 RESTART_MAX_S = 30.0  # longest back-off
 STABLE_S = 30.0  # a worker that ran this long before it exited starts its count afresh
-MAX_QUICK_FAILURES = 5  # more quick exits in a row than this: give up
+MAX_QUICK_FAILURES = 5  # more quick exits in a row than this (5 restarts failed): give up
 STOP_TIMEOUT_S = 60.0  # after SIGTERM, a worker still running this long is killed
 USAGE_EXIT = 2  # a worker's exit code for bad usage: restarting it cannot help
 
@@ -300,6 +301,9 @@ class Supervisor:
             clean = clean and code == 0
             if code != 0:
                 log.warning("worker %s stopped with %s", slot.instance, slot.last_exit)
+        for slot in self.slots:  # the pipes of workers that had exited before
+            if slot.proc is not None and slot.proc.stdin is not None:
+                slot.proc.stdin.close()
         return clean
 
     def info(self) -> dict[str, Any]:
@@ -380,11 +384,13 @@ def serve_workers(parser: argparse.ArgumentParser, args: argparse.Namespace, *,
                 _declare(t, sup, prefix=prefix, name=name, claims=claims, names=names)
                 log.info("supervisor %s: %d workers, local endpoint %s", name, count,
                          endpoint)
-                ok = sup.poll()
-                while ok and not stop.wait(poll_s):
+                try:
                     ok = sup.poll()
-                log.info("stopping %d workers", count)
-                clean = sup.stop()
+                    while ok and not stop.wait(poll_s):
+                        ok = sup.poll()
+                finally:  # whatever happened, the workers stop before the router
+                    log.info("stopping %d workers", count)
+                    clean = sup.stop()
         except TransportError as exc:
             print(f"evcal serve: {exc}", file=sys.stderr)
             return 1
