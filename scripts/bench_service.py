@@ -386,9 +386,10 @@ def scaling(seconds: float, max_cameras: int, workers: list[int], *, shm: bool =
                             env=python_env()))
                     time.sleep(5.0)  # warm-up: cameras created, kernels loaded
 
-                    def counters(cams: list[str] = cams) -> list[tuple[int, int]]:
+                    def counters(cams: list[str] = cams) -> list[tuple[int, int, int]]:
                         sts = [status(t, c) for c in cams]
-                        return [(x.get("events", 0), x.get("updates", 0)) for x in sts]
+                        return [(x.get("events", 0), x.get("updates", 0),
+                                 x.get("event_messages", 0) + x.get("frames", 0)) for x in sts]
 
                     service = process_tree(sp.pid)
                     replays = [psutil.Process(r.pid) for r in reps]
@@ -411,6 +412,8 @@ def scaling(seconds: float, max_cameras: int, workers: list[int], *, shm: bool =
             out.append({"workers": w, "cameras": n, "events_per_s": sum(per_camera),
                         "per_camera_events_per_s": per_camera,
                         "updates_per_s": sum(b[1] - a[1] for a, b in zip(c0, c1, strict=True))
+                        / dt,
+                        "messages_per_s": sum(b[2] - a[2] for a, b in zip(c0, c1, strict=True))
                         / dt,
                         "service_cores": (cpu1[0] - cpu0[0]) / dt,
                         "replay_cores": (cpu1[1] - cpu0[1]) / dt,
@@ -741,7 +744,8 @@ def main(argv: list[str] | None = None) -> int:
                   f"{r['events_per_s'] / 1e6:.1f} M events/s in all "
                   f"({r['events_per_s'] / one:.2f}x one camera into one worker; per camera "
                   + ", ".join(f"{e / 1e6:.1f}" for e in r["per_camera_events_per_s"])
-                  + f"), {r['updates_per_s']:.1f} updates/s; cores used: service "
+                  + f"), {r['messages_per_s']:.0f} messages/s, {r['updates_per_s']:.1f} "
+                  f"updates/s; cores used: service "
                   f"{r['service_cores']:.2f}"
                   + (f" (supervisor {r['supervisor_cores']:.2f}, workers "
                      + ", ".join(f"{c:.2f}" for c in r["worker_cores"]) + ")"
