@@ -10,6 +10,7 @@ import signal
 import subprocess
 import sys
 import threading
+from pathlib import Path
 
 import pytest
 
@@ -141,9 +142,13 @@ def test_workers_exit_when_the_supervisor_is_killed(tmp_path):
         (sup,) = [json.loads(r.payload) for r in t.get("evcal/cameras", timeout_s=2.0)
                   if r.ok and json.loads(r.payload).get("supervisor")]
         pids = [w["pid"] for w in sup["workers"]]
+        cmdline = Path(f"/proc/{pids[0]}/cmdline").read_text().split("\0")
+        socket_dir = Path(cmdline[cmdline.index("--connect") + 1].partition("/")[2]).parent
+        assert socket_dir.is_dir()
         sp.kill()  # SIGKILL: no clean-up in the supervisor at all
         wait_for(lambda: all(gone(p) or _zombie(p) for p in pids), timeout_s=30,
                  what="the workers gone")
+        assert not socket_dir.exists()  # the workers removed the supervisor's socket
     assert sp.log_text().count("shutting down: draining queues") == 2  # both stopped cleanly
 
 

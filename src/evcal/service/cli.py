@@ -244,10 +244,11 @@ def main_serve(argv: Sequence[str] | None = None) -> int:
         finally:
             for s, h in old.items():
                 signal.signal(s, h)
+    parent_gone = None
     if args.supervised is not None:
         from .workers import watch_parent
 
-        watch_parent(args.supervised, stop)
+        parent_gone = watch_parent(args.supervised, stop)
     try:
         service = run(zopts, config, stop=stop, state_dir=args.state_dir, rrd=args.rrd,
                       rrd_options={"map_period_s": args.rrd_map_period,
@@ -264,6 +265,10 @@ def main_serve(argv: Sequence[str] | None = None) -> int:
     finally:
         for s, h in old.items():
             signal.signal(s, h)
+    if parent_gone is not None and parent_gone.is_set():
+        from .workers import remove_orphaned_socket
+
+        remove_orphaned_socket(zopts.connect)
     n = len(service.cameras)
     errors = sum(c.counters.errors_total for c in service.cameras.values())
     print(f"evcal serve: stopped; {n} camera(s), {errors} rejected input(s)", file=sys.stderr)

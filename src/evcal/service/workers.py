@@ -30,7 +30,8 @@ This process, the supervisor, does not touch the data:
 
 A worker never outlives the supervisor, however it ends: its stdin reaches end-of-file when
 the supervisor's end of the pipe closes (it then stops as on SIGTERM), and on Linux
-``PR_SET_PDEATHSIG`` sends it SIGTERM when the supervisor dies.
+``PR_SET_PDEATHSIG`` sends it SIGHUP when the supervisor dies; it then also removes the
+supervisor's socket directory, which a killed supervisor leaves behind.
 
 The data path is zenoh's: every worker subscribes to every camera's keys, the router (Rust
 threads, no GIL) hands each sample to every worker, and a worker leaves another shard's
@@ -50,6 +51,7 @@ import ctypes
 import json
 import logging
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -96,6 +98,9 @@ def worker_rrd(path: str | Path, index: int) -> str:
     """The ``.rrd`` of worker ``index``: ``run.rrd`` -> ``run.w0.rrd`` (``run`` -> ``run.w0``)."""
     p = Path(path)
     return str(p.with_name(f"{p.stem}.w{index}{p.suffix}"))
+
+
+LOCAL_DIR_PREFIX = "evcal-serve-"  # the supervisor's private directory for its socket
 
 
 def local_endpoint(directory: str | Path) -> str:
@@ -316,7 +321,7 @@ class Supervisor:
 # ----------------------------------------------------------------------------- the worker side
 
 
-def set_parent_death_signal(sig: int = signal.SIGTERM) -> bool:
+def set_parent_death_signal(sig: int) -> bool:
     """Ask Linux to send ``sig`` to this process when its parent dies
     (``prctl(PR_SET_PDEATHSIG)``); False elsewhere or when it failed."""
     if not sys.platform.startswith("linux"):
@@ -328,21 +333,32 @@ def set_parent_death_signal(sig: int = signal.SIGTERM) -> bool:
         return False
 
 
-def watch_parent(parent_pid: int, stop: threading.Event) -> None:
-    """A worker's side of the supervision: set ``stop`` when the supervisor ``parent_pid``
-    goes away (stdin at end-of-file; on Linux also SIGTERM from the kernel, which the
-    service's signal handler turns into ``stop``). Already gone: ``stop`` is set at once."""
-    set_parent_death_signal(signal.SIGTERM)
-    if os.getppid() != parent_pid:  # it died before the death signal was asked for
-        log.warning("the supervising process %d is gone: stopping", parent_pid)
+def watch_parent(parent_pid: int, stop: threading.Event) -> threading.Event:
+    """A worker's side of the supervision (call from the main thread): set ``stop`` when the
+    supervisor ``parent_pid`` goes away, however it ends -- its end of the pipe on our stdin
+    closes (end-of-file), and on Linux the kernel sends SIGHUP (``PR_SET_PDEATHSIG``; not
+    SIGTERM, which the supervisor sends to stop a worker it outlives). Returns the event set
+    when the supervisor is known gone (already gone: at once)."""
+    gone = threading.Event()
+
+    def parent_gone(why: str) -> None:
+        if not gone.is_set():
+            log.warning("the supervising process %d is gone (%s): stopping", parent_pid, why)
+        gone.set()
         stop.set()
-        return
+
+    if hasattr(signal, "SIGHUP"):
+        signal.signal(signal.SIGHUP, lambda _sig, _frame: parent_gone("SIGHUP"))
+        set_parent_death_signal(signal.SIGHUP)
+    if os.getppid() != parent_pid:  # it died before the death signal was asked for
+        parent_gone("not our parent")
+        return gone
     try:
         fd = sys.stdin.fileno() if sys.stdin is not None else -1
     except (OSError, ValueError):
         fd = -1
     if fd < 0:
-        return
+        return gone
 
     def watch() -> None:
         try:  # os.read, not sys.stdin: a daemon thread blocked in a buffered reader's lock
@@ -350,11 +366,25 @@ def watch_parent(parent_pid: int, stop: threading.Event) -> None:
                 pass
         except Exception as exc:  # a closed or broken descriptor means the same
             log.debug("reading the supervisor's pipe: %s", exc)
-        if not stop.is_set():
-            log.warning("the supervising process %d is gone: stopping", parent_pid)
-            stop.set()
+        parent_gone("its pipe closed")
 
     threading.Thread(target=watch, name="evcal-supervisor-watch", daemon=True).start()
+    return gone
+
+
+def remove_orphaned_socket(connect: Sequence[str]) -> bool:
+    """After a worker whose supervisor died without cleaning up (``kill -9``) stopped: remove
+    the supervisor's private socket directory (named in ``connect``); True if it is gone.
+    Every worker may try; the first one wins."""
+    for ep in connect:
+        proto, _, path = ep.partition("/")
+        d = Path(path).parent
+        if proto == "unixsock-stream" and d.name.startswith(LOCAL_DIR_PREFIX):
+            shutil.rmtree(d, ignore_errors=True)
+            log.info("the supervisor's socket directory %s %s", d,
+                     "removed" if not d.exists() else "could not be removed")
+            return not d.exists()
+    return False
 
 
 # ----------------------------------------------------------------------------- the supervisor
@@ -371,7 +401,7 @@ def serve_workers(parser: argparse.ArgumentParser, args: argparse.Namespace, *,
     except SignatureError as exc:
         print(f"evcal serve: {exc}", file=sys.stderr)
         return 1
-    with tempfile.TemporaryDirectory(prefix="evcal-serve-") as tmp:
+    with tempfile.TemporaryDirectory(prefix=LOCAL_DIR_PREFIX) as tmp:
         endpoint = local_endpoint(tmp)
         try:
             with Transport(as_router(zenoh, endpoint)) as t:
