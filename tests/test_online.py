@@ -313,3 +313,19 @@ def test_a_live_calibrator_never_waits_for_the_offset_criterion(monkeypatch):
     assert cal.calibration().valid.any()  # random frames: a fifth of the pixels fit
     assert cal.offset_info["method"] == "auto"
     assert not cal.poll_offset()  # nothing more to take
+
+
+def test_the_frame_that_takes_the_first_offset_estimate_is_solved():
+    """The frame at which the first online offset estimate lands forms the buffer's
+    equations and is solved at once: a stream that ends there still has a calibration."""
+    rec = random_recording(SENSOR, 60 * SENSOR.n_pixels, 60, seed=6)
+    cal = OnlineCalibrator(SENSOR, OnEIConfig(log_offset="auto", n_small=2 * SENSOR.n_pixels))
+    cuts = np.searchsorted(rec.events["t_us"], rec.frames.t_us)
+    for k in range(60):
+        cal.feed_events(rec.events[cuts[k - 1] if k else 0 : cuts[k]])
+        updated = cal.feed_frame(int(rec.frames.t_us[k]), rec.frames.images[k])
+        if np.isfinite(cal.log_offset):
+            break
+    assert np.isfinite(cal.log_offset)
+    assert updated
+    assert cal.n_updates == 1

@@ -515,13 +515,15 @@ class OnlineCalibrator:
             self._frame_cap = self.config.frame_cap(self.sensor, img.dtype.itemsize)
         self._push(t_us, img.ravel().copy())
         job = self._offset_job
+        first_formed = False  # the first offset estimate formed the buffer's equations
         if job is not None and (self.n_frames >= job[0] if self.config.offset_wait
                                 else job[1].done()):
-            self._apply_offset()
+            first_formed = self._apply_offset()
         if self._offset_job is None and (math.isnan(self.log_offset)
                                          or self.n_frames >= self._next_offset_check > 0):
             self._check_offset()
-        formed = (not math.isnan(self.log_offset)) and self._close_small_buffers()
+        formed = (not math.isnan(self.log_offset)) and (self._close_small_buffers()
+                                                         or first_formed)
         self._drop_overflow()
         if self._removals >= self.config.rebuild_every:
             self._rebuild()
@@ -631,25 +633,23 @@ class OnlineCalibrator:
         if self.config.offset_wait or job is None or not job[1].done():
             return False
         before = self.n_updates
-        first = math.isnan(self.log_offset)
-        self._apply_offset()
-        if (first and not math.isnan(self.log_offset) and self.n_equations > 0
-                and self._since_resolve >= self.n_small):
+        if self._apply_offset() and self._since_resolve >= self.n_small:
             self._resolve()
             self._since_resolve = 0
         return self.n_updates > before
 
-    def _apply_offset(self) -> None:
-        """Take the started estimate. A changed estimate (by more than 10 % in
-        ``log(1 + o)``) rebuilds the equations from the buffer's raw frames and restarts the
-        smoothed estimate: the solutions folded so far were fitted to log changes at the
-        wrong offset, and averaging them with the new ones would keep their bias for
-        ``1 / smoothing`` re-solves."""
+    def _apply_offset(self) -> bool:
+        """Take the started estimate; True when it was the first and formed equations (the
+        caller re-solves as after any new equation). A changed estimate (by more than 10 % in
+        ``log(1 + o)``) rebuilds the equations from the buffer's raw frames, restarts the
+        smoothed estimate and re-solves: the solutions folded so far were fitted to log
+        changes at the wrong offset, and averaging them with the new ones would keep their
+        bias for ``1 / smoothing`` re-solves."""
         assert self._offset_job is not None
         found = self._offset_job[1].result()
         self._offset_job = None
         if found is None:  # nothing to judge by yet (a still scene): ask again later
-            return
+            return False
         first = math.isnan(self.log_offset)
         o, info = found
         info.update(frames_seen=self.n_frames, previous=None if first else self.log_offset,
@@ -658,13 +658,15 @@ class OnlineCalibrator:
         if first:
             self.log_offset = o
             self._form_all()
-        elif abs(math.log1p(o) - math.log1p(self.log_offset)) > 0.1:
+            return self.n_equations > 0
+        if abs(math.log1p(o) - math.log1p(self.log_offset)) > 0.1:
             self.log_offset = o
             self._rebuild()
             self.estimate = LowPassEstimate(self.sensor.n_pixels)
             self._resolve()  # at once, from the rebuilt buffer
             self._since_resolve = 0
             info["estimate_restarted"] = True
+        return False
 
     def _offset_inputs(self) -> tuple[Any, ...] | None:
         """The windows of the criterion of ``--log-offset auto`` from the frames and interval
