@@ -384,7 +384,10 @@ def _fit_threshold_noise(meas: Observation, sims: list[Observation], model: Mode
     d = sm - ss
     if not np.isfinite(d) or d <= 0:
         return None
-    return ThresholdNoise(sigma=round(float(min(np.sqrt(d), 1.0)), 4))
+    if d > 1.0:
+        # no threshold noise (sigma <= 1) makes this much residual: something else does
+        return None
+    return ThresholdNoise(sigma=round(float(np.sqrt(d)), 4))
 
 
 def _filter_fit_error(obs: Observation, cutoff_hz: float, offset: float) -> float:
