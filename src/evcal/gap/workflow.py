@@ -277,10 +277,7 @@ class _Runner:
 
     def finish(self, current: Evaluation, ev: Evaluation, eff: Effect,
                tried: dict[str, dict[str, Any]]) -> tuple[Effect, Evaluation]:
-        """A named candidate's estimate bias-corrected and refined (as configured; not
-        parameters read off the data)."""
-        if eff.read_off:
-            return eff, ev
+        """A named candidate's estimate bias-corrected and refined (as configured)."""
         if self.cfg.debias:
             eff, ev, info = self.debias(current, ev, eff)
             tried[eff.name]["debias"] = info
@@ -379,6 +376,7 @@ def run_gap(rec: Recording, config: GapConfig | None = None, *,
     initial = current
     steps: list[Step] = []
     rejected: dict[str, dict[str, Any]] = {}
+
     def n_sensor() -> int:  # max_effects counts sensor effects, not the timestamp scheme
         return sum(s.effect.name != SCHEME_EFFECT for s in steps)
 
@@ -400,11 +398,9 @@ def run_gap(rec: Recording, config: GapConfig | None = None, *,
             if not (q_alone or joint):
                 rejected = tried
                 break
-            eff_q, ev_q = run.finish(current, ev_q, eff_q, tried)
+            # read off the timestamps: neither bias-corrected nor refined, so the candidates
+            # evaluated on top of it stand
             steps.append(Step(eff_q, current, ev_q, tried))
-            if ev_q is not scheme[1]:
-                current = ev_q  # refined: the candidates must be evaluated again
-                continue
             current = ev_q
             tried = {k: v for k, v in tried.items() if k != SCHEME_EFFECT}
         if best is None or _gain(current.gap, best[0]) <= _need(cfg, current):

@@ -69,9 +69,6 @@ class Effect:
     name: ClassVar[str] = ""
     primary: ClassVar[str] = ""  # the parameter the gap workflow's tolerance refers to
     n_fitted: ClassVar[int] = 1  # parameters the gap workflow fits (complexity penalty)
-    # True: the gap workflow reads the parameters off the data (no moment estimate to
-    # bias-correct or refine by the gap)
-    read_off: ClassVar[bool] = False
 
     def parameters(self) -> dict[str, Any]:
         return asdict(self)
@@ -235,7 +232,6 @@ class TimestampQuantisation(Effect):
 
     name: ClassVar[str] = "timestamp_quantisation"
     primary: ClassVar[str] = "step_us"
-    read_off: ClassVar[bool] = True  # the grid the timestamps lie on
     step_us: float = 1000.0
     scheme: str = "spread"
     phase_us: float = 0.0  # step ends at t0 + phase_us + k step_us
