@@ -567,3 +567,28 @@ def test_calibration_messages_are_msgpack_s_own_bytes(n):
            "maps": {"a": rng.integers(0, 255, n).astype(np.uint8).data,
                     "b": rng.random(n).astype(np.float32).data}}
     assert _packb_large_bins(msg) == msgpack.packb(msg, use_bin_type=True)
+
+
+def test_gc_policy_freezes_and_measures_collections() -> None:
+    import gc
+
+    from evcal.service.gcpolicy import GcPolicy
+
+    pol = GcPolicy()
+    pol.install()
+    try:
+        before = gc.get_freeze_count()
+        gc.collect(0)
+        gc.collect(2)
+        st = pol.stats()
+        assert st["collections"][0] >= 1 and st["collections"][2] >= 1
+        assert st["max_pause_ms"] > 0 and st["pause_ms"][2] > 0
+        pol.freeze()
+        assert pol.stats()["freezes"] == 1 and gc.get_freeze_count() > before
+    finally:
+        pol.uninstall()
+        gc.unfreeze()
+    n = pol.stats()["collections"][0]
+    gc.collect(0)
+    assert pol.stats()["collections"][0] == n  # uninstalled: no longer called
+    assert pol._callback not in gc.callbacks

@@ -137,8 +137,12 @@ def test_two_cameras_keep_separate_states(two_cameras, sims, service):
     for name in ("a", "b"):
         c_err, b_err = errors(two_cameras[name], sims[name][0].truth)
         assert c_err < 0.03 and b_err < 0.015, (name, c_err, b_err)
-    cams = json.loads(service["t"].get("evcal/cameras")[0].payload)["cameras"]
-    ids = {c["id"]: c for c in cams}
+    info = json.loads(service["t"].get("evcal/cameras")[0].payload)
+    ids = {c["id"]: c for c in info["cameras"]}
+    # start-up's objects frozen, again after the cameras' first updates; pauses measured
+    gc_info = info["gc"]
+    assert gc_info["freezes"] >= 2 and gc_info["frozen_objects"] > 10_000, gc_info
+    assert sum(gc_info["collections"]) > 0 and gc_info["max_pause_ms"] > 0, gc_info
     assert ids["lab/rig1/cam0"]["sensor"] == "64x48"
     assert ids["lab/rig2/cam1"]["sensor"] == "48x36"
 

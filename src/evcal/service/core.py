@@ -50,6 +50,7 @@ from ..online import OnEIConfig
 from . import keys
 from .camera import LATENCY_PARTS, CalibrationUpdate, CameraState, Observed, Output, Rejected
 from .camera import Rejection as Rejection
+from .gcpolicy import GcPolicy
 from .ingest import Camera, CameraQueue
 from .outputs import (
     ErrorLimiter,
@@ -186,6 +187,7 @@ class Service:
         self._closed = False
         self._last_status = 0.0
         self._last_snapshot = time.monotonic()
+        self.gc: GcPolicy | None = None  # the process's collector policy (set by the server)
         self.claim = f"{config.prefix.strip('/')}/{config.cameras}"
 
     # -- plumbing --------------------------------------------------------------------------
@@ -434,6 +436,7 @@ class Service:
             "recorder_dropped": self.observer_dropped,
             "recorder": (self.observer.state() if hasattr(self.observer, "state")
                          else None),
+            "gc": self.gc.stats() if self.gc is not None else None,
             "cameras": [{"id": c.id, "sensor": str(c.sensor) if c.sensor else None,
                          "updates": c.counters.updates, "events": c.counters.events,
                          "last_update_t_us": c.state.calibration_t_us}

@@ -17,6 +17,7 @@ from pathlib import Path
 from ..errors import EvcalError
 from . import keys
 from .core import Service, ServiceConfig
+from .gcpolicy import GcPolicy
 from .outputs import error_reply
 from .ros2 import (
     NODE_NAME,
@@ -138,11 +139,22 @@ def run(
                      f" (shard {shard[0]}/{shard[1]})" if shard is not None else "",
                      config.on_full)
             service.tick(force=True)
+            gcp = GcPolicy()
+            gcp.install()
+            service.gc = gcp
+            gcp.freeze()  # what start-up made lives as long as the process (see .gcpolicy)
+            frozen_for: set[str] = set()
             if ready is not None:
                 ready(service)
             try:
                 while not stop.wait(tick_s):
                     service.tick()
+                    # a camera's first update loaded its kernels and allocated its state
+                    updated = {c.id for c in list(service.cameras.values())
+                               if c.counters.updates}
+                    if updated - frozen_for:
+                        frozen_for |= updated
+                        gcp.freeze()
                     if router is not None:
                         try:  # subscription tokens of new ROS 2 topics (never fatal)
                             router.declare_pending(t.token)
@@ -151,6 +163,7 @@ def run(
                             log.exception("declaring ROS 2 subscription tokens failed")
             finally:
                 log.info("shutting down: draining queues, saving state")
+                gcp.uninstall()
                 service.close()
     finally:
         if observer is not None:
