@@ -115,6 +115,11 @@ def test_real_davis346_end_to_end(shared_data, tmp_path, capsys):
     assert "no update" not in capsys.readouterr().err
     onei_small = load_calibration(tmp_path / "onei_small.npz")
     assert onei_small.valid.sum() > 500
+    # default options on a recording holding fewer events than events_per_image: adapted,
+    # and said
+    capsys.readouterr()
+    assert main(["evaluate", str(road), "--calibration", str(tmp_path / "offei.npz")]) == 0
+    assert "fewer than events_per_image" in capsys.readouterr().err
     js = tmp_path / "e.json"
     assert main(["evaluate", str(road), "--calibration", str(tmp_path / "offei.npz"),
                  "--frames-per-image", "5", "--json", str(js)]) == 0
