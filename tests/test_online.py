@@ -150,10 +150,13 @@ def test_the_log_offset_is_estimated_online(true_offset, seed):
     assert c_rmse(auto) <= 1.3 * c_rmse(told), (c_rmse(auto), c_rmse(told))
 
 
-def _reference_equations(state: dict) -> tuple[NormalEquations, np.ndarray]:
+def _reference_equations(state: dict, weights: dict[int, float] | None = None
+                         ) -> tuple[NormalEquations, np.ndarray]:
     """The normal equations and per-pixel counts of a state, recomputed from scratch: every
     small buffer the large buffer holds added once with ``NormalEquations.add`` (the
-    definition of OnEI's sums, as the first implementation computed them)."""
+    definition of OnEI's sums, as the first implementation computed them). With
+    ``weights`` (absolute number of the opening frame -> weight) only those small buffers,
+    each times its weight."""
     s = json.loads(str(state["scalars"]))
     sat = OnEIConfig.from_json(s["config"]).saturation_dn
     meta, images, last_p = state["fr_meta"], state["fr_images"], state["fr_last_p"]
@@ -167,9 +170,10 @@ def _reference_equations(state: dict) -> tuple[NormalEquations, np.ndarray]:
         off[i, state["fr_idx"][sl]] = state["fr_off"][sl]
     ne = NormalEquations(n)
     for j, closes_at in enumerate(meta[:, 4]):
-        if closes_at < 0:
+        if closes_at < 0 or (weights is not None and j + s["base"] not in weights):
             continue
         k = int(closes_at) - s["base"]
+        wt = 1.0 if weights is None else weights[j + s["base"]]
         e_on, e_off = on[j + 1 : k + 1].sum(0), off[j + 1 : k + 1].sum(0)
         idx = np.flatnonzero(e_on + e_off)
         raw_j, raw_k = images[j][idx], images[k][idx]
@@ -178,7 +182,7 @@ def _reference_equations(state: dict) -> tuple[NormalEquations, np.ndarray]:
             dl = log_intensity(raw_k, s["log_offset"]) - log_intensity(raw_j, s["log_offset"])
         qj, qk = last_p[j][idx].astype(float), last_p[k][idx].astype(float)
         ne.add(e_on[idx] - e_off[idx], e_on[idx] + e_off[idx], qk - qj,
-               np.abs(qk) - np.abs(qj), np.where(w, dl, 0.0), w.astype(float), idx=idx)
+               np.abs(qk) - np.abs(qj), np.where(w, dl, 0.0), wt * w.astype(float), idx=idx)
     return ne, (on[1:] + off[1:]).sum(0)
 
 
@@ -234,6 +238,78 @@ def test_incremental_sums_equal_a_recomputation(sensor, float_frames):
     assert cal.n_updates > 10
     assert cal.status()["gaps"] == 3
     assert cal.status()["sessions"] == 1
+
+
+def test_the_forgotten_history_holds_what_left_the_buffer_with_its_weights(monkeypatch):
+    """``history``: the equations that left the large buffer (by event count and by the frame
+    cap) are kept beside it, each weighted ``exp(-E / (history * n_large))``, ``E`` the
+    events that left after it. Checked against a calibrator whose buffer never drops:
+    its equations, split by the small calibrator's buffer start, reweighted and recomputed
+    from scratch; through dense and sparse intervals, a renormalisation and a restart."""
+    sensor = SensorSize(20, 30)
+    n = sensor.n_pixels
+    rng = np.random.default_rng(11)
+    n_frames = 70
+    t_f = np.arange(n_frames) * 40_000
+    per_frame = np.where(np.arange(n_frames) % 13 < 7, 2 * n, n // 6)
+    images = np.clip(rng.integers(20, 230, n) + rng.integers(-30, 31, (n_frames, n)), 0,
+                     255).astype(np.uint8)
+    chunks = []
+    for k in range(n_frames):
+        pix = rng.integers(0, n, int(per_frame[k]))
+        t = np.sort(rng.integers(t_f[k] - 40_000 + 1, t_f[k], pix.size))
+        chunks.append(make_events(t, pix % sensor.width, pix // sensor.width,
+                                  rng.choice([-1, 1], pix.size)))
+    history = 0.2
+    monkeypatch.setattr(OnlineCalibrator, "HISTORY_RENORMALISE", 20.0)  # passed on the way
+    base_cfg = OnEIConfig(n_small=3 * n, n_large=12 * n, window_frames=3, log_offset=10.0,
+                          rebuild_every=10**6)
+    small = OnlineCalibrator(sensor, replace(base_cfg, max_buffer_frames=20, history=history))
+    full = OnlineCalibrator(sensor, replace(base_cfg, n_large=10**9, max_buffer_frames=10**4))
+    tau = history * small.n_large
+    checked = renormalised = 0
+    for k in range(n_frames):
+        if k == 40:
+            small = OnlineCalibrator.from_state(small.state_dict())
+        for cal in (small, full):
+            cal.feed_events(chunks[k])
+            cal.feed_frame(int(t_f[k]), images[k].reshape(sensor.shape))
+        if k % 5 != 4:
+            continue
+        s_state, f_state = small.state_dict(), full.state_dict()
+        sc = json.loads(str(s_state["scalars"]))
+        renormalised += sc["hist_ref"] > 0
+        left_now = int(s_state["fr_meta"][0, 1])
+        cum = f_state["fr_meta"][:, 1]  # the full buffer starts at frame 0
+        weights = {j: float(np.exp(-(left_now - cum[j + 1]) / tau))
+                   for j in range(sc["base"]) if f_state["fr_meta"][j, 4] >= 0}
+        if not weights:
+            continue
+        ref, _ = _reference_equations(f_state, weights)
+        got = s_state["hist_m"] * np.exp(-(left_now - sc["hist_ref"]) / tau)
+        for i, (name, v) in enumerate(ref.arrays().items()):
+            scale = max(1.0, float(np.abs(v).max()))
+            np.testing.assert_allclose(got[i], v, rtol=1e-9, atol=1e-12 * scale,
+                                       err_msg=name)
+        checked += 1
+    assert checked >= 8
+    assert renormalised
+    assert small.n_updates > 10
+
+
+def test_an_unforgetting_history_solves_as_a_buffer_that_never_drops():
+    """``history`` very large: the buffer plus its history is every equation of the stream,
+    so each solve equals that of a buffer that never drops (up to rounding; smoothing 1
+    makes the estimate the latest solve)."""
+    rec = random_recording(SENSOR, 40 * 3000, 40)
+    cfg = OnEIConfig(n_small=5000, n_large=20_000, window_frames=3, log_offset=20.0,
+                     smoothing=1.0)
+    kept = onei(rec, replace(cfg, history=1e12))
+    full = onei(rec, replace(cfg, n_large=10**9))
+    plain = onei(rec, cfg)
+    np.testing.assert_array_equal(kept.valid, full.valid)
+    np.testing.assert_allclose(kept.contrast, full.contrast, rtol=1e-9)
+    assert not np.allclose(plain.contrast, full.contrast, rtol=1e-6)
 
 
 def test_open_interval_counts_survive_a_restart():
@@ -329,3 +405,34 @@ def test_the_frame_that_takes_the_first_offset_estimate_is_solved():
     assert np.isfinite(cal.log_offset)
     assert updated
     assert cal.n_updates == 1
+
+
+def test_the_first_offset_estimate_waits_for_enough_busy_pixels():
+    """A scene that begins still but for a few pixels: the first online offset estimate waits
+    until 5 % of the pixels are busy (it is then computed from them), not judged from a
+    handful (v2e recordings: 33-59 busy pixels gave 64-400 DN for a true 0)."""
+    sensor = SensorSize(40, 50)
+    n = sensor.n_pixels
+    rec = random_recording(sensor, 60 * 2 * n, 60, seed=2)
+    ev = rec.events
+    few = (ev["y"] * sensor.width + ev["x"]) < 30  # 30 busy pixels ...
+    early = ev["t_us"] < rec.frames.t_us[25]  # ... until frame 25
+    events = ev[~early | few]
+    cal = OnlineCalibrator(sensor, OnEIConfig(log_offset="auto", n_small=n, n_large=10**7))
+    cuts = np.searchsorted(events["t_us"], rec.frames.t_us)
+    first_at = None
+    for k in range(60):
+        cal.feed_events(events[cuts[k - 1] if k else 0 : cuts[k]])
+        cal.feed_frame(int(rec.frames.t_us[k]), rec.frames.images[k])
+        if first_at is None and np.isfinite(cal.log_offset):
+            first_at, info = k, dict(cal.offset_info)
+    assert first_at is not None
+    assert first_at > 25
+    assert info["pixels"] >= 0.05 * n
+    # a full large buffer does not wait for busy pixels: what it holds is all there is
+    cal = OnlineCalibrator(sensor, OnEIConfig(log_offset="auto", n_small=100, n_large=600))
+    for k in range(25):
+        cal.feed_events(events[cuts[k - 1] if k else 0 : cuts[k]])
+        cal.feed_frame(int(rec.frames.t_us[k]), rec.frames.images[k])
+    assert np.isfinite(cal.log_offset)
+    assert cal.offset_info["pixels"] < 0.05 * n

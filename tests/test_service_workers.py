@@ -147,6 +147,10 @@ def test_worker_command_passes_the_users_options_through():
     assert (worker.shard, worker.instance, worker.rrd, worker.rerun_serve) == (
         (2, 3), "lab-w2", "out/run.w2.rrd", 9002)
     assert config_from_args(worker).shard == (2, 3)
+    # the command line's OnEI defaults are the library's service defaults
+    from evcal.service.core import ServiceConfig  # noqa: PLC0415
+
+    assert config_from_args(parser.parse_args([])).onei == ServiceConfig().onei
     assert worker_rrd("run", 1) == "run.w1"
     env = worker_env({"EVCAL_CONNECT": "tcp/x:1", "EVCAL_MODE": "peer", "HOME": "/h"})
     assert env["HOME"] == "/h"

@@ -97,7 +97,8 @@ def bench_offei(sensor: SensorSize, n_frames: int, n_events: int) -> dict[str, f
     return {"offei_s": t, "floor_s": t_floor}
 
 
-def bench_onei(sensor: SensorSize, n_frames: int, events_per_frame: int) -> dict[str, float]:
+def bench_onei(sensor: SensorSize, n_frames: int, events_per_frame: int,
+               config: Any = None) -> dict[str, float]:
     """Per-frame cost of :meth:`OnlineCalibrator.feed_frame` at the paper's buffer sizes, and
     its floor measured on the same data.
 
@@ -110,7 +111,7 @@ def bench_onei(sensor: SensorSize, n_frames: int, events_per_frame: int) -> dict
     """
     from .online import OnEIConfig, OnlineCalibrator  # noqa: PLC0415
 
-    cfg = OnEIConfig()
+    cfg = config or OnEIConfig()
     n_small, n_large = cfg.sizes(sensor)
     warm = int(np.ceil(n_large / events_per_frame)) + 2
     total = warm + n_frames

@@ -148,9 +148,10 @@ _SCALARS: dict[str, tuple[str, Any]] = {
     "cum_events": ("_cum_events", int), "removals": ("_removals", int),
     "since_resolve": ("_since_resolve", int), "frame_cap": ("_frame_cap", _opt_int),
     "log_offset": ("log_offset", float), "next_offset_check": ("_next_offset_check", int),
-    "holds_all": ("_holds_all", bool)}
+    "holds_all": ("_holds_all", bool), "hist_ref": ("_hist_ref", int)}
 # absent from the states of earlier versions
-_OPTIONAL_SCALARS = frozenset({"n_sessions", "log_offset", "next_offset_check", "holds_all"})
+_OPTIONAL_SCALARS = frozenset({"n_sessions", "log_offset", "next_offset_check", "holds_all",
+                               "hist_ref"})
 _VALID = int(Reason.VALID)
 PENDING_SLOTS = 6  # equations queued before they are added to the normal equations
 _OPEN, _DROP = 0, 1  # the two sliding sums: the small buffer closing next, the one leaving
@@ -258,6 +259,14 @@ class OnEIConfig:
     ``max_buffer_frames`` caps the frames kept in the large buffer (``None``: as many as
     ``max_buffer_mb`` of frame storage holds, at least 16): with a static scene the event
     count alone would keep frames forever.
+
+    ``history`` (0: off, the paper's sliding buffer) keeps the equations that left the large
+    buffer as a forgotten history beside it: each is weighted ``exp(-E / (history *
+    n_large))``, ``E`` the events that left the buffer after it, and every solve is of the
+    buffer plus the history (recursive least squares with exponential forgetting, by event
+    count as the buffer is). A pixel whose events came early in a long buffer then keeps
+    their evidence instead of being re-solved from the few events of the recent buffer;
+    the cost is a slower response to a drifting threshold (about ``history`` buffers more).
     """
 
     n_small: int | None = None
@@ -271,6 +280,7 @@ class OnEIConfig:
     max_buffer_frames: int | None = None
     max_buffer_mb: float = 256.0
     rebuild_every: int = 100_000
+    history: float = 0.0  # forgotten history's time constant, in large buffers (0: none)
     # log_offset="auto": True applies an online estimate exactly OFFSET_LAG_FRAMES frames
     # after it was started, waiting for it there if need be (runs are reproducible); False
     # as soon as it is done: at the next frame, or at poll_offset() (a live stream never
@@ -296,6 +306,9 @@ class OnEIConfig:
             raise ConfigError(f"max_buffer_mb={self.max_buffer_mb} must be > 0")
         if self.rebuild_every < 1:
             raise ConfigError(f"rebuild_every={self.rebuild_every} must be >= 1")
+        if not (isinstance(self.history, (int, float)) and 0 <= self.history < math.inf):
+            raise ConfigError(f"history={self.history!r} must be a number >= 0 (large "
+                              "buffers; 0: none)")
 
     def sizes(self, sensor: SensorSize) -> tuple[int, int]:
         n_small = self.n_small or max(1000, int(round(200_000 / 43_200 * sensor.n_pixels)))
@@ -432,6 +445,19 @@ class OnlineCalibrator:
         self._pending: deque[np.ndarray] = deque()
         self._n_pending = 0
         self.n_equations = 0  # small buffers in the normal equations now
+        self._reset_history()
+
+    def _reset_history(self) -> None:
+        """Empty the forgotten history (``OnEIConfig.history``; None when off). Its sums are
+        blocked as ``self._m`` and scaled by ``exp((L - ref) / tau)``, ``L`` the events that
+        had left the buffer when an equation left it: the weights only grow, and a solve
+        scales them by ``exp(-(L_now - ref) / tau)`` (one multiply per block, no pass over
+        the history per frame)."""
+        on = self.config.history > 0
+        self._hist = np.zeros_like(self._m) if on else None
+        self._hist_counts = np.zeros(self._counts_pad.size) if on else None
+        self._hist_ref = 0  # events left the buffer that the weights are relative to
+        self._hqueued: list[tuple[int, float]] = []  # (slot, weight) not yet in self._hist
 
     def _start_session_keeping_guard(self) -> None:
         guard = self._guard
@@ -606,6 +632,11 @@ class OnlineCalibrator:
     OFFSET_FIRST_FRAMES = 2 * AUTO_WINDOW + 1  # buffered frames before the first estimate
     OFFSET_RECHECK_FACTOR = 4  # re-checked when the frames seen have grown this much
     OFFSET_PIXELS = 4000  # busiest pixels the criterion is computed on
+    # the first estimate waits for this fraction of the pixels (at most OFFSET_PIXELS) to be
+    # busy, or for the large buffer to be full: on v2e recordings that begin still, a first
+    # estimate from 33-59 busy pixels was 64-400 DN for a true 0, and stayed until the
+    # re-check 50 frames later, which could only restart from one large buffer
+    OFFSET_FIRST_BUSY = 0.05
     OFFSET_MAX_WINDOWS = 64  # the newest windows of the buffer
 
     def _check_offset(self) -> None:
@@ -662,6 +693,7 @@ class OnlineCalibrator:
         if abs(math.log1p(o) - math.log1p(self.log_offset)) > 0.1:
             self.log_offset = o
             self._rebuild()
+            self._reset_history()  # its log changes were at the old offset
             self.estimate = LowPassEstimate(self.sensor.n_pixels)
             self._resolve()  # at once, from the rebuilt buffer
             self._since_resolve = 0
@@ -677,6 +709,9 @@ class OnlineCalibrator:
         limits = self.config.limits
         busy = np.flatnonzero(self._counts >= max(limits.min_events, 2 * d))
         if d < 1 or busy.size < 10:
+            return None
+        need = min(self.OFFSET_PIXELS, self.OFFSET_FIRST_BUSY * self.sensor.n_pixels)
+        if math.isnan(self.log_offset) and busy.size < need and self._holds_all:
             return None
         rng = np.random.default_rng(0)
         pix = np.sort(rng.choice(busy, size=min(self.OFFSET_PIXELS, busy.size),
@@ -748,10 +783,19 @@ class OnlineCalibrator:
                 break
             # drop the oldest interval: its opening frame and the small buffer it opened
             base = self._base
+            w_hist = self._hist_weight(second.cum_events)
             if first.closes_at >= 0:
                 self._queue(base, first.closes_at, -1.0, _DROP)
                 self.n_equations -= 1
                 self._removals += 1
+                if self._hist is not None:  # the same slot, into the history
+                    self._hqueued.append((self._queued[-1][0], w_hist))
+            if self._hist_counts is not None:
+                hc = self._hist_counts
+                if second.dense:
+                    hc[: second.on.size] += w_hist * (second.on + second.off)
+                else:
+                    hc[second.idx] += w_hist * (second.on + second.off)
             # the interval ending at the new first frame leaves the buffer: uncount it, and
             # slide the sums that hold it past it while its counts are still here
             sub = np.array([lo <= base < hi for lo, hi in self._win_range])
@@ -767,6 +811,66 @@ class OnlineCalibrator:
             self._holds_all = False
             second.forget_interval()
             self._next_open = max(self._next_open, self._base)
+        if self._hist is not None and self._hist_exponent() > self.HISTORY_RENORMALISE:
+            self._renormalise_history()
+
+    # -- the forgotten history (OnEIConfig.history) ----------------------------------------------
+
+    HISTORY_RENORMALISE = 300.0  # exponent of the stored weights that folds the scale in
+
+    @property
+    def _hist_tau(self) -> float:
+        return float(self.config.history) * self.n_large
+
+    def _hist_exponent(self) -> float:
+        left = self._frames[0].cum_events if self._frames else self._hist_ref
+        return (left - self._hist_ref) / self._hist_tau
+
+    def _hist_weight(self, left: int) -> float:
+        """The stored weight of an equation leaving when ``left`` events have left."""
+        if self._hist is None:
+            return 0.0
+        return math.exp((left - self._hist_ref) / self._hist_tau)
+
+    def _hist_scale(self) -> float:
+        """The factor that turns the stored history into its weights now."""
+        return math.exp(-self._hist_exponent())
+
+    def _apply_history(self, b_start: int, b_stop: int,
+                       queued: tuple[np.ndarray, np.ndarray] | None) -> None:
+        if self._hist is None or queued is None:
+            return
+        apply_blocks(self._hist, self.sensor.n_pixels, b_start, b_stop, self._slot_sums,
+                     self._slot_qa, self._slot_raw, self._slot_dl, self._slot_kind, self._lut,
+                     *queued, self._dl_buf)
+
+    def _hqueued_arrays(self) -> tuple[np.ndarray, np.ndarray] | None:
+        if not self._hqueued:
+            return None
+        return (np.array([q[0] for q in self._hqueued], np.int64),
+                np.array([q[1] for q in self._hqueued], np.float64))
+
+    def _renormalise_history(self) -> None:
+        """Fold the scale into the stored history (before its weights overflow)."""
+        assert self._hist is not None
+        assert self._hist_counts is not None
+        self._apply_history(0, self._n_blocks, self._hqueued_arrays())
+        self._hqueued.clear()
+        scale = self._hist_scale()
+        self._hist *= scale
+        self._hist_counts *= scale
+        self._hist_ref = self._frames[0].cum_events
+
+    def _with_history(self, b: int, mb: np.ndarray, counts: np.ndarray,
+                      scale: float) -> tuple[np.ndarray, np.ndarray]:
+        """Block ``b``'s sums and event counts with the history's added (new arrays)."""
+        if self._hist is None or self._hist_counts is None:
+            return mb, counts
+        s = b * BLOCK
+        m_all = self._hist[b] * scale
+        m_all += mb
+        c_all = counts + np.rint(self._hist_counts[s : s + BLOCK] * scale).astype(np.int64)
+        return m_all, c_all
 
     # -- the normal equations ------------------------------------------------------------------
 
@@ -846,11 +950,17 @@ class OnlineCalibrator:
                      *queued, self._dl_buf)
 
     def _apply_queued(self) -> None:
-        """Add the queued equations to the normal equations (all blocks)."""
+        """Add the queued equations to the normal equations (all blocks), and those that left
+        the buffer to the history."""
         self._apply_blocks(self._queued_arrays(), 0, self._n_blocks)
+        self._apply_history(0, self._n_blocks, self._hqueued_arrays())
         self._queued.clear()
+        self._hqueued.clear()
 
     def _clear_equations(self) -> None:
+        # the history keeps what left the buffer (its slots are still filled here)
+        self._apply_history(0, self._n_blocks, self._hqueued_arrays())
+        self._hqueued.clear()
         self._queued.clear()
         self._m.fill(0.0)
         self._removals = 0
@@ -868,9 +978,20 @@ class OnlineCalibrator:
         self._apply_queued()
         n = self.sensor.n_pixels
         ne = NormalEquations(n)
-        rows = self._m.reshape(self._n_blocks, 16, BLOCK).transpose(1, 0, 2)
-        ne.m[:] = rows.reshape(16, -1)[:, :n]
+        ne.m[:] = self._rows(self._m)
         return ne
+
+    def _rows(self, blocked: np.ndarray) -> np.ndarray:
+        """Blocked sums as ``(16, n)`` rows (a copy)."""
+        rows = blocked.reshape(self._n_blocks, 16, BLOCK).transpose(1, 0, 2)
+        return np.ascontiguousarray(rows.reshape(16, -1)[:, : self.sensor.n_pixels])
+
+    def _blocked(self, rows: np.ndarray, out: np.ndarray) -> None:
+        """``(16, n)`` rows into blocked sums ``out``."""
+        padded = np.zeros((16, self._n_blocks * BLOCK), np.float64)
+        padded[:, : self.sensor.n_pixels] = rows
+        out[:] = padded.reshape(16, self._n_blocks, BLOCK).transpose(1, 0, 2).reshape(
+            self._n_blocks, 16 * BLOCK)
 
     # blocks (of BLOCK pixels) the residual-correction factor is estimated on: all of them up
     # to this many, else this many spread evenly over the sensor (131 k pixels): lam is one
@@ -892,6 +1013,8 @@ class OnlineCalibrator:
         cfg, lim, est = self.config, self.config.limits, self.estimate
         n, m, counts = self.sensor.n_pixels, self._m, self._counts_pad
         queued = self._queued_arrays()
+        hqueued = self._hqueued_arrays()
+        scale = self._hist_scale() if self._hist is not None else 0.0
         applied = np.zeros(self._n_blocks, bool)  # blocks the queue was added to
         setting = cfg.residual_correction
         if setting == "auto":  # correction_lambda: fit without the correction, one step
@@ -900,9 +1023,11 @@ class OnlineCalibrator:
             for b in self._lambda_blocks():
                 s = b * BLOCK
                 self._apply_blocks(queued, b, b + 1)
+                self._apply_history(b, b + 1, hqueued)
                 applied[b] = True
+                mb, cb = self._with_history(b, m[b], counts[s : s + BLOCK], scale)
                 mask, rq_b, cq_b = _lambda_terms(
-                    m[b].reshape(16, BLOCK), counts[s : s + BLOCK], int(lim.min_events),
+                    mb.reshape(16, BLOCK), cb, int(lim.min_events),
                     float(lim.min_decorrelation), float(lim.min_contrast),
                     float(lim.max_contrast), float(lim.max_bias_ratio))
                 end = append_masked(mask, rq_b, cq_b, min(BLOCK, n - s), res_q, cq, end)
@@ -927,8 +1052,10 @@ class OnlineCalibrator:
             e = min(s + BLOCK, n)
             if not applied[b]:
                 self._apply_blocks(queued, b, b + 1)
+                self._apply_history(b, b + 1, hqueued)
+            mb, cb = self._with_history(b, m[b], counts[s : s + BLOCK], scale)
             c, b_new, reason, se_c, se_b = _solve_pixels(
-                m[b].reshape(16, BLOCK), counts[s : s + BLOCK], lam, float(overlap),
+                mb.reshape(16, BLOCK), cb, lam, float(overlap),
                 int(lim.min_events), float(lim.min_equations), float(lim.min_decorrelation),
                 float(lim.min_contrast), float(lim.max_contrast), float(lim.max_bias_ratio),
                 self._no_reason)
@@ -939,6 +1066,7 @@ class OnlineCalibrator:
                       est.b[s:e], est.se_c[s:e], est.se_b[s:e], est.seen[s:e],
                       est.n_solved[s:e], est.reason[s:e])
         self._queued.clear()
+        self._hqueued.clear()
         self.lam = lam
         self.n_updates += 1
 
@@ -1004,6 +1132,8 @@ class OnlineCalibrator:
             self._m, self._counts_pad, self._wins, self._code, self._spill, self._last_p,
             self._slot_sums, self._slot_qa, self._slot_raw, self._slot_dl, self._lam_terms,
             *self.estimate.state().values()]
+        if self._hist is not None and self._hist_counts is not None:
+            arrays += [self._hist, self._hist_counts]
         return self.buffer_bytes + int(sum(a.nbytes for a in arrays))
 
     # -- persistence -------------------------------------------------------------------------
@@ -1055,6 +1185,9 @@ class OnlineCalibrator:
         }
         for k, v in self._normal_equations().arrays().items():
             out[f"ne_{k}"] = v
+        if self._hist is not None and self._hist_counts is not None:
+            out["hist_m"] = self._rows(self._hist)  # stored weights, with hist_ref
+            out["hist_counts"] = self._hist_counts[:n]
         return {k: np.array(v, copy=True) for k, v in out.items()}
 
     @classmethod
@@ -1088,10 +1221,14 @@ class OnlineCalibrator:
             if ne.n_pixels != n:
                 raise StateError(f"state normal equations have {ne.n_pixels} pixels, "
                                  f"expected {n}")
-            rows = np.zeros((16, self._n_blocks * BLOCK), np.float64)
-            rows[:, :n] = ne.m
-            self._m[:] = rows.reshape(16, self._n_blocks, BLOCK).transpose(1, 0, 2).reshape(
-                self._n_blocks, 16 * BLOCK)
+            self._blocked(ne.m, self._m)
+            if self._hist is not None and self._hist_counts is not None and "hist_m" in state:
+                hist_m = np.asarray(state["hist_m"], np.float64)
+                if hist_m.shape != (16, n):
+                    raise StateError(f"state hist_m has shape {hist_m.shape}, expected "
+                                     f"(16, {n})")
+                self._blocked(hist_m, self._hist)
+                _load_into(self._hist_counts[:n], state["hist_counts"], "hist_counts")
             meta = np.asarray(state["fr_meta"], np.int64).reshape(-1, 5)
             images, last_p = state["fr_images"], state["fr_last_p"]
             if images.shape != (len(meta), n) or last_p.shape != (len(meta), n):

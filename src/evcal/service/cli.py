@@ -103,6 +103,11 @@ def build_parser(prog: str = "evcal serve") -> argparse.ArgumentParser:
                    help="frame intervals each equation spans, as OffEI's --window-frames "
                         "(default 5); 0 closes them by event count (n_small), as the OnEI "
                         "paper does")
+    g.add_argument("--history", type=float, default=1.0,
+                   help="time constant, in large buffers, of the forgotten history of the "
+                        "equations that left the buffer (default 1; 0: none, the paper's "
+                        "sliding buffer alone; it costs a second set of sums, 131 MiB per "
+                        "megapixel)")
     g.add_argument("--log-offset", type=_offset_arg, default="auto",
                    help="offset of log(I + offset) in frame units (DN), or 'auto' (default): "
                         "estimated per camera from its first frames and events with the "
@@ -152,6 +157,9 @@ def config_from_args(args: argparse.Namespace) -> ServiceConfig:
     if args.window_frames < 0:
         raise ConfigError(f"--window-frames {args.window_frames} must be >= 0")
     onei["window_frames"] = args.window_frames or None
+    if not args.history >= 0:
+        raise ConfigError(f"--history {args.history} must be >= 0")
+    onei["history"] = args.history
     return ServiceConfig(
         prefix=args.prefix, cameras=args.cameras, instance=args.instance, shard=args.shard,
         queue_bytes=int(args.queue_mb * (1 << 20)), on_full=args.on_full,
