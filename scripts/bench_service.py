@@ -62,6 +62,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import threading
 import time
@@ -532,6 +533,46 @@ def zenoh_loopback_floor(n_events: int, chunk: int = 100_000, shm: bool = True,
     return n_msgs * chunk / dt
 
 
+def publication(nbytes: int, n_msgs: int = 30, *, shm_pool_mb: float) -> dict:
+    """One large calibration-sized payload at a time (a 1280x720 camera's message is 16 MB)
+    put with :meth:`Transport.put` (the service's path) and received by another session of
+    this process over TCP loopback: the put's duration and put-to-callback latency (the
+    callback gets the payload as bytes, as the service's subscribers do). ``shm_pool_mb`` 0
+    sends ordinary bytes (zenoh still copies them into its shared memory in its pipeline)."""
+    import threading as th
+
+    payload = np.random.default_rng(0).integers(0, 255, nbytes, np.uint8).tobytes()
+    ep = endpoint(free_port())
+    got: dict[int, float] = {}
+    arrived = th.Semaphore(0)
+
+    def on_msg(key: str, data: bytes, enc: str) -> None:
+        got[int.from_bytes(data[:4], "little")] = time.perf_counter()
+        arrived.release()
+
+    put_ms, latency_ms = [], []
+    with Transport(ZenohOptions(mode="peer", listen=(ep,), multicast_scouting=False)) as rx, \
+            Transport(ZenohOptions(mode="peer", connect=(ep,), multicast_scouting=False),
+                      shm_pool_mb=shm_pool_mb) as tx:
+        rx.subscribe("bench/publication", on_msg)
+        time.sleep(1.0)
+        for i in range(n_msgs + 5):  # 5 warm-up messages
+            msg = i.to_bytes(4, "little") + payload[4:]
+            t0 = time.perf_counter()
+            tx.put("bench/publication", msg, keys.ENC_CALIBRATION, block=True)
+            t1 = time.perf_counter()
+            arrived.acquire(timeout=10)
+            if i >= 5:
+                put_ms.append((t1 - t0) * 1e3)
+                latency_ms.append((got.get(i, math.nan) - t0) * 1e3)
+            time.sleep(0.04)  # one frame interval at 25 Hz
+        stats = tx.shm.stats()
+    return {"put_ms_median": float(np.median(put_ms)),
+            "latency_ms_median": float(np.nanmedian(latency_ms)),
+            "latency_ms_p90": float(np.nanpercentile(latency_ms, 90)),
+            "lost": int(np.isnan(latency_ms).sum()), "shm": stats}
+
+
 # ----------------------------------------------------------------------------- memory
 
 
@@ -753,6 +794,14 @@ def main(argv: list[str] | None = None) -> int:
                   + f", replays {r['replay_cores']:.2f}, other "
                   f"processes {r['other_load_cores']:.2f}", flush=True)
     if args.what in ("shm", "all"):
+        for pool_mb in (64.0, 0.0):
+            r = publication(16 << 20, shm_pool_mb=pool_mb)
+            how = ("written into a zenoh shared-memory pool first" if pool_mb
+                   else "as bytes (zenoh's own shared-memory copy in its pipeline)")
+            print(f"shm publication of a 16 MiB calibration message (1280x720), {how}: put "
+                  f"{r['put_ms_median']:.1f} ms, put to subscriber callback median "
+                  f"{r['latency_ms_median']:.1f} ms, p90 {r['latency_ms_p90']:.1f} ms "
+                  f"({r['lost']} lost; pool {r['shm']})", flush=True)
         for shm in (True, False):
             floor = zenoh_loopback_floor(int(args.events), shm=shm)
             r = throughput(SensorSize(260, 346), int(args.events), mode="events", shm=shm)

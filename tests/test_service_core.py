@@ -537,6 +537,43 @@ def test_compiled_classify_equals_the_generic_path():
     assert set(np.unique(ref)) >= {1, 2, 3, 4, 5}
 
 
+def test_classify_from_a_population_sample_is_the_sampled_reference():
+    """``population_sample`` (OnEI's live maps above 131 k valid pixels): the medians come
+    from an even lattice of the valid pixels; the labels are then exactly those of the
+    reference rule with the lattice's statistics, and differ from the exact ones only at the
+    class boundaries."""
+    from evcal.special import classify
+
+    rng = np.random.default_rng(5)
+    c = rng.normal(0.2, 0.02, (300, 400))
+    b = rng.normal(0.0, 0.01, c.shape)
+    c[::7, ::5] += rng.choice([-0.15, 0.2], c[::7, ::5].shape)
+    se_c = rng.uniform(0, 0.004, c.shape)
+    se_b = rng.uniform(0, 0.002, c.shape)
+    valid = rng.random(c.shape) < 0.9
+    sampled = classify(c, b, se_c, se_b, valid, population_sample=10_000)
+    exact = classify(c, b, se_c, se_b, valid)
+    idx = np.flatnonzero(valid.ravel())[:: int(valid.sum()) // 10_000]
+    lattice = np.zeros(c.shape, bool)
+    lattice.flat[idx] = True
+    # the reference rule, its statistics from the lattice
+    k, z = 3.0, 2.0
+    c_med = np.median(c[lattice])
+    c_s = 1.4826 * np.median(np.abs(c[lattice] - c_med))
+    b_med = np.median(b[lattice])
+    b_s = 1.4826 * np.median(np.abs(b[lattice] - b_med))
+    ref = np.where(valid, 1, 0).astype(np.uint8)
+    ref[valid & (b + z * se_b < b_med - k * b_s)] = 4
+    ref[valid & (b - z * se_b > b_med + k * b_s)] = 5
+    ref[valid & (c + z * se_c < c_med - k * c_s)] = 2
+    ref[valid & (c - z * se_c > c_med + k * c_s)] = 3
+    np.testing.assert_array_equal(sampled, ref)
+    assert 0 < np.count_nonzero(sampled != exact) < 0.002 * c.size
+    # at or below the sample size nothing changes
+    np.testing.assert_array_equal(classify(c, b, se_c, se_b, valid,
+                                           population_sample=c.size), exact)
+
+
 def _reference_classify(c, b, se_c, se_b, valid, k=3.0, z=2.0):
     out = np.zeros(c.shape, np.uint8)
     out[valid] = 1

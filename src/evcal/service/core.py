@@ -192,6 +192,7 @@ class Service:
         self._last_status = 0.0
         self._last_snapshot = time.monotonic()
         self.gc: GcPolicy | None = None  # the process's collector policy (set by the server)
+        self.shm: Any = None  # the transport's ShmPool (set by the server): its counters
         self.claim = f"{config.prefix.strip('/')}/{config.cameras}"
 
     # -- plumbing --------------------------------------------------------------------------
@@ -441,6 +442,7 @@ class Service:
             "recorder": (self.observer.state() if hasattr(self.observer, "state")
                          else None),
             "gc": self.gc.stats() if self.gc is not None else None,
+            "shm": self.shm.stats() if self.shm is not None else None,
             "cameras": [{"id": c.id, "sensor": str(c.sensor) if c.sensor else None,
                          "updates": c.counters.updates, "events": c.counters.events,
                          "last_update_t_us": c.state.calibration_t_us}

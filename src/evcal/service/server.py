@@ -77,6 +77,7 @@ def run(
             service = Service(config, t.put, match=intersects, observer=observer, store=store,
                               instance=instance, signer=signer,
                               on_update=ros_out.publish if ros_out is not None else None)
+            service.shm = t.shm
             restored = service.restore()
             if restored:
                 log.info("restored %d camera(s) from %s: %s", len(restored), state_dir,
