@@ -255,7 +255,8 @@ def timed_stream(service_args: list[str], camera: str, sender, *, n_events: int,
 
 
 def latency(rate: float, seconds: float, *, chunk_ms: float = 10.0, rrd: str | None = None,
-            warmup_s: float = 3.0, size: str = "346x260", settle_s: float = 0.0) -> dict:
+            warmup_s: float = 3.0, size: str = "346x260", settle_s: float = 0.0,
+            service_args: list[str] | None = None) -> dict:
     """A real-time stream at ``rate`` events/s, 25 Hz frames, OnEI's default sizes.
 
     The client's round trips are split at ``settle_s`` of the measured camera's stream: the
@@ -271,7 +272,7 @@ def latency(rate: float, seconds: float, *, chunk_ms: float = 10.0, rrd: str | N
     n_pool = max(8, min(1_000_000 // chunk_us, 4_000_000 // max(per_chunk, 1)))
     pool = [synthetic_chunk(rng, sensor, per_chunk, 0, chunk_us) for _ in range(n_pool)]
     images = [rng.integers(0, 255, sensor.shape).astype(np.uint8) for _ in range(8)]
-    extra = ["--rrd", rrd] if rrd else []
+    extra = (["--rrd", rrd] if rrd else []) + list(service_args or [])
     sp, ep = start_service(extra)
     cam = "bench/latency"
     sent: dict[int, float] = {}
@@ -758,6 +759,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--settle-s", type=float, default=0.0,
                    help="latency: the client's figures after this start-up of the stream")
     p.add_argument("--rrd", metavar="PATH", help="latency: the service also records to PATH")
+    p.add_argument("--service-args", default="",
+                   help="latency: extra `evcal serve` options, e.g. '--history 0'")
     p.add_argument("--minutes", type=float, default=10.0, help="memory: stream length")
     args = p.parse_args(argv)
     if args.what in ("throughput", "all"):
@@ -773,7 +776,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.what in ("latency", "all"):
         for rate in args.rates.split(","):
             print_latency(latency(float(rate), args.seconds, rrd=args.rrd, size=args.size,
-                                  settle_s=args.settle_s))
+                                  settle_s=args.settle_s,
+                                  service_args=args.service_args.split()))
     if args.what in ("scaling", "all"):
         rows = scaling(args.seconds, args.cameras if args.what == "scaling" else 2,
                        [int(w) for w in args.workers.split(",")], shm=not args.no_shm)

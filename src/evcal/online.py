@@ -461,6 +461,8 @@ class OnlineCalibrator:
         self._hist = np.zeros_like(self._m) if on else None
         self._hist_counts = np.zeros(self._counts_pad.size) if on else None
         self._hist_ref = 0  # events left the buffer that the weights are relative to
+        self._hist_tmp = ((np.empty(16 * BLOCK), np.empty(BLOCK), np.empty(BLOCK, np.int64))
+                          if on else (np.empty(0), np.empty(0), np.empty(0, np.int64)))
         self._hqueued: list[tuple[int, float]] = []  # (slot, weight) not yet in self._hist
 
     def _start_session_keeping_guard(self) -> None:
@@ -867,13 +869,18 @@ class OnlineCalibrator:
 
     def _with_history(self, b: int, mb: np.ndarray, counts: np.ndarray,
                       scale: float) -> tuple[np.ndarray, np.ndarray]:
-        """Block ``b``'s sums and event counts with the history's added (new arrays)."""
+        """Block ``b``'s sums and event counts with the history's added (in buffers reused
+        from block to block: read them before the next call)."""
         if self._hist is None or self._hist_counts is None:
             return mb, counts
         s = b * BLOCK
-        m_all = self._hist[b] * scale
+        m_all, c_f, c_all = self._hist_tmp  # reused: fresh arrays cost page faults per block
+        np.multiply(self._hist[b], scale, out=m_all)
         m_all += mb
-        c_all = counts + np.rint(self._hist_counts[s : s + BLOCK] * scale).astype(np.int64)
+        np.multiply(self._hist_counts[s : s + BLOCK], scale, out=c_f)
+        np.rint(c_f, out=c_f)
+        c_all[:] = c_f
+        c_all += counts
         return m_all, c_all
 
     # -- the normal equations ------------------------------------------------------------------

@@ -103,11 +103,12 @@ def build_parser(prog: str = "evcal serve") -> argparse.ArgumentParser:
                    help="frame intervals each equation spans, as OffEI's --window-frames "
                         "(default 5); 0 closes them by event count (n_small), as the OnEI "
                         "paper does")
-    g.add_argument("--history", type=float, default=1.0,
-                   help="time constant, in large buffers, of the forgotten history of the "
-                        "equations that left the buffer (default 1; 0: none, the paper's "
-                        "sliding buffer alone; it costs a second set of sums, 131 MiB per "
-                        "megapixel)")
+    g.add_argument("--history", type=float, default=0.0,
+                   help="time constant, in large buffers, of a forgotten history of the "
+                        "equations that left the buffer, solved with it (default 0: none, "
+                        "the paper's sliding buffer alone; 1 helps short recordings and "
+                        "pixels whose events came early, at a second set of sums, 131 MiB "
+                        "per megapixel, and 2 ms per update at 346x260)")
     g.add_argument("--log-offset", type=_offset_arg, default="auto",
                    help="offset of log(I + offset) in frame units (DN), or 'auto' (default): "
                         "estimated per camera from its first frames and events with the "

@@ -106,13 +106,12 @@ class ServiceConfig:
     # the service estimates each camera's log offset unless told (OnEI's own default is 30),
     # its equations span 5 frame intervals, as OffEI's (OnEI's own default closes them by
     # event count, which ends them in bursts of motion: 1.1-1.5x OffEI's c error on common
-    # pixels of v2e recordings with frame windows, 1.5-2.1x with event-count ones), and it
-    # keeps a forgotten history of one large buffer (the paper's buffer alone: 1.1-1.5x
-    # OffEI's c error on 3-s v2e recordings, with the history 1.1-1.2x; it costs a second
-    # set of sums, 131 MiB per megapixel, and at 1280x720 about 8 ms per frame: --history 0
-    # turns it off)
+    # pixels of v2e recordings with frame windows, 1.5-2.1x with event-count ones); no
+    # forgotten history by default (--history 1 takes 3-s v2e recordings from 1.1-1.5x to
+    # 1.1-1.2x OffEI's c error, at 2 ms per update at 346x260, 20 ms at 1280x720: over the
+    # latency aims; docs/SERVICE.md)
     onei: OnEIConfig = field(default_factory=lambda: OnEIConfig(log_offset="auto",
-                                                                window_frames=5, history=1.0))
+                                                                window_frames=5))
 
     def __post_init__(self) -> None:
         if self.on_full not in ON_FULL:
