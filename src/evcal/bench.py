@@ -10,13 +10,16 @@ import resource
 import sys
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from .accumulate import Accumulator
 from .events import EVENTS_DTYPE, SensorSize
 from .recording import Frames, Recording
+
+if TYPE_CHECKING:
+    from .online import OnEIConfig
 from .stream import frame_cuts, frame_intervals
 
 
@@ -98,7 +101,7 @@ def bench_offei(sensor: SensorSize, n_frames: int, n_events: int) -> dict[str, f
 
 
 def bench_onei(sensor: SensorSize, n_frames: int, events_per_frame: int,
-               config: Any = None) -> dict[str, float]:
+               config: OnEIConfig | None = None) -> dict[str, float]:
     """Per-frame cost of :meth:`OnlineCalibrator.feed_frame` at the paper's buffer sizes, and
     its floor measured on the same data.
 

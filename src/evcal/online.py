@@ -842,25 +842,11 @@ class OnlineCalibrator:
         """The factor that turns the stored history into its weights now."""
         return math.exp(-self._hist_exponent())
 
-    def _apply_history(self, b_start: int, b_stop: int,
-                       queued: tuple[np.ndarray, np.ndarray] | None) -> None:
-        if self._hist is None or queued is None:
-            return
-        apply_blocks(self._hist, self.sensor.n_pixels, b_start, b_stop, self._slot_sums,
-                     self._slot_qa, self._slot_raw, self._slot_dl, self._slot_kind, self._lut,
-                     *queued, self._dl_buf)
-
-    def _hqueued_arrays(self) -> tuple[np.ndarray, np.ndarray] | None:
-        if not self._hqueued:
-            return None
-        return (np.array([q[0] for q in self._hqueued], np.int64),
-                np.array([q[1] for q in self._hqueued], np.float64))
-
     def _renormalise_history(self) -> None:
         """Fold the scale into the stored history (before its weights overflow)."""
         assert self._hist is not None
         assert self._hist_counts is not None
-        self._apply_history(0, self._n_blocks, self._hqueued_arrays())
+        self._apply_history(0, self._n_blocks, self._as_arrays(self._hqueued))
         self._hqueued.clear()
         scale = self._hist_scale()
         self._hist *= scale
@@ -946,31 +932,39 @@ class OnlineCalibrator:
             self._slot_kind[slot] = False
         self._queued.append((slot, sign))
 
-    def _queued_arrays(self) -> tuple[np.ndarray, np.ndarray] | None:
-        if not self._queued:
+    @staticmethod
+    def _as_arrays(queue: list[tuple[int, float]]) -> tuple[np.ndarray, np.ndarray] | None:
+        """A queue of ``(slot, weight)`` as :func:`apply_blocks`' arrays (None if empty)."""
+        if not queue:
             return None
-        return (np.array([q[0] for q in self._queued], np.int64),
-                np.array([q[1] for q in self._queued], np.float64))
+        return (np.array([q[0] for q in queue], np.int64),
+                np.array([q[1] for q in queue], np.float64))
 
     def _apply_blocks(self, queued: tuple[np.ndarray, np.ndarray] | None, b_start: int,
-                      b_stop: int) -> None:
-        if queued is None:
+                      b_stop: int, target: np.ndarray | None) -> None:
+        """Add queued slots to blocks of ``target`` (the normal equations, or the history's
+        sums; None: nothing, as for a history that is off)."""
+        if queued is None or target is None:
             return
-        apply_blocks(self._m, self.sensor.n_pixels, b_start, b_stop, self._slot_sums,
+        apply_blocks(target, self.sensor.n_pixels, b_start, b_stop, self._slot_sums,
                      self._slot_qa, self._slot_raw, self._slot_dl, self._slot_kind, self._lut,
                      *queued, self._dl_buf)
+
+    def _apply_history(self, b_start: int, b_stop: int,
+                       queued: tuple[np.ndarray, np.ndarray] | None) -> None:
+        self._apply_blocks(queued, b_start, b_stop, self._hist)
 
     def _apply_queued(self) -> None:
         """Add the queued equations to the normal equations (all blocks), and those that left
         the buffer to the history."""
-        self._apply_blocks(self._queued_arrays(), 0, self._n_blocks)
-        self._apply_history(0, self._n_blocks, self._hqueued_arrays())
+        self._apply_blocks(self._as_arrays(self._queued), 0, self._n_blocks, self._m)
+        self._apply_history(0, self._n_blocks, self._as_arrays(self._hqueued))
         self._queued.clear()
         self._hqueued.clear()
 
     def _clear_equations(self) -> None:
         # the history keeps what left the buffer (its slots are still filled here)
-        self._apply_history(0, self._n_blocks, self._hqueued_arrays())
+        self._apply_history(0, self._n_blocks, self._as_arrays(self._hqueued))
         self._hqueued.clear()
         self._queued.clear()
         self._m.fill(0.0)
@@ -993,9 +987,10 @@ class OnlineCalibrator:
         return ne
 
     def _rows(self, blocked: np.ndarray) -> np.ndarray:
-        """Blocked sums as ``(16, n)`` rows (a copy)."""
+        """Blocked sums as ``(16, n)`` rows (a view when it can be: copy to keep)."""
         rows = blocked.reshape(self._n_blocks, 16, BLOCK).transpose(1, 0, 2)
-        return np.ascontiguousarray(rows.reshape(16, -1)[:, : self.sensor.n_pixels])
+        out: np.ndarray = rows.reshape(16, -1)[:, : self.sensor.n_pixels]
+        return out
 
     def _blocked(self, rows: np.ndarray, out: np.ndarray) -> None:
         """``(16, n)`` rows into blocked sums ``out``."""
@@ -1023,8 +1018,8 @@ class OnlineCalibrator:
         ``lam`` estimated on :meth:`_lambda_blocks` (every pixel up to 131 k pixels)."""
         cfg, lim, est = self.config, self.config.limits, self.estimate
         n, m, counts = self.sensor.n_pixels, self._m, self._counts_pad
-        queued = self._queued_arrays()
-        hqueued = self._hqueued_arrays()
+        queued = self._as_arrays(self._queued)
+        hqueued = self._as_arrays(self._hqueued)
         scale = self._hist_scale() if self._hist is not None else 0.0
         applied = np.zeros(self._n_blocks, bool)  # blocks the queue was added to
         setting = cfg.residual_correction
@@ -1033,7 +1028,7 @@ class OnlineCalibrator:
             end = 0
             for b in self._lambda_blocks():
                 s = b * BLOCK
-                self._apply_blocks(queued, b, b + 1)
+                self._apply_blocks(queued, b, b + 1, m)
                 self._apply_history(b, b + 1, hqueued)
                 applied[b] = True
                 mb, cb = self._with_history(b, m[b], counts[s : s + BLOCK], scale)
@@ -1062,7 +1057,7 @@ class OnlineCalibrator:
             s = b * BLOCK
             e = min(s + BLOCK, n)
             if not applied[b]:
-                self._apply_blocks(queued, b, b + 1)
+                self._apply_blocks(queued, b, b + 1, m)
                 self._apply_history(b, b + 1, hqueued)
             mb, cb = self._with_history(b, m[b], counts[s : s + BLOCK], scale)
             c, b_new, reason, se_c, se_b = _solve_pixels(
