@@ -256,7 +256,7 @@ def timed_stream(service_args: list[str], camera: str, sender, *, n_events: int,
 
 def latency(rate: float, seconds: float, *, chunk_ms: float = 10.0, rrd: str | None = None,
             warmup_s: float = 3.0, size: str = "346x260", settle_s: float = 0.0,
-            service_args: list[str] | None = None) -> dict:
+            service_args: list[str] | None = None, verbose: bool = False) -> dict:
     """A real-time stream at ``rate`` events/s, 25 Hz frames, OnEI's default sizes.
 
     The client's round trips are split at ``settle_s`` of the measured camera's stream: the
@@ -291,6 +291,7 @@ def latency(rate: float, seconds: float, *, chunk_ms: float = 10.0, rrd: str | N
             t.subscribe(keys.camera_key("evcal", cam, "calibration"), on_cal)
 
             def stream(s: Stream, duration_s: float, record: bool) -> int:
+                pick = np.random.default_rng(2)
                 n_frames = int(duration_s * 1e6 / FRAME_US)
                 wall0 = time.monotonic()
                 for k in range(n_frames):
@@ -303,7 +304,11 @@ def latency(rate: float, seconds: float, *, chunk_ms: float = 10.0, rrd: str | N
                         t0 = t_f + j * chunk_us
                         # a packet leaves when its last event has happened
                         time.sleep(max(0.0, wall0 + (t0 + chunk_us) * 1e-6 - time.monotonic()))
-                        ev = pool[(k * chunks_per_frame + j) % len(pool)].copy()
+                        # drawn, not cycled: a cycle of whole frames' worth of packets
+                        # gives every window of OnEI's offset criterion the same events (a
+                        # rank-deficient fit: at 20 M events/s, 5 frames per cycle, no
+                        # offset estimate and no update ever)
+                        ev = pool[int(pick.integers(len(pool)))].copy()
                         ev["t_us"] += t0
                         s.events(ev)
                 return n_frames
@@ -321,6 +326,9 @@ def latency(rate: float, seconds: float, *, chunk_ms: float = 10.0, rrd: str | N
         sp.stop()
     t_sent = np.array([g[0] for g in got], np.int64)
     rt_all = np.array([g[1] for g in got]) * 1e3
+    if verbose:
+        print("  round trips (frame s: ms): " + ", ".join(
+            f"{t / 1e6:.2f}: {r:.0f}" for t, r in zip(t_sent, rt_all, strict=True)), flush=True)
     rt = rt_all[t_sent >= settle_s * 1e6]  # the steady state
     start = rt_all[t_sent < settle_s * 1e6]
     return {"sensor": str(sensor), "rate": rate, "frames": n_frames,
@@ -761,6 +769,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--rrd", metavar="PATH", help="latency: the service also records to PATH")
     p.add_argument("--service-args", default="",
                    help="latency: extra `evcal serve` options, e.g. '--history 0'")
+    p.add_argument("--verbose", action="store_true",
+                   help="latency: print every round trip with its frame's time")
     p.add_argument("--minutes", type=float, default=10.0, help="memory: stream length")
     args = p.parse_args(argv)
     if args.what in ("throughput", "all"):
@@ -777,7 +787,8 @@ def main(argv: list[str] | None = None) -> int:
         for rate in args.rates.split(","):
             print_latency(latency(float(rate), args.seconds, rrd=args.rrd, size=args.size,
                                   settle_s=args.settle_s,
-                                  service_args=args.service_args.split()))
+                                  service_args=args.service_args.split(),
+                                  verbose=args.verbose))
     if args.what in ("scaling", "all"):
         rows = scaling(args.seconds, args.cameras if args.what == "scaling" else 2,
                        [int(w) for w in args.workers.split(",")], shm=not args.no_shm)

@@ -13,10 +13,11 @@ import numpy as np
 import pytest
 
 from evcal.bench import random_recording
-from evcal.errors import CalibrationError
+from evcal.errors import CalibrationError, ConfigError
 from evcal.events import EventError, SensorSize, make_events
 from evcal.online import OnEIConfig, OnlineCalibrator, onei
 from evcal.solver import NormalEquations, log_intensity, usable
+from evcal.stream import frame_intervals
 
 SENSOR = SensorSize(20, 30)
 
@@ -344,9 +345,9 @@ def test_residual_lambda_blocks_cover_small_sensors_and_spread_over_large_ones()
     from evcal._onei_kernels import BLOCK
 
     small = OnlineCalibrator(SensorSize(260, 346))
-    np.testing.assert_array_equal(small._lambda_blocks(), np.arange(small._n_blocks))
+    np.testing.assert_array_equal(small._lambda_block_list(), np.arange(small._n_blocks))
     hd = OnlineCalibrator(SensorSize(720, 1280))
-    blocks = hd._lambda_blocks()
+    blocks = hd._lambda_block_list()
     assert hd._n_blocks == -(-720 * 1280 // BLOCK) > OnlineCalibrator.LAMBDA_BLOCKS
     assert blocks.size == OnlineCalibrator.LAMBDA_BLOCKS == np.unique(blocks).size
     assert blocks[0] == 0
@@ -421,13 +422,19 @@ def test_the_first_offset_estimate_waits_for_enough_busy_pixels():
     cal = OnlineCalibrator(sensor, OnEIConfig(log_offset="auto", n_small=n, n_large=10**7))
     cuts = np.searchsorted(events["t_us"], rec.frames.t_us)
     first_at = None
+    states = []
     for k in range(60):
         cal.feed_events(events[cuts[k - 1] if k else 0 : cuts[k]])
         cal.feed_frame(int(rec.frames.t_us[k]), rec.frames.images[k])
+        states.append(cal.status()["log_offset_state"])
         if first_at is None and np.isfinite(cal.log_offset):
             first_at, info = k, dict(cal.offset_info)
     assert first_at is not None
     assert first_at > 25
+    # the operator's status says what the estimate waits for
+    assert states[0] == "waiting for 11 buffered frames"
+    assert states[20] == "waiting for busy pixels: 30 of 100"
+    assert states[first_at] == f"estimated at frame {first_at + 1}"
     assert info["pixels"] >= 0.05 * n
     # a full large buffer does not wait for busy pixels: what it holds is all there is
     cal = OnlineCalibrator(sensor, OnEIConfig(log_offset="auto", n_small=100, n_large=600))
@@ -436,3 +443,53 @@ def test_the_first_offset_estimate_waits_for_enough_busy_pixels():
         cal.feed_frame(int(rec.frames.t_us[k]), rec.frames.images[k])
     assert np.isfinite(cal.log_offset)
     assert cal.offset_info["pixels"] < 0.05 * n
+
+
+def test_the_re_solve_gives_the_same_result_on_any_number_of_threads():
+    """The re-solve's blocks are split over threads (OnEIConfig.threads): every figure is
+    the same with 1, 2 or 3 threads, with the history's combination and a residual
+    correction estimated on blocks spread over a sensor of more than LAMBDA_BLOCKS blocks."""
+    from evcal._onei_kernels import BLOCK
+
+    sensor = SensorSize(300, 480)
+    assert -(-sensor.n_pixels // BLOCK) > OnlineCalibrator.LAMBDA_BLOCKS
+    n = sensor.n_pixels
+    rec = random_recording(sensor, 2 * n * 16, 16, seed=4)
+    cfg = OnEIConfig(n_small=3 * n, n_large=10 * n, log_offset=30.0, history=1.0)
+    cals = [onei(rec, replace(cfg, threads=t)) for t in (1, 2, 3)]
+    assert cals[0].diagnostics.n_updates >= 6
+    assert cals[0].diagnostics.residual_lambda > 0
+    assert cals[0].valid.mean() > 0.5
+    for other in cals[1:]:
+        assert other.diagnostics.residual_lambda == cals[0].diagnostics.residual_lambda
+        for name in ("contrast", "bias", "stderr_contrast", "stderr_bias", "reason", "valid",
+                     "special"):
+            np.testing.assert_array_equal(getattr(other, name), getattr(cals[0], name))
+    with pytest.raises(ConfigError, match="threads"):
+        OnEIConfig(threads=-1)
+
+
+def test_the_live_maps_are_the_estimate_classified():
+    """calibration()'s maps, made in one threaded pass: the float32 estimate (inf standard
+    errors where never valid) and classify()'s classes of it, population from the lattice."""
+    from evcal.special import classify
+
+    sensor = SensorSize(60, 80)
+    n = sensor.n_pixels
+    rec = random_recording(sensor, 2 * n * 20, 20, seed=6)
+    cal = OnlineCalibrator(sensor, OnEIConfig(n_small=3 * n, n_large=10 * n, log_offset=30.0,
+                                              threads=2))
+    for k, chunk in frame_intervals(rec.events, rec.frames.t_us):
+        cal.feed_events(chunk)
+        cal.feed_frame(int(rec.frames.t_us[k]), rec.frames.images[k])
+    est = cal.estimate
+    est.POPULATION_SAMPLE = 1000  # below the valid pixels: the lattice is used
+    assert 1000 < est.seen.sum() < n
+    got = cal.calibration()
+    want = classify(est.c, est.b, est.se_c, est.se_b, est.seen.copy(), population_sample=1000)
+    np.testing.assert_array_equal(got.special.ravel(), want)
+    assert {0, 1, 3, 4, 5} <= set(np.unique(want))  # unobserved, normal, cold, warm, cool
+    np.testing.assert_array_equal(got.valid.ravel(), est.seen)
+    np.testing.assert_array_equal(got.contrast.ravel(), est.c.astype(np.float32))
+    se = np.where(est.seen, est.se_c, np.inf).astype(np.float32)
+    np.testing.assert_array_equal(got.stderr_contrast.ravel(), se)

@@ -539,7 +539,7 @@ def test_compiled_classify_equals_the_generic_path():
 
 def test_classify_from_a_population_sample_is_the_sampled_reference():
     """``population_sample`` (OnEI's live maps above 131 k valid pixels): the medians come
-    from an even lattice of the valid pixels; the labels are then exactly those of the
+    from the valid pixels of an even lattice of the sensor; the labels are then exactly those of the
     reference rule with the lattice's statistics, and differ from the exact ones only at the
     class boundaries."""
     from evcal.special import classify
@@ -553,7 +553,8 @@ def test_classify_from_a_population_sample_is_the_sampled_reference():
     valid = rng.random(c.shape) < 0.9
     sampled = classify(c, b, se_c, se_b, valid, population_sample=10_000)
     exact = classify(c, b, se_c, se_b, valid)
-    idx = np.flatnonzero(valid.ravel())[:: int(valid.sum()) // 10_000]
+    idx = np.arange(0, c.size, int(valid.sum()) // 10_000)  # the lattice's valid pixels
+    idx = idx[valid.ravel()[idx]]
     lattice = np.zeros(c.shape, bool)
     lattice.flat[idx] = True
     # the reference rule, its statistics from the lattice

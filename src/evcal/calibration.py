@@ -240,6 +240,7 @@ class OnEIDiagnostics(Diagnostics):
     n_large: int = 0
     last_frame_t_us: int | None = None
     log_offset: float = math.nan  # the offset the equations use (NaN: not estimated yet)
+    log_offset_state: str = ""  # where the online estimate stands (waiting, running, ...)
     config: Mapping[str, Any] = field(default_factory=dict)
     log_offset_estimation: Mapping[str, Any] = field(default_factory=dict)
     # (t_us, contrast, bias, valid) after every n-th update (onei(history_every=n)); in memory

@@ -60,7 +60,9 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from collections import deque
+from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field, replace
 from typing import Any
@@ -90,6 +92,7 @@ from .calibration import (
     Diagnostics,
     OnEIDiagnostics,
     Reason,
+    Special,
 )
 from .errors import CalibrationError, ConfigError, ErrorReason, StateError
 from .events import EVENTS_DTYPE, SensorSize
@@ -104,7 +107,7 @@ from .solver import (
     log_intensity,
     usable,
 )
-from .special import classify
+from .special import K_POPULATION, Z_MEASUREMENT, label_one, population_limits
 from .stream import StreamError, StreamGuard, frame_intervals
 
 STATE_FORMAT = "evcal.onei.v2"
@@ -119,6 +122,30 @@ def _offset_pool() -> ThreadPoolExecutor:
     if _OFFSET_POOL is None:
         _OFFSET_POOL = ThreadPoolExecutor(max_workers=1, thread_name_prefix="evcal-offset")
     return _OFFSET_POOL
+
+
+MAX_SOLVE_THREADS = 8  # a re-solve's threads at most (it is memory-bound beyond a few)
+_SOLVE_POOL: ThreadPoolExecutor | None = None
+
+
+def usable_cores() -> int:
+    """The cores this process may run on (its affinity: a container's or taskset's limit)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # not on Linux
+        return os.cpu_count() or 1
+_NO_HISTORY = np.zeros((0, 16 * BLOCK), np.float64)  # _resolve_blocks' hist when it is off
+_NO_COUNTS = np.zeros(0, np.float64)
+
+
+def _solve_pool() -> ThreadPoolExecutor:
+    """Threads for the re-solve's block ranges beyond the caller's own, shared by every
+    calibrator of the process (the kernels run without the GIL)."""
+    global _SOLVE_POOL
+    if _SOLVE_POOL is None:
+        _SOLVE_POOL = ThreadPoolExecutor(max_workers=max(1, MAX_SOLVE_THREADS - 1),
+                                         thread_name_prefix="evcal-solve")
+    return _SOLVE_POOL
 
 
 def _offset_criterion(sp: np.ndarray, se: np.ndarray, dq: np.ndarray, fj: np.ndarray,
@@ -153,6 +180,7 @@ _SCALARS: dict[str, tuple[str, Any]] = {
 _OPTIONAL_SCALARS = frozenset({"n_sessions", "log_offset", "next_offset_check", "holds_all",
                                "hist_ref"})
 _VALID = int(Reason.VALID)
+_UNOBSERVED, _NORMAL = int(Special.UNOBSERVED), int(Special.NORMAL)
 PENDING_SLOTS = 6  # equations queued before they are added to the normal equations
 _OPEN, _DROP = 0, 1  # the two sliding sums: the small buffer closing next, the one leaving
 
@@ -179,24 +207,120 @@ def _low_pass(c_new: np.ndarray, b_new: np.ndarray, se_c_new: np.ndarray, se_b_n
         reason[i] = _VALID if seen[i] else reason_new[i]
 
 
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _prepared_block(blk: int, n: int, m: np.ndarray, counts_pad: np.ndarray, apply: bool,
+                    sums: np.ndarray, qa: np.ndarray, raw: np.ndarray, dl: np.ndarray,
+                    kinds: np.ndarray, lut: np.ndarray, slots: np.ndarray, signs: np.ndarray,
+                    hslots: np.ndarray, hsigns: np.ndarray, buf: np.ndarray, hist: np.ndarray,
+                    hist_counts: np.ndarray, scale: float, m_tmp: np.ndarray,
+                    c_tmp: np.ndarray) -> Any:  # pragma: no cover - compiled
+    """Block ``blk``'s sums and event counts as a solve reads them: the queued equations
+    (``slots``) and the history's (``hslots``) added first when ``apply``, then the history
+    scaled by ``scale`` added (into ``m_tmp``, ``c_tmp``; ``hist`` has no rows when the history
+    is off). The operations of the numpy steps they replaced, in the same order."""
+    s = blk * BLOCK
+    if apply:
+        apply_blocks(m, n, blk, blk + 1, sums, qa, raw, dl, kinds, lut, slots, signs, buf)
+        if hist.shape[0] > 0:
+            apply_blocks(hist, n, blk, blk + 1, sums, qa, raw, dl, kinds, lut, hslots,
+                         hsigns, buf)
+    mb = m[blk]
+    cb = counts_pad[s : s + BLOCK]
+    if hist.shape[0] > 0:
+        hb = hist[blk]
+        for i in range(16 * BLOCK):
+            m_tmp[i] = hb[i] * scale + mb[i]
+        for i in range(BLOCK):
+            c_tmp[i] = np.int64(np.rint(hist_counts[s + i] * scale)) + cb[i]
+        return m_tmp, c_tmp
+    return mb, cb
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _lambda_blocks(blocks: np.ndarray, n: int, m: np.ndarray, counts_pad: np.ndarray,
+                   sums: np.ndarray, qa: np.ndarray, raw: np.ndarray, dl: np.ndarray,
+                   kinds: np.ndarray, lut: np.ndarray, slots: np.ndarray, signs: np.ndarray,
+                   hslots: np.ndarray, hsigns: np.ndarray, buf: np.ndarray, hist: np.ndarray,
+                   hist_counts: np.ndarray, scale: float, m_tmp: np.ndarray, c_tmp: np.ndarray,
+                   min_events: int, min_decorrelation: float, min_contrast: float,
+                   max_contrast: float, max_bias_ratio: float, res_q: np.ndarray,
+                   cq: np.ndarray) -> int:  # pragma: no cover - compiled
+    """The residual-correction terms of ``blocks`` (each first given its queued equations):
+    :func:`~evcal.solver.correction_lambda`'s trusted pixels' terms appended to ``res_q``
+    and ``cq`` in block order; returns how many."""
+    end = 0
+    for j in range(blocks.size):
+        blk = blocks[j]
+        mb, cb = _prepared_block(blk, n, m, counts_pad, True, sums, qa, raw, dl, kinds, lut,
+                                 slots, signs, hslots, hsigns, buf, hist, hist_counts, scale,
+                                 m_tmp, c_tmp)
+        mask, rq_b, cq_b = _lambda_terms(mb.reshape((16, BLOCK)), cb, min_events,
+                                         min_decorrelation, min_contrast, max_contrast,
+                                         max_bias_ratio)
+        end = append_masked(mask, rq_b, cq_b, min(BLOCK, n - blk * BLOCK), res_q, cq, end)
+    return end
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _resolve_blocks(b_start: int, b_stop: int, n: int, m: np.ndarray, counts_pad: np.ndarray,
+                    applied: np.ndarray, sums: np.ndarray, qa: np.ndarray, raw: np.ndarray,
+                    dl: np.ndarray, kinds: np.ndarray, lut: np.ndarray, slots: np.ndarray,
+                    signs: np.ndarray, hslots: np.ndarray, hsigns: np.ndarray, buf: np.ndarray,
+                    hist: np.ndarray, hist_counts: np.ndarray, scale: float, m_tmp: np.ndarray,
+                    c_tmp: np.ndarray, lam: float, overlap: float, min_events: int,
+                    min_equations: float, min_decorrelation: float, min_contrast: float,
+                    max_contrast: float, max_bias_ratio: float, no_reason: np.ndarray,
+                    smoothing: float, c: np.ndarray, b: np.ndarray, se_c: np.ndarray,
+                    se_b: np.ndarray, seen: np.ndarray, n_solved: np.ndarray,
+                    reason: np.ndarray) -> None:  # pragma: no cover - compiled
+    """Blocks ``b_start .. b_stop`` of OnEI's re-solve, one call without the GIL (threads
+    take disjoint ranges; ``buf``, ``m_tmp`` and ``c_tmp`` are the caller's scratch): each
+    block prepared (:func:`_prepared_block`; its queue added unless ``applied``), solved
+    (:func:`~evcal.solver.solve_pixels`' kernel) and folded into the estimate
+    (:func:`_low_pass`)."""
+    for blk in range(b_start, b_stop):
+        s = blk * BLOCK
+        e = min(s + BLOCK, n)
+        mb, cb = _prepared_block(blk, n, m, counts_pad, not applied[blk], sums, qa, raw, dl,
+                                 kinds, lut, slots, signs, hslots, hsigns, buf, hist,
+                                 hist_counts, scale, m_tmp, c_tmp)
+        c_new, b_new, r_new, se_c_new, se_b_new = _solve_pixels(
+            mb.reshape((16, BLOCK)), cb, lam, overlap, min_events, min_equations,
+            min_decorrelation, min_contrast, max_contrast, max_bias_ratio, no_reason)
+        r = r_new[: e - s]
+        _low_pass(c_new, b_new, se_c_new, se_b_new, r == _VALID, r, smoothing, c[s:e],
+                  b[s:e], se_c[s:e], se_b[s:e], seen[s:e], n_solved[s:e], reason[s:e])
+
+
 @numba.njit(cache=True, nogil=True)
-def _estimate_maps(c: np.ndarray, b: np.ndarray, se_c: np.ndarray, se_b: np.ndarray,
-                   valid: np.ndarray, reason: np.ndarray) -> Any:  # pragma: no cover
-    """The float32 contrast, bias and standard-error maps (inf where not valid) and a copy of
-    the reasons, in one pass (a Calibration's dtypes: it casts nothing)."""
-    n = c.size
-    c32 = np.empty(n, np.float32)
-    b32 = np.empty(n, np.float32)
-    se_c32 = np.empty(n, np.float32)
-    se_b32 = np.empty(n, np.float32)
-    reason_out = np.empty(n, np.uint8)
-    for i in range(n):
+def _estimate_maps(lo: int, hi: int, c: np.ndarray, b: np.ndarray, se_c: np.ndarray,
+                   se_b: np.ndarray, seen: np.ndarray, reason: np.ndarray, z: float,
+                   limits: np.ndarray, significant: bool, c32: np.ndarray, b32: np.ndarray,
+                   se_c32: np.ndarray, se_b32: np.ndarray, reason_out: np.ndarray,
+                   valid_out: np.ndarray,
+                   special_out: np.ndarray) -> None:  # pragma: no cover - compiled
+    """Pixels ``lo .. hi`` of the calibration maps of the estimate, in one pass (threads
+    take disjoint ranges): the float32 contrast, bias and standard errors (inf where not
+    valid), the reasons, the valid mask and the special classes (:func:`~evcal.special.
+    classify`'s rule with the population's ``limits``)."""
+    b_low, b_high, c_low, c_high = limits[0], limits[1], limits[2], limits[3]
+    # slices first: a loop from 0 vectorises (indices from lo could be negative, numba's
+    # wraparound then costs 3-7x)
+    c, b, se_c, se_b = c[lo:hi], b[lo:hi], se_c[lo:hi], se_b[lo:hi]
+    seen, reason, c32, b32 = seen[lo:hi], reason[lo:hi], c32[lo:hi], b32[lo:hi]
+    se_c32, se_b32, reason_out = se_c32[lo:hi], se_b32[lo:hi], reason_out[lo:hi]
+    valid_out, special_out = valid_out[lo:hi], special_out[lo:hi]
+    for i in range(hi - lo):
+        v = seen[i]
         c32[i] = c[i]
         b32[i] = b[i]
-        se_c32[i] = se_c[i] if valid[i] else np.inf
-        se_b32[i] = se_b[i] if valid[i] else np.inf
+        se_c32[i] = se_c[i] if v else np.inf
+        se_b32[i] = se_b[i] if v else np.inf
         reason_out[i] = reason[i]
-    return c32, b32, se_c32, se_b32, reason_out
+        valid_out[i] = v
+        k = label_one(c[i], b[i], se_c[i], se_b[i], z, b_low, b_high, c_low, c_high)
+        k = k if significant else _NORMAL
+        special_out[i] = k if v else _UNOBSERVED
 
 
 class LowPassEstimate:
@@ -226,19 +350,33 @@ class LowPassEstimate:
                   new.reason, float(smoothing), self.c, self.b, self.se_c, self.se_b,
                   self.seen, self.n_solved, self.reason)
 
-    def maps(self, shape: tuple[int, int]) -> dict[str, np.ndarray]:
+    def maps(self, shape: tuple[int, int],
+             on_threads: Callable[[int, Callable[[int, int, int], None]], None] | None = None
+             ) -> dict[str, np.ndarray]:
         """The calibration maps of the estimate (new arrays of the schema's dtypes; defaults
-        where never solved): :func:`~evcal.special.classify` of the estimate, the rest in
-        one compiled pass."""
-        valid = self.seen.copy()
-        special = classify(self.c, self.b, self.se_c, self.se_b, valid,
-                           population_sample=self.POPULATION_SAMPLE)
-        c32, b32, se_c32, se_b32, reason = _estimate_maps(self.c, self.b, self.se_c, self.se_b,
-                                                          valid, self.reason)
-        return {"contrast": c32.reshape(shape), "bias": b32.reshape(shape),
-                "valid": valid.reshape(shape), "reason": reason.reshape(shape),
-                "stderr_contrast": se_c32.reshape(shape), "stderr_bias": se_b32.reshape(shape),
-                "special": special.reshape(shape)}
+        where never solved), special classes as :func:`~evcal.special.classify`'s, in one
+        compiled pass; ``on_threads(n, work)`` may split it into ranges ``work(thread, lo,
+        hi)`` (the calibrator's threads)."""
+        n = self.c.size
+        limits = population_limits(self.c, self.b, self.seen, K_POPULATION,
+                                   self.POPULATION_SAMPLE)
+        out = {"contrast": np.empty(n, np.float32), "bias": np.empty(n, np.float32),
+               "valid": np.empty(n, bool), "reason": np.empty(n, np.uint8),
+               "stderr_contrast": np.empty(n, np.float32),
+               "stderr_bias": np.empty(n, np.float32), "special": np.empty(n, np.uint8)}
+
+        def work(_i: int, lo: int, hi: int) -> None:
+            _estimate_maps(lo, hi, self.c, self.b, self.se_c, self.se_b, self.seen,
+                           self.reason, Z_MEASUREMENT,
+                           np.zeros(4) if limits is None else limits, limits is not None,
+                           out["contrast"], out["bias"], out["stderr_contrast"],
+                           out["stderr_bias"], out["reason"], out["valid"], out["special"])
+
+        if on_threads is None:
+            work(0, 0, n)
+        else:
+            on_threads(n, work)
+        return {k: v.reshape(shape) for k, v in out.items()}
 
     def state(self) -> dict[str, np.ndarray]:
         return {name: getattr(self, name) for name in self.ARRAYS}
@@ -285,6 +423,14 @@ class OnEIConfig:
     max_buffer_mb: float = 256.0
     rebuild_every: int = 100_000
     history: float = 0.0  # forgotten history's time constant, in large buffers (0: none)
+    # threads of a re-solve (0: the cores this process may use, at most MAX_SOLVE_THREADS);
+    # the result is the same with any number
+    threads: int = 0
+    # add each frame's equations to the normal equations at that frame (True), or queue
+    # them for a later pass (False: fewer passes through memory, but an update frame adds the
+    # queue of the frames before it); None: at every frame when the sums fit in the cache
+    # (16 blocks, 131 k pixels). A service sets True: its update frames wait on the least
+    eager: bool | None = None
     # log_offset="auto": True applies an online estimate exactly OFFSET_LAG_FRAMES frames
     # after it was started, waiting for it there if need be (runs are reproducible); False
     # as soon as it is done: at the next frame, or at poll_offset() (a live stream never
@@ -313,6 +459,16 @@ class OnEIConfig:
         if not (isinstance(self.history, (int, float)) and 0 <= self.history < math.inf):
             raise ConfigError(f"history={self.history!r} must be a number >= 0 (large "
                               "buffers; 0: none)")
+        if self.eager not in (None, True, False):
+            raise ConfigError(f"eager={self.eager!r} must be True, False or None (automatic)")
+        if isinstance(self.threads, bool) or not isinstance(self.threads, int) or \
+                self.threads < 0:
+            raise ConfigError(f"threads={self.threads!r} must be an integer >= 0 (0: the "
+                              "cores this process may use)")
+
+    def n_threads(self) -> int:
+        """Threads a re-solve uses."""
+        return max(1, min(self.threads or usable_cores(), MAX_SOLVE_THREADS))
 
     def sizes(self, sensor: SensorSize) -> tuple[int, int]:
         n_small = self.n_small or max(1000, int(round(200_000 / 43_200 * sensor.n_pixels)))
@@ -382,7 +538,8 @@ class OnlineCalibrator:
         # update frame is not left the queue of the frames before it (346x260: 1.3 -> 0.4 ms);
         # larger ones batch them (PENDING_SLOTS), each pass over the sums costing a pass
         # through memory
-        self._eager = self._n_blocks <= 16
+        eager = self.config.eager
+        self._eager = self._n_blocks <= 16 if eager is None else bool(eager)
         self._frame_cap: int | None = None
         # equations queued for the normal equations, per slot: the pixel counts (ON, OFF),
         # the polarity regressors (Q, A) and the two 8-bit frame values (kind True) or dL;
@@ -393,10 +550,11 @@ class OnlineCalibrator:
         self._slot_raw = np.zeros((k, 2, n), np.uint8)
         self._slot_dl = np.zeros((k, n), np.float64)
         self._slot_kind = np.zeros(k, bool)
-        self._dl_buf = np.zeros((2, BLOCK), np.float64)  # two blocks' dL while updated
         self._lut = np.zeros(256)  # log_intensity of the 8-bit values at self._lut_offset
         self._lut_offset = math.nan
         self._no_reason = np.zeros(BLOCK, np.uint8)  # solve_pixels' extra_reason, per block
+        # per thread of a re-solve: _resolve_blocks' scratch (_new_scratch), made when needed
+        self._scratch: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         self._lam_terms = np.empty((2, n), np.float64)  # the masked residual-lambda terms
         self._reset_buffer()
         self.estimate = LowPassEstimate(n)  # what calibration() reports
@@ -405,6 +563,8 @@ class OnlineCalibrator:
         given = self.config.log_offset
         self.log_offset = float(given) if not isinstance(given, str) else math.nan
         self.offset_info: dict[str, Any] = {"method": "auto" if auto else "given"}
+        # where the online estimate stands, for an operator (status)
+        self.offset_state = "waiting for frames" if auto else "given"
         self._next_offset_check = 0  # frame count of the next online re-estimate
         # a criterion being computed off the frame path: (frame count to apply it at, job)
         self._offset_job: tuple[int, Future[tuple[float, dict[str, Any]] | None]] | None = None
@@ -461,8 +621,6 @@ class OnlineCalibrator:
         self._hist = np.zeros_like(self._m) if on else None
         self._hist_counts = np.zeros(self._counts_pad.size) if on else None
         self._hist_ref = 0  # events left the buffer that the weights are relative to
-        self._hist_tmp = ((np.empty(16 * BLOCK), np.empty(BLOCK), np.empty(BLOCK, np.int64))
-                          if on else (np.empty(0), np.empty(0), np.empty(0, np.int64)))
         self._hqueued: list[tuple[int, float]] = []  # (slot, weight) not yet in self._hist
 
     def _start_session_keeping_guard(self) -> None:
@@ -652,6 +810,7 @@ class OnlineCalibrator:
         :meth:`_apply_offset` takes its result ``OFFSET_LAG_FRAMES`` frames later."""
         first = math.isnan(self.log_offset)
         if first and len(self._frames) < self.OFFSET_FIRST_FRAMES:
+            self.offset_state = f"waiting for {self.OFFSET_FIRST_FRAMES} buffered frames"
             return
         inputs = self._offset_inputs()
         if inputs is None:
@@ -661,6 +820,7 @@ class OnlineCalibrator:
         self._next_offset_check = self.n_frames * self.OFFSET_RECHECK_FACTOR
         self._offset_job = (self.n_frames + self.OFFSET_LAG_FRAMES,
                             _offset_pool().submit(_offset_criterion, *inputs))
+        self.offset_state = f"criterion started at frame {self.n_frames}"
 
     def poll_offset(self) -> bool:
         """Between frames: take an online offset estimate that has finished (only with
@@ -686,9 +846,12 @@ class OnlineCalibrator:
         found = self._offset_job[1].result()
         self._offset_job = None
         if found is None:  # nothing to judge by yet (a still scene): ask again later
+            self.offset_state = (f"no estimate at frame {self.n_frames}: no window explains "
+                                 "a change of the frames (a still scene?)")
             return False
         first = math.isnan(self.log_offset)
         o, info = found
+        self.offset_state = f"estimated at frame {self.n_frames}"
         info.update(frames_seen=self.n_frames, previous=None if first else self.log_offset,
                     estimate=o)
         self.offset_info = info
@@ -715,9 +878,11 @@ class OnlineCalibrator:
         limits = self.config.limits
         busy = np.flatnonzero(self._counts >= max(limits.min_events, 2 * d))
         if d < 1 or busy.size < 10:
+            self.offset_state = f"waiting for busy pixels: {busy.size} of 10"
             return None
         need = min(self.OFFSET_PIXELS, self.OFFSET_FIRST_BUSY * self.sensor.n_pixels)
         if math.isnan(self.log_offset) and busy.size < need and self._holds_all:
+            self.offset_state = f"waiting for busy pixels: {busy.size} of {need:.0f}"
             return None
         rng = np.random.default_rng(0)
         pix = np.sort(rng.choice(busy, size=min(self.OFFSET_PIXELS, busy.size),
@@ -846,28 +1011,12 @@ class OnlineCalibrator:
         """Fold the scale into the stored history (before its weights overflow)."""
         assert self._hist is not None
         assert self._hist_counts is not None
-        self._apply_history(0, self._n_blocks, self._as_arrays(self._hqueued))
+        self._apply_blocks(self._as_arrays(self._hqueued), self._hist)
         self._hqueued.clear()
         scale = self._hist_scale()
         self._hist *= scale
         self._hist_counts *= scale
         self._hist_ref = self._frames[0].cum_events
-
-    def _with_history(self, b: int, mb: np.ndarray, counts: np.ndarray,
-                      scale: float) -> tuple[np.ndarray, np.ndarray]:
-        """Block ``b``'s sums and event counts with the history's added (in buffers reused
-        from block to block: read them before the next call)."""
-        if self._hist is None or self._hist_counts is None:
-            return mb, counts
-        s = b * BLOCK
-        m_all, c_f, c_all = self._hist_tmp  # reused: fresh arrays cost page faults per block
-        np.multiply(self._hist[b], scale, out=m_all)
-        m_all += mb
-        np.multiply(self._hist_counts[s : s + BLOCK], scale, out=c_f)
-        np.rint(c_f, out=c_f)
-        c_all[:] = c_f
-        c_all += counts
-        return m_all, c_all
 
     # -- the normal equations ------------------------------------------------------------------
 
@@ -940,31 +1089,33 @@ class OnlineCalibrator:
         return (np.array([q[0] for q in queue], np.int64),
                 np.array([q[1] for q in queue], np.float64))
 
-    def _apply_blocks(self, queued: tuple[np.ndarray, np.ndarray] | None, b_start: int,
-                      b_stop: int, target: np.ndarray | None) -> None:
-        """Add queued slots to blocks of ``target`` (the normal equations, or the history's
-        sums; None: nothing, as for a history that is off)."""
+    def _apply_blocks(self, queued: tuple[np.ndarray, np.ndarray] | None,
+                      target: np.ndarray | None) -> None:
+        """Add queued slots to every block of ``target`` (the normal equations, or the
+        history's sums; None: nothing, as for a history that is off), on
+        :meth:`_on_threads` (blocks are independent: the same sums with any number)."""
         if queued is None or target is None:
             return
-        apply_blocks(target, self.sensor.n_pixels, b_start, b_stop, self._slot_sums,
-                     self._slot_qa, self._slot_raw, self._slot_dl, self._slot_kind, self._lut,
-                     *queued, self._dl_buf)
+        n = self.sensor.n_pixels
 
-    def _apply_history(self, b_start: int, b_stop: int,
-                       queued: tuple[np.ndarray, np.ndarray] | None) -> None:
-        self._apply_blocks(queued, b_start, b_stop, self._hist)
+        def work(i: int, lo: int, hi: int) -> None:
+            apply_blocks(target, n, lo, hi, self._slot_sums, self._slot_qa, self._slot_raw,
+                         self._slot_dl, self._slot_kind, self._lut, *queued,
+                         self._scratch[i][0])
+
+        self._on_threads(self._n_blocks, work)
 
     def _apply_queued(self) -> None:
-        """Add the queued equations to the normal equations (all blocks), and those that left
-        the buffer to the history."""
-        self._apply_blocks(self._as_arrays(self._queued), 0, self._n_blocks, self._m)
-        self._apply_history(0, self._n_blocks, self._as_arrays(self._hqueued))
+        """Add the queued equations to the normal equations, and those that left the buffer
+        to the history."""
+        self._apply_blocks(self._as_arrays(self._queued), self._m)
+        self._apply_blocks(self._as_arrays(self._hqueued), self._hist)
         self._queued.clear()
         self._hqueued.clear()
 
     def _clear_equations(self) -> None:
         # the history keeps what left the buffer (its slots are still filled here)
-        self._apply_history(0, self._n_blocks, self._as_arrays(self._hqueued))
+        self._apply_blocks(self._as_arrays(self._hqueued), self._hist)
         self._hqueued.clear()
         self._queued.clear()
         self._m.fill(0.0)
@@ -1005,7 +1156,7 @@ class OnlineCalibrator:
     # it cost as much again as the solve (the sums do not fit in any cache)
     LAMBDA_BLOCKS = 16
 
-    def _lambda_blocks(self) -> np.ndarray:
+    def _lambda_block_list(self) -> np.ndarray:
         nb = self._n_blocks
         if nb <= self.LAMBDA_BLOCKS:
             return np.arange(nb)
@@ -1015,66 +1166,120 @@ class OnlineCalibrator:
         """Solve every pixel and fold the solution into the estimate: block by block, each
         block updated with the queued equations and solved while in cache. The same kernels
         and sums as ``correction_lambda`` and ``solve_pixels`` on the whole sensor, but for
-        ``lam`` estimated on :meth:`_lambda_blocks` (every pixel up to 131 k pixels)."""
-        cfg, lim, est = self.config, self.config.limits, self.estimate
-        n, m, counts = self.sensor.n_pixels, self._m, self._counts_pad
+        ``lam`` estimated on :meth:`_lambda_block_list` (every pixel up to 131 k pixels)."""
+        cfg, est = self.config, self.estimate
         queued = self._as_arrays(self._queued)
         hqueued = self._as_arrays(self._hqueued)
         scale = self._hist_scale() if self._hist is not None else 0.0
         applied = np.zeros(self._n_blocks, bool)  # blocks the queue was added to
         setting = cfg.residual_correction
         if setting == "auto":  # correction_lambda: fit without the correction, one step
-            res_q, cq = self._lam_terms
-            end = 0
-            for b in self._lambda_blocks():
-                s = b * BLOCK
-                self._apply_blocks(queued, b, b + 1, m)
-                self._apply_history(b, b + 1, hqueued)
-                applied[b] = True
-                mb, cb = self._with_history(b, m[b], counts[s : s + BLOCK], scale)
-                mask, rq_b, cq_b = _lambda_terms(
-                    mb.reshape(16, BLOCK), cb, int(lim.min_events),
-                    float(lim.min_decorrelation), float(lim.min_contrast),
-                    float(lim.max_contrast), float(lim.max_bias_ratio))
-                end = append_masked(mask, rq_b, cq_b, min(BLOCK, n - s), res_q, cq, end)
+            blocks = self._lambda_block_list()
+            applied[blocks] = True
+            res_q, cq = self._terms_of(blocks, queued, hqueued, scale)
             lam = 0.0
-            if end:
-                den = float(cq[:end].sum())
-                lam = 0.0 if den <= 0 else 0.0 + float(res_q[:end].sum()) / den
+            if res_q.size:
+                den = float(cq.sum())
+                lam = 0.0 if den <= 0 else 0.0 + float(res_q.sum()) / den
                 lam = float(np.clip(lam, 0.0, 0.5))
         else:
             lam = 0.0 if setting == "off" else float(setting)
         # consecutive small buffers share their events: divide the degrees of freedom by
         # the number of small buffers each event lies in
         overlap = max(1.0, self.n_equations * self.n_small / max(self.buffer_events, 1))
-        smoothing = float(cfg.smoothing)
         if self._holds_all:
             # every solution so far came from a subset of the buffer this one is solved
             # from: it replaces them (averaging in the early, short-buffer solutions with
             # equal weights would only add their noise)
             est.n_solved[:] = 0
-        for b in range(self._n_blocks):
-            s = b * BLOCK
-            e = min(s + BLOCK, n)
-            if not applied[b]:
-                self._apply_blocks(queued, b, b + 1, m)
-                self._apply_history(b, b + 1, hqueued)
-            mb, cb = self._with_history(b, m[b], counts[s : s + BLOCK], scale)
-            c, b_new, reason, se_c, se_b = _solve_pixels(
-                mb.reshape(16, BLOCK), cb, lam, float(overlap),
-                int(lim.min_events), float(lim.min_equations), float(lim.min_decorrelation),
-                float(lim.min_contrast), float(lim.max_contrast), float(lim.max_bias_ratio),
-                self._no_reason)
-            # low-pass with a start-up correction: a pixel's first 1/smoothing solutions are
-            # averaged with equal weights (the first one is not trusted more than the later)
-            r = reason[: e - s]
-            _low_pass(c, b_new, se_c, se_b, r == _VALID, r, smoothing, est.c[s:e],
-                      est.b[s:e], est.se_c[s:e], est.se_b[s:e], est.seen[s:e],
-                      est.n_solved[s:e], est.reason[s:e])
+        self._solve_blocks(applied, queued, hqueued, scale, lam, float(overlap))
         self._queued.clear()
         self._hqueued.clear()
         self.lam = lam
         self.n_updates += 1
+
+    def _kernel_inputs(self, queued: tuple[np.ndarray, np.ndarray] | None,
+                       hqueued: tuple[np.ndarray, np.ndarray] | None) -> tuple[Any, ...]:
+        """The queued slots and the history as the block kernels take them (``sums .. c``
+        of :func:`_prepared_block` but ``buf``, which is per thread)."""
+        no = (np.empty(0, np.int64), np.empty(0, np.float64))
+        return (self._slot_sums, self._slot_qa, self._slot_raw, self._slot_dl,
+                self._slot_kind, self._lut, *(queued if queued is not None else no),
+                *(hqueued if hqueued is not None else no))
+
+    def _on_threads(self, n_items: int, work: Callable[[int, int, int], None]) -> None:
+        """``work(thread, lo, hi)`` over contiguous ranges of ``n_items`` on up to
+        :meth:`OnEIConfig.n_threads` threads (this one takes the first range), each with
+        its own scratch ``self._scratch[thread]``."""
+        n_threads = max(1, min(self.config.n_threads(), n_items))
+        while len(self._scratch) < n_threads:
+            self._scratch.append(self._new_scratch())
+        cuts = np.linspace(0, n_items, n_threads + 1).round().astype(np.int64)
+        futures = [_solve_pool().submit(work, i, int(cuts[i]), int(cuts[i + 1]))
+                   for i in range(1, n_threads)]
+        try:
+            work(0, int(cuts[0]), int(cuts[1]))
+        finally:
+            for f in futures:
+                f.result()
+
+    def _terms_of(self, blocks: np.ndarray, queued: tuple[np.ndarray, np.ndarray] | None,
+                  hqueued: tuple[np.ndarray, np.ndarray] | None,
+                  scale: float) -> tuple[np.ndarray, np.ndarray]:
+        """The residual-correction terms of ``blocks`` (given their queued equations), in
+        block order whatever the threads (the same sums with any number)."""
+        lim, n = self.config.limits, self.sensor.n_pixels
+        inputs = self._kernel_inputs(queued, hqueued)
+        hist = self._hist if self._hist is not None else _NO_HISTORY
+        hist_counts = self._hist_counts if self._hist_counts is not None else _NO_COUNTS
+        sizes = np.minimum(BLOCK, n - blocks * BLOCK)
+        starts = np.concatenate([[0], np.cumsum(sizes)])  # each range's room in the output
+        res_q, cq = self._lam_terms
+        ends: dict[int, tuple[int, int]] = {}
+
+        def work(i: int, lo: int, hi: int) -> None:
+            buf, m_tmp, c_tmp = self._scratch[i]
+            at = int(starts[lo])
+            got = _lambda_blocks(
+                blocks[lo:hi], n, self._m, self._counts_pad, *inputs, buf, hist, hist_counts,
+                scale, m_tmp, c_tmp, int(lim.min_events), float(lim.min_decorrelation),
+                float(lim.min_contrast), float(lim.max_contrast), float(lim.max_bias_ratio),
+                res_q[at:], cq[at:])
+            ends[lo] = (at, at + got)
+
+        self._on_threads(blocks.size, work)
+        parts = [ends[lo] for lo in sorted(ends)]
+        return (np.concatenate([res_q[a:e] for a, e in parts]),
+                np.concatenate([cq[a:e] for a, e in parts]))
+
+    def _solve_blocks(self, applied: np.ndarray, queued: tuple[np.ndarray, np.ndarray] | None,
+                      hqueued: tuple[np.ndarray, np.ndarray] | None, scale: float, lam: float,
+                      overlap: float) -> None:
+        """The re-solve's pass over every block (:func:`_resolve_blocks`) on
+        :meth:`_on_threads` (the blocks are independent: the same result with any number)."""
+        lim, est = self.config.limits, self.estimate
+        inputs = self._kernel_inputs(queued, hqueued)
+        hist = self._hist if self._hist is not None else _NO_HISTORY
+        hist_counts = self._hist_counts if self._hist_counts is not None else _NO_COUNTS
+
+        def work(i: int, lo: int, hi: int) -> None:
+            buf, m_tmp, c_tmp = self._scratch[i]
+            _resolve_blocks(
+                lo, hi, self.sensor.n_pixels, self._m, self._counts_pad, applied, *inputs, buf,
+                hist, hist_counts, scale, m_tmp, c_tmp, lam, overlap, int(lim.min_events),
+                float(lim.min_equations), float(lim.min_decorrelation),
+                float(lim.min_contrast), float(lim.max_contrast), float(lim.max_bias_ratio),
+                self._no_reason, float(self.config.smoothing), est.c, est.b, est.se_c,
+                est.se_b, est.seen, est.n_solved, est.reason)
+
+        self._on_threads(self._n_blocks, work)
+
+    def _new_scratch(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """A thread's scratch for :func:`_resolve_blocks`: two blocks' dL, and one block's
+        sums and counts with the history's (empty when it is off)."""
+        on = self._hist is not None
+        return (np.zeros((2, BLOCK), np.float64), np.empty(16 * BLOCK if on else 0),
+                np.empty(BLOCK if on else 0, np.int64))
 
     # -- output ------------------------------------------------------------------------------
 
@@ -1091,7 +1296,7 @@ class OnlineCalibrator:
         """
         shape = self.sensor.shape
         return Calibration(
-            **self.estimate.maps(shape),
+            **self.estimate.maps(shape, self._on_threads),
             log_offset=self.log_offset,
             method="onei",
             n_events=self._counts.reshape(shape).copy(),
@@ -1122,6 +1327,7 @@ class OnlineCalibrator:
             "n_large": self.n_large,
             "last_frame_t_us": self.last_frame_t_us,
             "log_offset": self.log_offset,
+            "log_offset_state": self.offset_state,
         }
 
     @property
@@ -1255,6 +1461,8 @@ class OnlineCalibrator:
                     setattr(self, attr, conv(s[key]))
             if isinstance(s.get("offset_info"), dict):
                 self.offset_info = s["offset_info"]
+            if self.config.log_offset == "auto" and not math.isnan(self.log_offset):
+                self.offset_state = "restored from a saved state"
             self._win_range = [[self._base, self._base], [self._base, self._base]]
             self._guard.last_event_t_us = s["last_event_t_us"]
             self._guard.last_frame_t_us = s["last_frame_t_us"]

@@ -18,6 +18,8 @@ from .calibration import Special
 _UNOBSERVED, _NORMAL = int(Special.UNOBSERVED), int(Special.NORMAL)
 _HOT, _COLD = int(Special.HOT), int(Special.COLD)
 _WARM, _COOL = int(Special.WARM), int(Special.COOL)
+K_POPULATION = 3.0  # the population's central band: median -+ this many robust spreads
+Z_MEASUREMENT = 2.0  # a pixel's interval: its value -+ this many standard errors
 
 
 def robust_spread(v: np.ndarray) -> tuple[float, float]:
@@ -33,8 +35,8 @@ def classify(
     stderr_bias: np.ndarray,
     valid: np.ndarray,
     *,
-    k_population: float = 3.0,
-    z_measurement: float = 2.0,
+    k_population: float = K_POPULATION,
+    z_measurement: float = Z_MEASUREMENT,
     population_sample: int | None = None,
 ) -> np.ndarray:
     """Special-pixel class codes (:class:`~evcal.calibration.Special`, uint8, same shape).
@@ -82,25 +84,51 @@ def _classify_f64(contrast: np.ndarray, bias: np.ndarray, stderr_contrast: np.nd
     shape = np.shape(contrast)
     v = np.ascontiguousarray(valid).ravel()
     c, b = np.ravel(contrast), np.ravel(bias)
-    n_valid = int(np.count_nonzero(v))
-    if n_valid < 10:
-        limits = np.zeros(4)
-    else:
-        if population_sample is not None and n_valid > population_sample:
-            idx = np.flatnonzero(v)[:: n_valid // population_sample]
-            c_pop, b_pop = c[idx], b[idx]
-        else:
-            c_pop, b_pop = c[v], b[v]
-        c_med, c_s = _robust_spread_f64(c_pop)
-        b_med, b_s = _robust_spread_f64(b_pop)
-        limits = np.array([b_med - k_population * b_s, b_med + k_population * b_s,
-                           c_med - k_population * c_s, c_med + k_population * c_s])
+    limits = population_limits(c, b, v, k_population, population_sample)
     out = _label(np.ascontiguousarray(c), np.ascontiguousarray(b),
                  np.ascontiguousarray(np.ravel(stderr_contrast)),
-                 np.ascontiguousarray(np.ravel(stderr_bias)), v, float(z_measurement), limits,
-                 n_valid >= 10)
+                 np.ascontiguousarray(np.ravel(stderr_bias)), v, float(z_measurement),
+                 np.zeros(4) if limits is None else limits, limits is not None)
     result: np.ndarray = out.reshape(shape)
     return result
+
+
+def population_limits(c: np.ndarray, b: np.ndarray, valid: np.ndarray, k_population: float,
+                      population_sample: int | None = None) -> np.ndarray | None:
+    """The central bands of flat float64 ``c`` and ``b`` over the ``valid`` pixels as
+    ``[b_low, b_high, c_low, c_high]`` (median -+ k spreads), None under 10 valid pixels.
+
+    ``population_sample``: when more pixels are valid, from the valid pixels of an even
+    lattice of every ``n_valid // population_sample``-th pixel (about that many; reading only
+    the lattice, not a pass over the whole sensor)."""
+    n_valid = int(np.count_nonzero(valid))
+    if n_valid < 10:
+        return None
+    if population_sample is not None and n_valid > population_sample:
+        idx = np.arange(0, valid.size, n_valid // population_sample)
+        idx = idx[valid[idx]]
+        if idx.size < 10:  # the valid pixels avoid the lattice: all of them
+            idx = np.flatnonzero(valid)
+        c_pop, b_pop = c[idx], b[idx]
+    else:
+        c_pop, b_pop = c[valid], b[valid]
+    c_med, c_s = _robust_spread_f64(c_pop)
+    b_med, b_s = _robust_spread_f64(b_pop)
+    return np.array([b_med - k_population * b_s, b_med + k_population * b_s,
+                     c_med - k_population * c_s, c_med + k_population * c_s])
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def label_one(c: float, b: float, se_c: float, se_b: float, z: float, b_low: float,
+              b_high: float, c_low: float, c_high: float) -> int:  # pragma: no cover
+    """The class of one valid pixel whose population is significant (contrast departures
+    overwrite bias departures)."""
+    k = _NORMAL  # selects, not branches: the pixel loops vectorise
+    k = _WARM if b + z * se_b < b_low else k
+    k = _COOL if b - z * se_b > b_high else k
+    k = _HOT if c + z * se_c < c_low else k
+    k = _COLD if c - z * se_c > c_high else k
+    return k
 
 
 @numba.njit(cache=True, nogil=True)
@@ -113,17 +141,8 @@ def _label(c: np.ndarray, b: np.ndarray, se_c: np.ndarray, se_b: np.ndarray, val
         if not valid[i]:
             out[i] = _UNOBSERVED
             continue
-        k = _NORMAL
-        if significant:
-            if b[i] + z * se_b[i] < b_low:
-                k = _WARM
-            if b[i] - z * se_b[i] > b_high:
-                k = _COOL
-            if c[i] + z * se_c[i] < c_low:
-                k = _HOT
-            if c[i] - z * se_c[i] > c_high:
-                k = _COLD
-        out[i] = k
+        out[i] = (label_one(c[i], b[i], se_c[i], se_b[i], z, b_low, b_high, c_low, c_high)
+                  if significant else _NORMAL)
     return out
 
 

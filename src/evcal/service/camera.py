@@ -161,6 +161,7 @@ class CameraState:
         self.last_update_wall: float | None = None
         self.latency_ms: deque[float] = deque(maxlen=200)
         self.latency_parts_ms: deque[tuple[float, ...]] = deque(maxlen=200)
+        self.latency_t_us: deque[int] = deque(maxlen=200)  # the frame of each
         self.rate = RateWindow()
         self.dirty = False  # changed since the last snapshot
         self.observe = observe  # emit Observed records for a recorder
@@ -290,6 +291,7 @@ class CameraState:
         if not upd.from_frame:
             return
         self.latency_ms.append((t_pub_s - upd.t_recv_s) * 1e3)
+        self.latency_t_us.append(upd.t_us)
         # where the time went: queue wait, OnEI (fold + re-solve), maps, encode, publish
         self.latency_parts_ms.append((upd.t_start_s - upd.t_recv_s, upd.t_fed_s - upd.t_start_s,
                                       upd.t_cal_s - upd.t_fed_s, upd.t_enc_s - upd.t_cal_s,
@@ -310,6 +312,16 @@ class CameraState:
             return None
         med = np.median(np.asarray(self.latency_parts_ms, np.float64), axis=0) * 1e3
         return {name: float(v) for name, v in zip(LATENCY_PARTS, med, strict=True)}
+
+    def slowest_update(self) -> dict[str, Any] | None:
+        """The slowest of the last 200 updates: its frame's time, total and steps (ms)."""
+        if not self.latency_ms:
+            return None
+        i = int(np.argmax(np.asarray(self.latency_ms)))
+        parts = self.latency_parts_ms[i]
+        return {"t_us": int(self.latency_t_us[i]), "total": float(self.latency_ms[i]),
+                "parts": {name: float(v) * 1e3
+                          for name, v in zip(LATENCY_PARTS, parts, strict=True)}}
 
     def current_calibration(self) -> Calibration | None:
         """The latest calibration (rebuilt from the stored message after a restore)."""

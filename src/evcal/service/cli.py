@@ -109,6 +109,9 @@ def build_parser(prog: str = "evcal serve") -> argparse.ArgumentParser:
                         "the paper's sliding buffer alone; 1 helps short recordings and "
                         "pixels whose events came early, at a second set of sums, 131 MiB "
                         "per megapixel, and 2 ms per update at 346x260)")
+    g.add_argument("--threads", type=int, default=0,
+                   help="threads of a re-solve (default 0: the cores this process may use, "
+                        "at most 8; the result is the same with any number)")
     g.add_argument("--log-offset", type=_offset_arg, default="auto",
                    help="offset of log(I + offset) in frame units (DN), or 'auto' (default): "
                         "estimated per camera from its first frames and events with the "
@@ -161,6 +164,10 @@ def config_from_args(args: argparse.Namespace) -> ServiceConfig:
     if not args.history >= 0:
         raise ConfigError(f"--history {args.history} must be >= 0")
     onei["history"] = args.history
+    if args.threads < 0:
+        raise ConfigError(f"--threads {args.threads} must be >= 0")
+    onei["threads"] = args.threads
+    onei["eager"] = True  # a service's update frames wait on the least (OnEIConfig.eager)
     return ServiceConfig(
         prefix=args.prefix, cameras=args.cameras, instance=args.instance, shard=args.shard,
         queue_bytes=int(args.queue_mb * (1 << 20)), on_full=args.on_full,
@@ -233,8 +240,11 @@ def main_serve(argv: Sequence[str] | None = None) -> int:
     except ValueError as exc:
         print(f"evcal serve: {exc}", file=sys.stderr)
         return 2
+    from .mallocpolicy import keep_freed_memory
     from .server import run
 
+    malloc = keep_freed_memory()  # freed maps and messages reused: no page faults per update
+    logging.getLogger("evcal.service").info("allocator: %s", malloc)
     # `kill -USR1 <pid>` dumps every thread's stack to stderr (diagnosing a stuck service)
     faulthandler.register(signal.SIGUSR1, all_threads=True)
     stop = threading.Event()

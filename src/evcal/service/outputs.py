@@ -76,6 +76,7 @@ def camera_status(cam: Camera, *, now_s: float | None = None) -> dict[str, Any]:
             "p99": float(np.percentile(lat, 99)) if lat.size else None,
             "max": float(lat.max()) if lat.size else None,
             "parts_median": st.latency_parts(),
+            "slowest": st.slowest_update(),  # of the last 200, with where its time went
         },
         "valid_fraction": (st.calibration.valid_fraction
                            if st.calibration is not None else None),
