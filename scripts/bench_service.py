@@ -315,8 +315,13 @@ def latency(rate: float, seconds: float, *, chunk_ms: float = 10.0, rrd: str | N
 
             # warm-up on another camera: the service process loads its compiled kernels
             stream(Stream(t, "bench/warmup", sensor), warmup_s, record=False)
+            svc = psutil.Process(sp.pid)
+            me = psutil.Process()
+            cpu0, mine0, wall0 = cpu_seconds([svc]), cpu_seconds([me]), time.monotonic()
             with OtherLoad(sp.pid) as load:
                 n_frames = stream(Stream(t, cam, sensor), seconds, record=True)
+            wall = time.monotonic() - wall0
+            service_cpu, client_cpu = cpu_seconds([svc]) - cpu0, cpu_seconds([me]) - mine0
             time.sleep(1.0)
             st = status(t, cam)
             info = t.get("evcal/cameras", timeout_s=2.0)
@@ -342,7 +347,9 @@ def latency(rate: float, seconds: float, *, chunk_ms: float = 10.0, rrd: str | N
             "service_latency_ms": st.get("latency_ms") or {},
             "errors": st.get("errors_total"), "dropped": st.get("dropped"),
             "recorder_dropped": recorder.get("recorder_dropped") if rrd else None,
-            "service_rss_mb": rss / 2**20, "other_load_cores": load.cores}
+            "service_rss_mb": rss / 2**20, "other_load_cores": load.cores,
+            "gc": recorder.get("gc"), "service_cores": service_cpu / max(wall, 1e-9),
+            "client_cores": client_cpu / max(wall, 1e-9)}
 
 
 # ----------------------------------------------------------------------------- scaling
@@ -725,6 +732,7 @@ def stress(minutes: float, n_cameras: int) -> dict:
 def print_latency(r: dict) -> None:
     sl = r["service_latency_ms"]
     parts = sl.get("parts_median") or {}
+    slow = sl.get("slowest")
     nan = float("nan")
     print(f"latency {r['sensor']}, {r['rate'] / 1e6:g} M ev/s, 25 Hz frames, default OnEI "
           "sizes, "
@@ -734,7 +742,11 @@ def print_latency(r: dict) -> None:
           f"{sl.get('p99') or nan:.1f} ms, max "
           f"{sl.get('max') or nan:.1f} ms\n"
           f"    median steps: " + ", ".join(f"{k} {v:.1f}" for k, v in parts.items()) + " ms\n"
-          "  frame put -> calibration received (client round trip"
+          + (f"    slowest of the last 200: frame at {slow['t_us'] / 1e6:.2f} s, "
+             f"{slow['total']:.1f} ms: " + ", ".join(f"{k} {v:.1f}"
+                                                    for k, v in slow["parts"].items())
+             + " ms\n" if slow else "")
+          + "  frame put -> calibration received (client round trip"
           + (f", after the first {r['settle_s']:g} s" if r["settle_s"] else "") + "): median "
           f"{r['roundtrip_ms_median']:.1f} ms, p95 {r['roundtrip_ms_p95']:.1f} ms, p99 "
           f"{r['roundtrip_ms_p99']:.1f} ms, max {r['roundtrip_ms_max']:.1f} ms "
@@ -744,7 +756,10 @@ def print_latency(r: dict) -> None:
           f"{r['dropped']}, service RSS {r['service_rss_mb']:.0f} MiB"
           + (f"; recording, recorder dropped {r['recorder_dropped']} calls"
              if r["recorder_dropped"] is not None else "")
-          + f"; other processes used {r['other_load_cores']:.2f} cores", flush=True)
+          + f"; cores used by the service {r['service_cores']:.2f}, by this publisher "
+          f"{r['client_cores']:.2f}, by other processes {r['other_load_cores']:.2f}"
+          + (f"; garbage collector: max pause {r['gc'].get('max_pause_ms', nan):.1f} ms"
+             if isinstance(r.get("gc"), dict) else ""), flush=True)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -162,6 +162,8 @@ def run_bench(*, quick: bool = False, progress: bool = True) -> dict[str, Any]:
         if progress:
             print(f"... {msg}", file=sys.stderr, flush=True)
 
+    from .online import OnEIConfig  # noqa: PLC0415
+
     davis = SensorSize(260, 346)
     hd = SensorSize(720, 1280)
     n_acc = 2_000_000 if quick else 20_000_000
@@ -183,12 +185,20 @@ def run_bench(*, quick: bool = False, progress: bool = True) -> dict[str, Any]:
     for sensor in (davis, hd):
         # a busy scene: each pixel fires about 2 events per frame interval
         epf = 2 * sensor.n_pixels
-        say(f"OnEI at {sensor}, paper buffer sizes, {epf} events per frame")
-        r = bench_onei(sensor, 10 if quick else 40, epf)
+        say(f"OnEI at {sensor}, paper buffer sizes, {epf} events per frame, one thread")
+        r = bench_onei(sensor, 10 if quick else 40, epf, OnEIConfig(threads=1))
         ms, floor = r["frame_s_mean"] * 1e3, r["floor_s"] * 1e3
-        out[f"onei_ms_per_frame_vs_floor ({sensor})"] = (
+        out[f"onei_ms_per_frame_vs_floor ({sensor}, one core)"] = (
             f"{ms:.2f} / {floor:.2f} = {ms / floor:.1f}")
-        out[f"onei_ms_per_update ({sensor})"] = round(r["update_s_median"] * 1e3, 1)
+        out[f"onei_ms_per_update ({sensor}, one core)"] = round(r["update_s_median"] * 1e3, 1)
+        n_threads = OnEIConfig().n_threads()
+        if n_threads > 1:
+            say(f"OnEI at {sensor}, re-solve on {n_threads} threads")
+            rt = bench_onei(sensor, 10 if quick else 40, epf)
+            out[f"onei_ms_per_frame ({sensor}, {n_threads} threads)"] = round(
+                rt["frame_s_mean"] * 1e3, 2)
+            out[f"onei_ms_per_update ({sensor}, {n_threads} threads)"] = round(
+                rt["update_s_median"] * 1e3, 1)
         out[f"onei_buffer_MiB ({sensor}, {r['buffer_frames']} frames)"] = round(
             r["buffer_MiB"], 1)
         out[f"onei_memory_MiB_per_megapixel ({sensor}, buffer and state)"] = round(
