@@ -493,3 +493,23 @@ def test_the_live_maps_are_the_estimate_classified():
     np.testing.assert_array_equal(got.contrast.ravel(), est.c.astype(np.float32))
     se = np.where(est.seen, est.se_c, np.inf).astype(np.float32)
     np.testing.assert_array_equal(got.stderr_contrast.ravel(), se)
+
+
+def _contrast_in_child(rec, cfg):
+    return onei(rec, cfg).contrast
+
+
+def test_a_forked_child_re_solves_on_threads_of_its_own():
+    """A process forked after a threaded re-solve (multiprocessing's fork) has none of the
+    parent's pool threads: its calibrators start pools of their own instead of queueing
+    work for threads that do not exist there."""
+    import multiprocessing
+
+    sensor = SensorSize(60, 80)
+    n = sensor.n_pixels
+    rec = random_recording(sensor, 2 * n * 12, 12, seed=7)
+    cfg = OnEIConfig(n_small=3 * n, n_large=10 * n, log_offset=30.0, threads=2)
+    want = onei(rec, cfg).contrast  # the parent's pool has its threads now
+    with multiprocessing.get_context("fork").Pool(1) as pool:
+        got = pool.apply_async(_contrast_in_child, (rec, cfg)).get(timeout=120)
+    np.testing.assert_array_equal(got, want)

@@ -148,6 +148,16 @@ def _solve_pool() -> ThreadPoolExecutor:
     return _SOLVE_POOL
 
 
+def _forget_pools() -> None:
+    """In a forked child: the parent's pool threads do not exist there, and a pool that
+    believes it has them would never run a job (a re-solve would wait forever)."""
+    global _SOLVE_POOL, _OFFSET_POOL
+    _SOLVE_POOL = _OFFSET_POOL = None
+
+
+os.register_at_fork(after_in_child=_forget_pools)
+
+
 def _offset_criterion(sp: np.ndarray, se: np.ndarray, dq: np.ndarray, fj: np.ndarray,
                       fk: np.ndarray, w: np.ndarray, grid: tuple[float, float, int],
                       n_pix: int, d: int) -> tuple[float, dict[str, Any]] | None:
