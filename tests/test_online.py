@@ -445,11 +445,16 @@ def test_the_first_offset_estimate_waits_for_enough_busy_pixels():
     assert cal.offset_info["pixels"] < 0.05 * n
 
 
-def test_the_re_solve_gives_the_same_result_on_any_number_of_threads():
-    """The re-solve's blocks are split over threads (OnEIConfig.threads): every figure is
-    the same with 1, 2 or 3 threads, with the history's combination and a residual
-    correction estimated on blocks spread over a sensor of more than LAMBDA_BLOCKS blocks."""
+def test_the_re_solve_gives_the_same_result_on_any_number_of_threads(monkeypatch):
+    """The re-solve's blocks and the per-frame passes over the pixels are split over threads
+    (OnEIConfig.threads): every figure is the same with 1, 2 or 3 threads, with the history's
+    combination and a residual correction estimated on blocks spread over a sensor of more
+    than LAMBDA_BLOCKS blocks."""
+    import evcal.online
     from evcal._onei_kernels import BLOCK
+
+    # every per-frame pass split too (at the default only from 262,144 pixels)
+    monkeypatch.setattr(evcal.online, "PIXELS_PER_THREAD", 1000)
 
     sensor = SensorSize(300, 480)
     assert -(-sensor.n_pixels // BLOCK) > OnlineCalibrator.LAMBDA_BLOCKS

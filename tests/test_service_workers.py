@@ -138,8 +138,15 @@ def test_worker_command_passes_the_users_options_through():
     assert cmd[:3] == [sys.executable, "-m", "evcal.service"]
     worker = parser.parse_args(cmd[3:])
     for dest, value in vars(args).items():
-        if dest not in OWN_OPTIONS:
+        if dest not in OWN_OPTIONS and dest != "threads":
             assert getattr(worker, dest) == value, dest
+    # the re-solve's threads: the cores shared out among the workers, unless given
+    from evcal.online import usable_cores  # noqa: PLC0415
+
+    assert worker.threads == max(1, usable_cores() // 3)
+    given = parser.parse_args(["--workers", "3", "--threads", "5"])
+    cmd = worker_command(parser, given, index=0, count=3, endpoint="e", instance="w0")
+    assert parser.parse_args(cmd[3:]).threads == 5
     assert (worker.mode, worker.connect, worker.listen, worker.cfg) == (
         "client", ["unixsock-stream//t/r.sock"], [], [])
     assert worker.no_multicast_scouting

@@ -124,6 +124,10 @@ def _offset_pool() -> ThreadPoolExecutor:
     return _OFFSET_POOL
 
 
+# a pass over the pixels is split over threads only when each gets this many (handing a
+# range to a pool thread and waiting for it costs tens of microseconds: at 346x260 a frame's
+# passes take about that each)
+PIXELS_PER_THREAD = 1 << 17
 MAX_SOLVE_THREADS = 8  # a re-solve's threads at most (it is memory-bound beyond a few)
 _SOLVE_POOL: ThreadPoolExecutor | None = None
 
@@ -131,9 +135,9 @@ _SOLVE_POOL: ThreadPoolExecutor | None = None
 def usable_cores() -> int:
     """The cores this process may run on (its affinity: a container's or taskset's limit)."""
     try:
-        return len(os.sched_getaffinity(0))
+        return max(1, len(os.sched_getaffinity(0)))
     except (AttributeError, OSError):  # not on Linux
-        return os.cpu_count() or 1
+        return max(1, os.cpu_count() or 1)
 _NO_HISTORY = np.zeros((0, 16 * BLOCK), np.float64)  # _resolve_blocks' hist when it is off
 _NO_COUNTS = np.zeros(0, np.float64)
 
@@ -980,10 +984,7 @@ class OnlineCalibrator:
             # the interval ending at the new first frame leaves the buffer: uncount it, and
             # slide the sums that hold it past it while its counts are still here
             sub = np.array([lo <= base < hi for lo, hi in self._win_range])
-            if second.dense:
-                drop_dense(self._counts, self._wins, sub, second.on, second.off)
-            else:
-                drop_interval(self._counts, self._wins, sub, second.idx, second.on, second.off)
+            self._uncount(second, sub)
             for rng in self._win_range:
                 if rng[0] <= base:
                     rng[0], rng[1] = base + 1, max(rng[1], base + 1)
@@ -1047,12 +1048,25 @@ class OnlineCalibrator:
             self._scatter(sums, f, +1)
         rng[0], rng[1] = lo, hi
 
+    def _uncount(self, fr: _Frame, sub: np.ndarray) -> None:
+        """The interval ``fr`` closed leaves the buffer: off the counts, and off the sliding
+        sums ``sub`` marks."""
+        counts, wins = self._counts, self._wins
+        if fr.dense:
+            self._split(fr.on.size, lambda lo, hi: drop_dense(
+                counts[lo:hi], wins[:, :, lo:hi], sub, fr.on[lo:hi], fr.off[lo:hi]))
+        else:  # ranges of the sorted, distinct pixels: no two threads touch one pixel
+            self._split(fr.idx.size, lambda lo, hi: drop_interval(
+                counts, wins, sub, fr.idx[lo:hi], fr.on[lo:hi], fr.off[lo:hi]))
+
     def _scatter(self, sums: np.ndarray, f: int, sign: int) -> None:
         fr = self._frames[f - self._base]
         if fr.dense:
-            add_dense(sums, fr.on, fr.off, sign)
+            self._split(fr.on.size, lambda lo, hi: add_dense(
+                sums[:, lo:hi], fr.on[lo:hi], fr.off[lo:hi], sign))
         else:
-            scatter_interval(sums, fr.idx, fr.on, fr.off, sign)
+            self._split(fr.idx.size, lambda lo, hi: scatter_interval(
+                sums, fr.idx[lo:hi], fr.on[lo:hi], fr.off[lo:hi], sign))
 
     def _queue(self, j: int, k: int, sign: float, w: int) -> None:
         """Queue ``sign`` times the equation of the small buffer from frame ``j`` to frame
@@ -1074,8 +1088,10 @@ class OnlineCalibrator:
                 self._lut = np.where(usable(values, self.config.saturation_dn),
                                      log_intensity(values, self.log_offset), np.nan)
                 self._lut_offset = self.log_offset
-            fill_slot(sums, fj.last_p, fk.last_p, fj.image, fk.image, self._slot_sums[slot],
-                      self._slot_qa[slot], self._slot_raw[slot])
+            s_sums, s_qa, s_raw = self._slot_sums[slot], self._slot_qa[slot], self._slot_raw[slot]
+            self._split(self.sensor.n_pixels, lambda lo, hi: fill_slot(
+                sums[:, lo:hi], fj.last_p[lo:hi], fk.last_p[lo:hi], fj.image[lo:hi],
+                fk.image[lo:hi], s_sums[:, lo:hi], s_qa[:, lo:hi], s_raw[:, lo:hi]))
             self._slot_kind[slot] = True
         else:  # other frame types: dL as _terms computed it (log_intensity's float path)
             raw_j, raw_k = fj.image, fk.image
@@ -1217,11 +1233,17 @@ class OnlineCalibrator:
                 self._slot_kind, self._lut, *(queued if queued is not None else no),
                 *(hqueued if hqueued is not None else no))
 
-    def _on_threads(self, n_items: int, work: Callable[[int, int, int], None]) -> None:
+    def _split(self, n_items: int, work: Callable[[int, int], None]) -> None:
+        """A per-frame pass ``work(lo, hi)`` over ranges of ``n_items`` pixels (or entries
+        of distinct pixels), threaded once each thread gets ``PIXELS_PER_THREAD``."""
+        self._on_threads(n_items, lambda _i, lo, hi: work(lo, hi), PIXELS_PER_THREAD)
+
+    def _on_threads(self, n_items: int, work: Callable[[int, int, int], None],
+                    per_thread: int = 1) -> None:
         """``work(thread, lo, hi)`` over contiguous ranges of ``n_items`` on up to
-        :meth:`OnEIConfig.n_threads` threads (this one takes the first range), each with
-        its own scratch ``self._scratch[thread]``."""
-        n_threads = max(1, min(self.config.n_threads(), n_items))
+        :meth:`OnEIConfig.n_threads` threads, at least ``per_thread`` items each (this one
+        takes the first range), each with its own scratch ``self._scratch[thread]``."""
+        n_threads = max(1, min(self.config.n_threads(), n_items // max(1, per_thread)))
         while len(self._scratch) < n_threads:
             self._scratch.append(self._new_scratch())
         cuts = np.linspace(0, n_items, n_threads + 1).round().astype(np.int64)
@@ -1306,7 +1328,8 @@ class OnlineCalibrator:
         """
         shape = self.sensor.shape
         return Calibration(
-            **self.estimate.maps(shape, self._on_threads),
+            **self.estimate.maps(shape, lambda n, work: self._on_threads(
+                n, work, PIXELS_PER_THREAD)),
             log_offset=self.log_offset,
             method="onei",
             n_events=self._counts.reshape(shape).copy(),

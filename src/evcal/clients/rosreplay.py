@@ -118,11 +118,36 @@ def replay_bag(t: Transport, path: str | Path, *, domain: int = 0,
         if t.flush(key, timeout_s=5.0, linger_s=0.0 if key is not None else 0.5):
             break
     stats.seconds = time.monotonic() - wall0
+    # a service is up (its liveliness token): a camera it has not answered for yet is being
+    # created; else (a recorder only) one try
+    wait_s = STATUS_WAIT_S if status_keys and _service_alive(t, prefix) else 0.0
     for camera, key in status_keys.items():
-        if _status(t, key) is not None:
+        if _status_soon(t, key, wait_s=wait_s) is not None:
             stats.delivered[camera] = _delivered(t, key, before[camera] or {},
                                                  stats.camera_messages(camera))
     return stats
+
+
+# how long a camera new to the service may take to answer for itself after the run (a busy
+# service creates it when its first message is taken off the queue)
+STATUS_WAIT_S = 10.0
+
+
+def _service_alive(t: Transport, prefix: str) -> bool:
+    try:
+        return bool(t.alive(f"{prefix}/{keys.SERVICE_CHUNK}/*", timeout_s=1.0))
+    except Exception:  # noqa: BLE001 - a diagnosis only
+        return False
+
+
+def _status_soon(t: Transport, key: str, *, wait_s: float) -> dict[str, Any] | None:
+    """The camera's status, asked again for up to ``wait_s`` (None: nobody answered)."""
+    deadline = time.monotonic() + wait_s
+    while True:
+        st = _status(t, key)
+        if st is not None or time.monotonic() > deadline:
+            return st
+        time.sleep(0.2)
 
 
 def report(prog: str, stats: BagReplayStats, wait_subscriber_s: float, domain: int) -> int:

@@ -123,9 +123,9 @@ def build_parser(prog: str = "evcal serve") -> argparse.ArgumentParser:
 
 def _workers_arg(text: str) -> int:
     if text == "auto":
-        from .workers import available_cores
+        from ..online import usable_cores
 
-        return available_cores()
+        return usable_cores()
     try:
         n = int(text)
     except ValueError:

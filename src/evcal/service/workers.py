@@ -63,6 +63,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from ..online import usable_cores
 from . import keys
 from .signing import SignatureError, Signer
 from .transport import Request, Transport, TransportError, ZenohOptions, as_router
@@ -84,14 +85,6 @@ ZENOH_ENV = ("EVCAL_CONNECT", "EVCAL_LISTEN", "EVCAL_ZENOH_CONFIG", "EVCAL_MODE"
 OWN_OPTIONS = frozenset({"help", "mode", "connect", "listen", "config",
                          "no_multicast_scouting", "cfg", "workers", "shard", "instance", "rrd",
                          "rerun_serve", "supervised"})
-
-
-def available_cores() -> int:
-    """Cores this process may run on (its CPU affinity, else ``os.cpu_count()``)."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except (AttributeError, OSError):
-        return max(1, os.cpu_count() or 1)
 
 
 def worker_rrd(path: str | Path, index: int) -> str:
@@ -143,6 +136,10 @@ def worker_command(parser: argparse.ArgumentParser, args: argparse.Namespace, *,
            "--mode", "client", "--connect", endpoint, "--no-multicast-scouting",
            "--shard", f"{index}/{count}", "--instance", instance,
            "--supervised", str(os.getpid())]
+    if not args.threads:
+        # the re-solve's threads: the cores shared out among the workers (16 cores, 4
+        # workers: 4 each), not every worker on every core
+        cmd += ["--threads", str(max(1, usable_cores() // count))]
     if args.rrd:
         cmd += ["--rrd", worker_rrd(args.rrd, index)]
     if args.rerun_serve is not None:
