@@ -518,3 +518,28 @@ def test_a_forked_child_re_solves_on_threads_of_its_own():
     with multiprocessing.get_context("fork").Pool(1) as pool:
         got = pool.apply_async(_contrast_in_child, (rec, cfg)).get(timeout=120)
     np.testing.assert_array_equal(got, want)
+
+
+def test_the_status_says_why_no_offset_was_estimated():
+    """A scene whose frames never change: the online offset criterion has nothing to
+    explain; the calibrator asks again later and its status says so (the state an operator
+    saw when a benchmark repeated one frame: no estimate, no equation, no update)."""
+    sensor = SensorSize(40, 50)
+    n = sensor.n_pixels
+    rec = random_recording(sensor, 50 * 2 * n, 50, seed=3)
+    still = np.full(sensor.shape, 120, np.uint8)
+    cal = OnlineCalibrator(sensor, OnEIConfig(log_offset="auto", n_small=n, n_large=10**7))
+    states = []
+    for k, chunk in frame_intervals(rec.events, rec.frames.t_us):
+        cal.feed_events(chunk)
+        cal.feed_frame(int(rec.frames.t_us[k]), still)
+        states.append(cal.status()["log_offset_state"])
+    assert np.isnan(cal.log_offset)
+    assert cal.n_updates == 0
+    assert cal.n_equations == 0
+    # started at frame 11, found nothing 8 frames later, tried again 25 frames after that
+    assert states[10] == "criterion started at frame 11"
+    assert states[18] == ("no estimate at frame 19: no window explains a change of the "
+                          "frames (a still scene?); next try at frame 44")
+    assert states[42] == states[18]
+    assert states[43] == "criterion started at frame 44"

@@ -758,8 +758,8 @@ class OnlineCalibrator:
         if job is not None and (self.n_frames >= job[0] if self.config.offset_wait
                                 else job[1].done()):
             first_formed = self._apply_offset()
-        if self._offset_job is None and (math.isnan(self.log_offset)
-                                         or self.n_frames >= self._next_offset_check > 0):
+        if self._offset_job is None and self.n_frames >= self._next_offset_check and (
+                math.isnan(self.log_offset) or self._next_offset_check > 0):
             self._check_offset()
         formed = (not math.isnan(self.log_offset)) and (self._close_small_buffers()
                                                          or first_formed)
@@ -844,6 +844,9 @@ class OnlineCalibrator:
     OFFSET_LAG_FRAMES = 8
     OFFSET_FIRST_FRAMES = 2 * AUTO_WINDOW + 1  # buffered frames before the first estimate
     OFFSET_RECHECK_FACTOR = 4  # re-checked when the frames seen have grown this much
+    # frames after a criterion that found nothing to explain (a still scene) before it is
+    # computed again (it was at once: a camera facing a still scene recomputed it for ever)
+    OFFSET_RETRY_FRAMES = 25
     OFFSET_PIXELS = 4000  # busiest pixels the criterion is computed on
     # the first estimate waits for this fraction of the pixels (at most OFFSET_PIXELS) to be
     # busy, or for the large buffer to be full: on v2e recordings that begin still, a first
@@ -895,8 +898,10 @@ class OnlineCalibrator:
         found = self._offset_job[1].result()
         self._offset_job = None
         if found is None:  # nothing to judge by yet (a still scene): ask again later
+            self._next_offset_check = self.n_frames + self.OFFSET_RETRY_FRAMES
             self.offset_state = (f"no estimate at frame {self.n_frames}: no window explains "
-                                 "a change of the frames (a still scene?)")
+                                 "a change of the frames (a still scene?); next try at frame "
+                                 f"{self._next_offset_check}")
             return False
         first = math.isnan(self.log_offset)
         o, info = found
