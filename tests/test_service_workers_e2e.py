@@ -10,6 +10,7 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 import pytest
@@ -146,8 +147,16 @@ def test_workers_exit_when_the_supervisor_is_killed(tmp_path):
         socket_dir = Path(cmdline[cmdline.index("--connect") + 1].partition("/")[2]).parent
         assert socket_dir.is_dir()
         sp.kill()  # SIGKILL: no clean-up in the supervisor at all
-        wait_for(lambda: all(gone(p) or _zombie(p) for p in pids), timeout_s=30,
-                 what="the workers gone")
+        try:
+            wait_for(lambda: all(gone(p) or _zombie(p) for p in pids), timeout_s=30,
+                     what="the workers gone")
+        except TimeoutError:  # seen once in CI: say where a worker is stuck
+            for p in pids:
+                if not (gone(p) or _zombie(p)):
+                    os.kill(p, signal.SIGUSR1)  # faulthandler: every thread's stack, to the log
+            time.sleep(1.0)
+            raise AssertionError("a worker did not exit within 30 s of the supervisor's "
+                                 f"SIGKILL; the log:\n{sp.log_text()[-12000:]}") from None
         assert not socket_dir.exists()  # the workers removed the supervisor's socket
     assert sp.log_text().count("shutting down: draining queues") == 2  # both stopped cleanly
 
