@@ -522,8 +522,6 @@ def zenoh_loopback_floor(n_events: int, chunk: int = 100_000, shm: bool = True,
     """Events/s of the same messages (``payload``, else an evcal events message of ``chunk``
     events) put by one session and received by another of this process (the transport
     alone: nothing decoded)."""
-    import threading as th
-
     rng = np.random.default_rng(0)
     if payload is None:
         payload = encode_events(synthetic_chunk(rng, SensorSize(260, 346), chunk, 0, 5000),
@@ -531,7 +529,7 @@ def zenoh_loopback_floor(n_events: int, chunk: int = 100_000, shm: bool = True,
     n_msgs = max(1, n_events // chunk)
     ep = endpoint(free_port())
     extra = () if shm else (("transport/shared_memory/enabled", "false"),)
-    got = th.Semaphore(0)
+    got = threading.Semaphore(0)
     with Transport(ZenohOptions(mode="peer", listen=(ep,), multicast_scouting=False,
                                 extra=extra)) as rx, \
             Transport(ZenohOptions(mode="peer", connect=(ep,), multicast_scouting=False,
@@ -559,12 +557,10 @@ def publication(nbytes: int, n_msgs: int = 30, *, shm_pool_mb: float) -> dict:
     this process over TCP loopback: the put's duration and put-to-callback latency (the
     callback gets the payload as bytes, as the service's subscribers do). ``shm_pool_mb`` 0
     sends ordinary bytes (zenoh still copies them into its shared memory in its pipeline)."""
-    import threading as th
-
     payload = np.random.default_rng(0).integers(0, 255, nbytes, np.uint8).tobytes()
     ep = endpoint(free_port())
     got: dict[int, float] = {}
-    arrived = th.Semaphore(0)
+    arrived = threading.Semaphore(0)
 
     def on_msg(key: str, data: bytes, enc: str) -> None:
         got[int.from_bytes(data[:4], "little")] = time.perf_counter()

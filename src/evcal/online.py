@@ -138,6 +138,8 @@ def usable_cores() -> int:
         return max(1, len(os.sched_getaffinity(0)))
     except (AttributeError, OSError):  # not on Linux
         return max(1, os.cpu_count() or 1)
+
+
 _NO_HISTORY = np.zeros((0, 16 * BLOCK), np.float64)  # _resolve_blocks' hist when it is off
 _NO_COUNTS = np.zeros(0, np.float64)
 
@@ -1246,13 +1248,18 @@ class OnlineCalibrator:
         self.n_updates += 1
 
     def _kernel_inputs(self, queued: tuple[np.ndarray, np.ndarray] | None,
-                       hqueued: tuple[np.ndarray, np.ndarray] | None) -> tuple[Any, ...]:
-        """The queued slots and the history as the block kernels take them (``sums .. c``
-        of :func:`_prepared_block` but ``buf``, which is per thread)."""
+                       hqueued: tuple[np.ndarray, np.ndarray] | None
+                       ) -> tuple[tuple[Any, ...], np.ndarray, np.ndarray]:
+        """The queued slots as the block kernels take them (``sums .. hsigns`` of
+        :func:`_prepared_block`), and the history's sums and counts (no rows when it is
+        off); ``buf`` between them is per thread."""
         no = (np.empty(0, np.int64), np.empty(0, np.float64))
-        return (self._slot_sums, self._slot_qa, self._slot_raw, self._slot_dl,
-                self._slot_kind, self._lut, *(queued if queued is not None else no),
-                *(hqueued if hqueued is not None else no))
+        slots = (self._slot_sums, self._slot_qa, self._slot_raw, self._slot_dl,
+                 self._slot_kind, self._lut, *(queued if queued is not None else no),
+                 *(hqueued if hqueued is not None else no))
+        hist = self._hist if self._hist is not None else _NO_HISTORY
+        hist_counts = self._hist_counts if self._hist_counts is not None else _NO_COUNTS
+        return slots, hist, hist_counts
 
     def _split(self, n_items: int, work: Callable[[int, int], None]) -> None:
         """A per-frame pass ``work(lo, hi)`` over ranges of ``n_items`` pixels (or entries
@@ -1282,9 +1289,7 @@ class OnlineCalibrator:
         """The residual-correction terms of ``blocks`` (given their queued equations), in
         block order whatever the threads (the same sums with any number)."""
         lim, n = self.config.limits, self.sensor.n_pixels
-        inputs = self._kernel_inputs(queued, hqueued)
-        hist = self._hist if self._hist is not None else _NO_HISTORY
-        hist_counts = self._hist_counts if self._hist_counts is not None else _NO_COUNTS
+        inputs, hist, hist_counts = self._kernel_inputs(queued, hqueued)
         sizes = np.minimum(BLOCK, n - blocks * BLOCK)
         starts = np.concatenate([[0], np.cumsum(sizes)])  # each range's room in the output
         res_q, cq = self._lam_terms
@@ -1311,9 +1316,7 @@ class OnlineCalibrator:
         """The re-solve's pass over every block (:func:`_resolve_blocks`) on
         :meth:`_on_threads` (the blocks are independent: the same result with any number)."""
         lim, est = self.config.limits, self.estimate
-        inputs = self._kernel_inputs(queued, hqueued)
-        hist = self._hist if self._hist is not None else _NO_HISTORY
-        hist_counts = self._hist_counts if self._hist_counts is not None else _NO_COUNTS
+        inputs, hist, hist_counts = self._kernel_inputs(queued, hqueued)
 
         def work(i: int, lo: int, hi: int) -> None:
             buf, m_tmp, c_tmp = self._scratch[i]

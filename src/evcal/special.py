@@ -42,7 +42,7 @@ def classify(
     """Special-pixel class codes (:class:`~evcal.calibration.Special`, uint8, same shape).
 
     ``population_sample``: when more pixels are valid, the population's median and spread
-    come from an even lattice of about that many of them (float64 maps only; a live
+    come from about that many of them, those on an even lattice (float64 maps only; a live
     estimate's choice: at 1280x720 the four exact medians are most of the maps' cost, and
     the lattice's sampling error, about ``1.25 / sqrt(population_sample)`` of the spread, is
     far inside the ``k_population`` spreads that decide a class).

@@ -135,7 +135,7 @@ STATUS_WAIT_S = 10.0
 
 def _service_alive(t: Transport, prefix: str) -> bool:
     try:
-        return bool(t.alive(f"{prefix}/{keys.SERVICE_CHUNK}/*", timeout_s=1.0))
+        return bool(t.alive(keys.service_token_key(prefix), timeout_s=1.0))
     except Exception:  # noqa: BLE001 - a diagnosis only
         return False
 
