@@ -543,3 +543,73 @@ def test_the_status_says_why_no_offset_was_estimated():
                           "frames (a still scene?); next try at frame 44")
     assert states[42] == states[18]
     assert states[43] == "criterion started at frame 44"
+
+
+def _fed_in_chunks(cal: OnlineCalibrator, events: np.ndarray, frame_t_us: np.ndarray,
+                   images: np.ndarray, chunk: int, delay_us: int,
+                   on_chunk=None) -> None:
+    """Events in chunks of ``chunk``, each frame fed once the stream has passed its time by
+    ``delay_us`` (as a camera sends a frame after its exposure, events meanwhile)."""
+    k = 0
+    for lo in range(0, events.size, chunk):
+        part = events[lo : lo + chunk]
+        while k < frame_t_us.size and int(part["t_us"][0]) >= frame_t_us[k] + delay_us:
+            cal.feed_frame(int(frame_t_us[k]), images[k])
+            k += 1
+        cal.feed_events(part)
+        if on_chunk is not None:
+            on_chunk(cal)
+    for j in range(k, frame_t_us.size):
+        cal.feed_frame(int(frame_t_us[j]), images[j])
+
+
+def test_events_counted_ahead_of_their_frame_give_the_same_equations():
+    """Events are counted into the open interval as they come, up to 3/4 of the shortest
+    recent frame interval after the latest frame; a frame that comes earlier (here: every
+    frame after a stretch at a third of the rate) has its interval counted again. Every
+    array of the state, the estimate and the counts are those of a calibrator that counts
+    each interval only when its frame comes; a state saved with events counted ahead
+    resumes to the same result."""
+    rec = random_recording(SENSOR, 60 * 3000, 60, seed=3)
+    keep = np.r_[np.arange(0, 27, 3), np.arange(27, 60)]  # 120 ms intervals, then 40 ms
+    t_fr, images = rec.frames.t_us[keep], rec.frames.images[keep]
+    cfg = OnEIConfig(n_small=4000, n_large=20_000, log_offset=30.0)
+
+    ref = OnlineCalibrator(SENSOR, cfg)
+    ref.AHEAD_FRACTION = 0.0  # nothing counted before its frame
+    _fed_in_chunks(ref, rec.events, t_fr, images, chunk=rec.events.size, delay_us=0)
+
+    ahead: list[int] = []
+    saved: list[dict] = []
+
+    def watch(cal: OnlineCalibrator) -> None:
+        ahead.append(cal._n_ahead)
+        if cal._n_ahead > 1000 and cal.n_refolds and not saved:
+            saved.append(cal.state_dict())
+
+    got = OnlineCalibrator(SENSOR, cfg)
+    _fed_in_chunks(got, rec.events, t_fr, images, chunk=371, delay_us=9000, on_chunk=watch)
+    assert max(ahead) > 1000  # counted ahead of their frame
+    assert got.n_refolds >= 1
+    assert ref.n_refolds == 0
+    assert got.n_updates == ref.n_updates >= 5
+
+    resumed = OnlineCalibrator.from_state(saved[0])
+    t_saved = json.loads(str(saved[0]["scalars"]))["last_event_t_us"]
+    rest = rec.events[np.searchsorted(rec.events["t_us"], t_saved, side="right") :]
+    later = t_fr > json.loads(str(saved[0]["scalars"]))["last_frame_t_us"]
+    _fed_in_chunks(resumed, rest, t_fr[later], images[later], chunk=371, delay_us=9000)
+
+    want = ref.state_dict()
+    scalars = json.loads(str(want.pop("scalars")))
+    for cal in (got, resumed):
+        state = cal.state_dict()
+        other = json.loads(str(state.pop("scalars")))
+        assert {k: v for k, v in other.items() if k != "n_refolds"} == {
+            k: v for k, v in scalars.items() if k != "n_refolds"}
+        assert state.keys() == want.keys()
+        for key, value in want.items():
+            np.testing.assert_array_equal(state[key], value, err_msg=key)
+        for name in ("contrast", "bias", "valid", "special"):
+            np.testing.assert_array_equal(getattr(cal.calibration(), name),
+                                          getattr(ref.calibration(), name))

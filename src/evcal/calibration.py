@@ -232,6 +232,8 @@ class OnEIDiagnostics(Diagnostics):
     buffer_bytes: int = 0
     pending_events: int = 0
     folded_late_events: int = 0
+    # frames that came before events counted ahead of them (their interval counted again)
+    refolds: int = 0
     late_events: int = 0
     gaps: int = 0
     sessions: int = 0  # discontinuities of the stream's time base (buffers emptied)
