@@ -118,6 +118,15 @@ def cpu_seconds(procs: list[psutil.Process]) -> float:
     return total
 
 
+def minor_faults(pid: int) -> int:
+    """Minor page faults of process ``pid`` so far, all its threads (Linux; else 0)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return int(f.read().rsplit(")", 1)[1].split()[7])
+    except (OSError, IndexError, ValueError):
+        return 0
+
+
 def process_tree(pid: int) -> list[psutil.Process]:
     """``pid`` and its descendants (a service with ``--workers``: supervisor and workers)."""
     root = psutil.Process(pid)
@@ -287,6 +296,7 @@ def latency(rate: float, seconds: float, *, chunk_ms: float = 10.0, rrd: str | N
     cam = "bench/latency"
     sent: dict[int, float] = {}
     got: list[tuple[int, float]] = []  # (frame t_us, round trip s)
+    faults_at: list[int] = []  # the service's page faults after settle_s and at the end
     try:
         with Transport(ZenohOptions.loopback(connect=[ep])) as t:
             wait_for(lambda: t.alive("evcal/@service/*", timeout_s=1.0), timeout_s=60)
@@ -332,8 +342,14 @@ def latency(rate: float, seconds: float, *, chunk_ms: float = 10.0, rrd: str | N
             svc = psutil.Process(sp.pid)
             me = psutil.Process()
             cpu0, mine0, wall0 = cpu_seconds([svc]), cpu_seconds([me]), time.monotonic()
+            faults0 = minor_faults(sp.pid)
             with OtherLoad(sp.pid) as load:
-                n_frames = stream(Stream(t, cam, sensor), seconds, record=True)
+                s = Stream(t, cam, sensor)
+                # the page faults of the steady state (after settle_s of the stream)
+                threading.Timer(settle_s, lambda: faults_at.append(minor_faults(sp.pid))
+                                ).start()
+                n_frames = stream(s, seconds, record=True)
+            faults_at.append(minor_faults(sp.pid))
             wall = time.monotonic() - wall0
             service_cpu, client_cpu = cpu_seconds([svc]) - cpu0, cpu_seconds([me]) - mine0
             time.sleep(1.0)
@@ -362,7 +378,10 @@ def latency(rate: float, seconds: float, *, chunk_ms: float = 10.0, rrd: str | N
             "errors": st.get("errors_total"), "dropped": st.get("dropped"),
             "recorder_dropped": recorder.get("recorder_dropped") if rrd else None,
             "service_rss_mb": rss / 2**20, "other_load_cores": load.cores,
-            "gc": recorder.get("gc"), "service_cores": service_cpu / max(wall, 1e-9),
+            "steady_faults_per_update": ((faults_at[-1] - faults_at[0]) / max(rt.size, 1)
+                                         if len(faults_at) == 2 and faults0 else None),
+            "gc": recorder.get("gc"), "shm": recorder.get("shm"),
+            "service_cores": service_cpu / max(wall, 1e-9),
             "client_cores": client_cpu / max(wall, 1e-9)}
 
 
@@ -766,10 +785,15 @@ def print_latency(r: dict) -> None:
           f"{r['dropped']}, service RSS {r['service_rss_mb']:.0f} MiB"
           + (f"; recording, recorder dropped {r['recorder_dropped']} calls"
              if r["recorder_dropped"] is not None else "")
+          + (f"; service page faults per update after start-up "
+             f"{r['steady_faults_per_update']:.0f}"
+             if r.get("steady_faults_per_update") is not None else "")
           + f"; cores used by the service {r['service_cores']:.2f}, by this publisher "
           f"{r['client_cores']:.2f}, by other processes {r['other_load_cores']:.2f}"
           + (f"; garbage collector: max pause {r['gc'].get('max_pause_ms', nan):.1f} ms"
-             if isinstance(r.get("gc"), dict) else ""), flush=True)
+             if isinstance(r.get("gc"), dict) else "")
+          + (f"; shared memory: {r['shm'].get('puts')} puts, {r['shm'].get('fallbacks')} "
+             "as bytes" if isinstance(r.get("shm"), dict) else ""), flush=True)
 
 
 def main(argv: list[str] | None = None) -> int:

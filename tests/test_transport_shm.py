@@ -19,7 +19,7 @@ def _payload(n: int, seed: int) -> bytes:
 
 
 def _exchange(tx_opts: ZenohOptions, rx_opts: ZenohOptions, payloads: list[bytes], *,
-              shm_pool_mb: float = 64.0) -> tuple[list[bytes], dict[str, int]]:
+              shm_pool_mb: float | None = 64.0) -> tuple[list[bytes], dict[str, int]]:
     got: list[bytes] = []
     lock = threading.Lock()
 
@@ -86,3 +86,42 @@ def test_a_pool_of_no_size_is_off(size):
     data = _payload(2 << 20, 6)
     assert pool.payload(data) is data
     assert pool.stats()["puts"] == 0
+
+
+def test_a_pool_of_no_given_size_is_sized_by_its_first_large_payload(monkeypatch):
+    """Room for AUTO_MESSAGES of the first large payload, at least AUTO_MIN_BYTES, at most half
+    the free space of /dev/shm; the payloads arrive intact through a pool of that size."""
+    monkeypatch.setattr(ShmPool, "AUTO_MIN_BYTES", 1 << 20)
+    monkeypatch.setattr(ShmPool, "AUTO_MESSAGES", 4)
+    tx, rx = _pair()
+    large = [_payload(3 << 20, 7), _payload(3 << 20, 8), _payload((3 << 20) - 5, 9)]
+    got, stats = _exchange(tx, rx, large, shm_pool_mb=None)
+    assert got == large
+    assert stats == {"pool_bytes": 4 * (3 << 20), "puts": 3, "fallbacks": 0}
+
+    monkeypatch.setattr(ShmPool, "AUTO_MIN_BYTES", 64 << 20)
+    pool = ShmPool(None)
+    assert pool._auto_size(1 << 20) == min(64 << 20, _half_free_shm())
+    monkeypatch.setattr(ShmPool, "SHM_DIR", "/no/such/dir")  # nothing to ask: the minimum
+    assert ShmPool(None)._auto_size(30 << 20) == 64 << 20
+
+
+def test_an_automatic_pool_is_capped_by_the_free_shared_memory(monkeypatch):
+    import os
+
+    class Small:
+        f_bavail, f_frsize = 10, 1 << 20  # 10 MiB free: a pool of 5 MiB at most
+
+    monkeypatch.setattr(os, "statvfs", lambda path: Small())
+    pool = ShmPool(None)
+    assert pool._auto_size(2 << 20) == 5 << 20
+    data = _payload(6 << 20, 10)  # larger than that pool: sent as bytes, counted
+    assert pool.payload(data) is data
+    assert pool.stats() == {"pool_bytes": 5 << 20, "puts": 0, "fallbacks": 1}
+
+
+def _half_free_shm() -> int:
+    import os
+
+    st = os.statvfs("/dev/shm")
+    return st.f_bavail * st.f_frsize // 2
