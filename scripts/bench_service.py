@@ -346,9 +346,12 @@ def latency(rate: float, seconds: float, *, chunk_ms: float = 10.0, rrd: str | N
             with OtherLoad(sp.pid) as load:
                 s = Stream(t, cam, sensor)
                 # the page faults of the steady state (after settle_s of the stream)
-                threading.Timer(settle_s, lambda: faults_at.append(minor_faults(sp.pid))
-                                ).start()
+                timer = threading.Timer(settle_s,
+                                        lambda: faults_at.append(minor_faults(sp.pid)))
+                timer.start()
                 n_frames = stream(s, seconds, record=True)
+            timer.cancel()  # a stream shorter than settle_s: no steady state to count
+            timer.join()
             faults_at.append(minor_faults(sp.pid))
             wall = time.monotonic() - wall0
             service_cpu, client_cpu = cpu_seconds([svc]) - cpu0, cpu_seconds([me]) - mine0

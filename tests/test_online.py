@@ -613,3 +613,27 @@ def test_events_counted_ahead_of_their_frame_give_the_same_equations():
         for name in ("contrast", "bias", "valid", "special"):
             np.testing.assert_array_equal(getattr(cal.calibration(), name),
                                           getattr(ref.calibration(), name))
+
+
+def test_a_new_time_base_forgets_the_events_counted_ahead():
+    """A camera restarts (its clock jumps back) while events are counted ahead of a frame:
+    the new session starts from empty counts, as for a calibrator that counts at the frame."""
+    rec = random_recording(SENSOR, 30 * 3000, 30, seed=5)
+    t_fr, images = rec.frames.t_us, rec.frames.images
+    cfg = OnEIConfig(n_small=4000, n_large=20_000, log_offset=30.0)
+    half = int(np.searchsorted(rec.events["t_us"], (t_fr[14] + t_fr[15]) // 2))
+    cals = []
+    for fraction in (0.0, OnlineCalibrator.AHEAD_FRACTION):
+        cal = OnlineCalibrator(SENSOR, cfg)
+        cal.AHEAD_FRACTION = fraction
+        _fed_in_chunks(cal, rec.events[:half], t_fr[:15], images[:15], chunk=200, delay_us=0)
+        assert (cal._n_ahead > 0) == (fraction > 0)
+        cal.new_session()  # the same recording again, from its start
+        assert cal.status()["pending_events"] == 0
+        _fed_in_chunks(cal, rec.events, t_fr, images, chunk=200, delay_us=5000)
+        cals.append(cal)
+    ref, got = (c.state_dict() for c in cals)
+    assert cals[0].n_updates == cals[1].n_updates >= 3
+    for key, value in ref.items():
+        if key != "scalars":
+            np.testing.assert_array_equal(got[key], value, err_msg=key)

@@ -820,23 +820,27 @@ class OnlineCalibrator:
         if last is None:
             return
         horizon = last + int(self.AHEAD_FRACTION * min(self._frame_dt_us))
+        for part in self._take_pending_before(horizon):
+            self._fold(part)
+            self._ahead.append(part)
+            self._n_ahead += part.size
+
+    def _take_pending_before(self, t_us: int) -> list[np.ndarray]:
+        """The pending events before ``t_us``, taken off the pending buffer (views)."""
+        taken: list[np.ndarray] = []
         while self._pending:
             chunk = self._pending[0]
             t = chunk["t_us"]
-            cut = t.size if int(t[-1]) < horizon else int(
-                np.searchsorted(t, horizon, side="left"))
-            if not cut:
+            cut = t.size if int(t[-1]) < t_us else int(np.searchsorted(t, t_us, side="left"))
+            if cut:
+                taken.append(chunk[:cut])
+                self._n_pending -= cut
+            if cut < chunk.size:
+                if cut:
+                    self._pending[0] = chunk[cut:]
                 break
-            part = chunk[:cut]
-            self._fold(part)
-            self._ahead.append(part)
-            self._n_ahead += cut
-            self._n_pending -= cut
-            if cut == chunk.size:
-                self._pending.popleft()
-            else:
-                self._pending[0] = chunk[cut:]
-                break
+            self._pending.popleft()
+        return taken
 
     def _keep_ahead(self) -> None:
         """The events folded ahead stay in the open interval (no longer kept to undo)."""
@@ -857,19 +861,8 @@ class OnlineCalibrator:
                 self._n_pending += self._n_ahead
                 self.n_refolds += 1
             self._keep_ahead()
-        while self._pending:
-            chunk = self._pending[0]
-            if int(chunk["t_us"][-1]) < t_us:
-                self._pending.popleft()
-                self._n_pending -= int(chunk.size)
-                self._fold(chunk)
-                continue
-            cut = int(np.searchsorted(chunk["t_us"], t_us, side="left"))
-            if cut:
-                self._fold(chunk[:cut])
-                self._pending[0] = chunk[cut:]
-                self._n_pending -= cut
-            break
+        for part in self._take_pending_before(t_us):
+            self._fold(part)
 
     def _fold(self, events: np.ndarray) -> None:
         if not events.size:
