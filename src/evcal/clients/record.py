@@ -14,7 +14,6 @@ are counted in an ``evcal.record`` metadata record.
 from __future__ import annotations
 
 import json
-import signal
 import sys
 import threading
 import time
@@ -35,6 +34,7 @@ from evcal.service import keys
 from evcal.service.cli import add_ros2_arguments, ros_domain
 from evcal.service.state import snapshot_name
 from evcal.service.transport import Transport, TransportError, options_from_args
+from evcal.signals import STOP_SIGNALS, SignalRelay
 from evcal.stream import StreamGuard
 
 from .common import base_parser, fail
@@ -188,7 +188,7 @@ def _record(prog: str, zopts: Any, recorder: Any, duration: float | None, what: 
     """Subscribe ``recorder`` and record until SIGINT/SIGTERM or ``duration`` s; returns what
     its ``close()`` returns and None, or an exit code when the session failed."""
     stop = threading.Event()
-    old = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
+    relay = SignalRelay(STOP_SIGNALS, lambda _s: stop.set())
     code = None
     try:
         with Transport(zopts) as t:
@@ -199,8 +199,7 @@ def _record(prog: str, zopts: Any, recorder: Any, duration: float | None, what: 
         code = fail(prog, str(exc))
     finally:
         counts = recorder.close()
-        for s, h in old.items():
-            signal.signal(s, h)
+        relay.close()
     return counts, code
 
 

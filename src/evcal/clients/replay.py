@@ -262,9 +262,8 @@ def _replay_options(args: Any) -> Any:
 
 def _main_ros2(args: Any, prog: str) -> int:
     """``evcal replay BAG --ros2`` (see :mod:`evcal.clients.rosreplay`)."""
-    import signal
-
     from evcal.recording import RecordingError
+    from evcal.signals import STOP_SIGNALS, SignalRelay
 
     from .rosreplay import replay_bag, report
 
@@ -277,7 +276,7 @@ def _main_ros2(args: Any, prog: str) -> int:
     except ValueError as exc:
         return fail(prog, str(exc), 2)
     stop = threading.Event()
-    old = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
+    relay = SignalRelay(STOP_SIGNALS, lambda _s: stop.set())
     try:
         with Transport(zopts) as t:
             stats = replay_bag(t, args.recording, domain=domain,
@@ -289,16 +288,14 @@ def _main_ros2(args: Any, prog: str) -> int:
     except TransportError as exc:
         return fail(prog, str(exc))
     finally:
-        for s, h in old.items():
-            signal.signal(s, h)
+        relay.close()
     return report(prog, stats, args.wait_subscriber, domain)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    import signal
-
     from evcal.events import SensorSize
     from evcal.recording import RecordingError
+    from evcal.signals import STOP_SIGNALS, SignalRelay
 
     args = build_parser().parse_args(argv)
     prog = "evcal replay"
@@ -317,7 +314,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (ValueError, RecordingError) as exc:
         return fail(prog, str(exc), 2)
     stop = threading.Event()
-    old = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
+    relay = SignalRelay(STOP_SIGNALS, lambda _s: stop.set())
     try:
         with Transport(zopts) as t:
             stats = replay(t, rec, args.camera, prefix=args.prefix,
@@ -328,8 +325,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except TransportError as exc:
         return fail(prog, str(exc))
     finally:
-        for s, h in old.items():
-            signal.signal(s, h)
+        relay.close()
     target = f"{args.prefix}/{args.camera}"
     if not stats.subscribed:
         return fail(prog, f"nobody subscribes to {target}/events|frames after "

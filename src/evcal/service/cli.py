@@ -12,6 +12,7 @@ from collections.abc import Sequence
 
 from ..errors import ConfigError
 from ..online import OnEIConfig
+from ..signals import STOP_SIGNALS, SignalRelay
 from . import keys
 from .core import ON_FULL, ServiceConfig
 from .ros2 import Ros2Options, TopicMap, default_domain
@@ -255,11 +256,11 @@ def main_serve(argv: Sequence[str] | None = None) -> int:
     faulthandler.register(signal.SIGUSR1, all_threads=True)
     stop = threading.Event()
 
-    def on_signal(signum: int, _frame: object) -> None:
+    def on_signal(signum: int) -> None:  # on the relay's thread, not in the handler
         logging.getLogger("evcal.service").info("signal %d: stopping", signum)
         stop.set()
 
-    old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    relay = SignalRelay(STOP_SIGNALS, on_signal)
     if args.workers > 1:
         from .workers import serve_workers
 
@@ -267,8 +268,7 @@ def main_serve(argv: Sequence[str] | None = None) -> int:
             return serve_workers(parser, args, zenoh=zopts, prefix=config.prefix,
                                  instance=config.instance, claims=config.cameras, stop=stop)
         finally:
-            for s, h in old.items():
-                signal.signal(s, h)
+            relay.close()
     parent_gone = None
     if args.supervised is not None:
         from .workers import watch_parent
@@ -288,8 +288,7 @@ def main_serve(argv: Sequence[str] | None = None) -> int:
         print(f"evcal serve: {exc}", file=sys.stderr)
         return 1
     finally:
-        for s, h in old.items():
-            signal.signal(s, h)
+        relay.close()
     if parent_gone is not None and parent_gone.is_set():
         from .workers import remove_orphaned_socket
 

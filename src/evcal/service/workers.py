@@ -64,6 +64,7 @@ from pathlib import Path
 from typing import Any
 
 from ..online import usable_cores
+from ..signals import SignalRelay
 from . import keys
 from .signing import SignatureError, Signer
 from .transport import Request, Transport, TransportError, ZenohOptions, as_router
@@ -344,8 +345,8 @@ def watch_parent(parent_pid: int, stop: threading.Event) -> threading.Event:
         gone.set()
         stop.set()
 
-    if hasattr(signal, "SIGHUP"):
-        signal.signal(signal.SIGHUP, lambda _sig, _frame: parent_gone("SIGHUP"))
+    if hasattr(signal, "SIGHUP"):  # for the process's life (relayed: see evcal.signals)
+        SignalRelay([signal.SIGHUP], lambda _s: parent_gone("SIGHUP"))
         set_parent_death_signal(signal.SIGHUP)
     if os.getppid() != parent_pid:  # it died before the death signal was asked for
         parent_gone("not our parent")
