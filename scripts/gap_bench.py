@@ -1,17 +1,27 @@
-"""Larger hidden-effect runs of the gap workflow, printing the acceptance table.
+"""Larger hidden-effect runs of the gap workflow, printing the acceptance table; and its speed.
 
 For each effect of the library (and the none and two-effect cases) a recording is simulated
 with the effect hidden, ``evcal.gap`` is run on it, and a row gives: the effects named, the gap
 before and after, and the fitted against the true main parameter.
 
     PYTHONPATH=src python scripts/gap_bench.py [--size 64x96] [--duration 3] [--seed 101]
+
+``--speed`` runs the whole workflow instead on recordings of a user's size (each in a process
+of its own, so that its peak memory is its own) and prints wall seconds, simulations, seconds
+per million events and per megapixel-second of recording, and peak memory: a 3 s 240x180 and
+a 30 s 346x260 recording simulated at 25 Hz frames (a pan over a photo with shot noise and a
+dead time hidden), and the real DAVIS346 ``road.aedat4`` when ``../shared/data`` has it.
+
+    python scripts/gap_bench.py --speed [--cases small,long,road]
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
+from typing import Any
 
 from evcal.events import SensorSize
 from evcal.gap.workflow import GapConfig, run_gap
@@ -57,8 +67,80 @@ def build(size: SensorSize, duration_s: float, frame_rate_hz: float, seed: int, 
     return simulate(cfg, effects, source=src).recording
 
 
+SPEED_CASES = {
+    # name: (W x H, seconds, frame rate) of a simulated recording, or a path
+    "small": ("240x180", 3.0, 25.0),
+    "long": ("346x260", 30.0, 25.0),
+    "road": "davis346_road/road.aedat4",
+}
+
+
+def _speed_case(name: str, out: Any) -> None:
+    """One speed case, in a process of its own: its figures put on ``out`` (a queue)."""
+    import resource  # noqa: PLC0415
+    from pathlib import Path  # noqa: PLC0415
+
+    from evcal.io import open_recording  # noqa: PLC0415
+
+    spec = SPEED_CASES[name]
+    if isinstance(spec, str):
+        base = Path(os.environ.get("EVCAL_SHARED_DATA",
+                                   Path(__file__).resolve().parents[2] / "shared" / "data"))
+        if not (base / spec).exists():
+            out.put({"case": name, "skipped": f"{spec} not found"})
+            return
+        rec = open_recording(base / spec)
+    else:
+        size, dur, rate = spec
+        rec = build(SensorSize.parse(size), dur, rate, 7,
+                    [ShotNoise(rate_hz=0.5), Refractory(period_us=800.0)])
+    t0 = time.perf_counter()
+    res = run_gap(rec, GapConfig())
+    dt = time.perf_counter() - t0
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    h, w = rec.sensor.shape
+    win = res.recording_info["window"]
+    out.put({"case": name, "sensor": str(rec.sensor), "duration_s": rec.duration_s,
+             "events": rec.n_events, "seconds": dt, "simulations":
+             res.recording_info["simulations"], "named": res.named_effects,
+             "gap": (res.initial.gap, res.final.gap), "peak_mib": peak,
+             "s_per_mevent": dt / max(rec.n_events / 1e6, 1e-9),
+             "s_per_mpix_s": dt / (h * w / 1e6 * rec.duration_s),
+             "window_frames": f"{win['frames']}/{win['of_frames']}"})
+
+
+def speed(cases: list[str]) -> int:
+    import multiprocessing as mp  # noqa: PLC0415
+
+    ctx = mp.get_context("spawn")
+    print(f"load average before: {os.getloadavg()[0]:.2f} (1 min), "
+          f"{os.cpu_count()} cores")
+    print("| case | sensor | duration | events | analysed frames | simulations | wall | "
+          "s / M events | s / megapixel-second | peak memory | named | gap |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for name in cases:
+        q = ctx.Queue()
+        p = ctx.Process(target=_speed_case, args=(name, q))
+        p.start()
+        r = q.get()
+        p.join()
+        if "skipped" in r:
+            print(f"| {name} | skipped: {r['skipped']} |")
+            continue
+        print(f"| {name} | {r['sensor']} | {r['duration_s']:.1f} s | {r['events']:,} | "
+              f"{r['window_frames']} | {r['simulations']} | {r['seconds']:.0f} s | "
+              f"{r['s_per_mevent']:.1f} | {r['s_per_mpix_s']:.1f} | "
+              f"{r['peak_mib']:.0f} MiB | {', '.join(r['named']) or 'none'} | "
+              f"{r['gap'][0]:.1f} -> {r['gap'][1]:.1f} |", flush=True)
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--speed", action="store_true",
+                    help="time the workflow on recordings of a user's size instead")
+    ap.add_argument("--cases", default="small,long,road",
+                    help="with --speed: which of " + ", ".join(SPEED_CASES))
     ap.add_argument("--size", default="96x64", help="WxH")
     ap.add_argument("--duration", type=float, default=3.0)
     ap.add_argument("--frame-rate", type=float, default=200.0)
@@ -67,8 +149,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--max-effects", type=int, default=3)
     ap.add_argument("--only", default="", help="comma-separated case names")
     args = ap.parse_args(argv)
+    if args.speed:
+        return speed([c for c in args.cases.split(",") if c])
     size = SensorSize.parse(args.size)
-    print(f"| case | named | gap before | gap after | fitted vs true | time |")
+    print("| case | named | gap before | gap after | fitted vs true | time |")
     print("|---|---|---|---|---|---|")
     for k, (name, effects) in enumerate(CASES.items()):
         if args.only and name not in args.only.split(","):

@@ -150,8 +150,14 @@ def test_reports_follow_the_schema(tmp_path) -> None:
     res = _run("log_offset", SEEDS["log_offset"], 1)
     paths = write_reports(res, tmp_path)
     doc = json.loads(paths["json"].read_text())
-    assert set(doc) == {"named_effects", "gap_initial", "gap_final", "steps", "statistics"}
+    assert set(doc) == {"named_effects", "gap_initial", "gap_final", "steps", "statistics",
+                        "unexplained", "window"}
     assert doc["named_effects"] == ["log_offset"]
+    assert doc["window"]["cut"] is False
+    assert doc["window"]["frames"] == res.recording_info["n_frames"]
+    for item in doc["unexplained"]:  # what the final model leaves, in words
+        assert item["statistic"] in {s["name"] for s in doc["statistics"]}
+        assert item["discrepancy"] >= 2.0 and item["sentence"]
     step = doc["steps"][0]
     assert set(step) == {"effect", "parameters", "gap_before", "gap_after", "moved_statistics"}
     assert step["effect"] in EFFECT_NAMES and "dark_dn" in step["parameters"]
@@ -162,6 +168,10 @@ def test_reports_follow_the_schema(tmp_path) -> None:
         assert np.isfinite(s["z_initial"]) and np.isfinite(s["z_final"])
     md = paths["markdown"].read_text()
     assert "log_offset" in md and "stats_step1_log_offset.png" in md
+    # the report ends with what the model does not explain (also when that is nothing)
+    tail = md.rsplit("## What the model does not explain", 1)
+    assert len(tail) == 2 and tail[1].strip().startswith("Where the final model")
+    assert "- " in tail[1]
     assert (tmp_path / "stats_initial.png").stat().st_size > 1000
     assert (tmp_path / "stats_step1_log_offset.png").stat().st_size > 1000
     from rerun.chunk import RrdReader

@@ -34,6 +34,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--interpolation", choices=("flow", "linear"), default="flow",
                    help="latent intensity between frames: motion-compensated (flow, default) "
                         "or a linear blend")
+    p.add_argument("--max-pixel-steps", type=float, default=7e8,
+                   help="analyse at most this many pixels x internal samples (a longer "
+                        "recording is cut to its busiest contiguous frames; default 7e8: "
+                        "6.7 s of 346x260 at 1 kHz)")
+    p.add_argument("--workers", type=int, default=None,
+                   help="simulations run at once (default: the usable cores)")
+    p.add_argument("--no-screen", action="store_true",
+                   help="evaluate every candidate on every seed (slower; default: one seed "
+                        "each, the best confirmed on all)")
     p.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     p.add_argument("--no-rrd", action="store_true", help="skip gap.rrd")
     p.add_argument("-q", "--quiet", action="store_true",
@@ -53,6 +62,7 @@ def run(args: argparse.Namespace) -> int:
     from ..events import SensorSize  # noqa: PLC0415
     from ..io import open_recording  # noqa: PLC0415
     from ..recording import RecordingError  # noqa: PLC0415
+    from .explain import summary  # noqa: PLC0415
     from .report import write_reports  # noqa: PLC0415
     from .stats import GapError  # noqa: PLC0415
     from .workflow import GapConfig, n_simulations, run_gap  # noqa: PLC0415
@@ -61,7 +71,9 @@ def run(args: argparse.Namespace) -> int:
         cands = tuple(c.strip() for c in args.candidates.split(",") if c.strip())
         cfg = GapConfig(max_effects=args.max_effects, seed=args.seed, n_seeds=args.n_seeds,
                         interpolation=args.interpolation,
-                        internal_rate_hz=args.internal_rate_hz, candidates=cands)
+                        internal_rate_hz=args.internal_rate_hz, candidates=cands,
+                        max_pixel_steps=int(args.max_pixel_steps), workers=args.workers,
+                        screen=not args.no_screen)
         sensor = SensorSize.parse(args.sensor) if args.sensor else None
     except ValueError as exc:
         print(f"evcal gap: {exc}", file=sys.stderr)
@@ -80,14 +92,20 @@ def run(args: argparse.Namespace) -> int:
     quiet = args.quiet or not sys.stderr.isatty()
     from tqdm import tqdm  # noqa: PLC0415
 
-    with tqdm(total=n_simulations(cfg), desc="gap", unit="sim", disable=quiet,
-              file=sys.stderr, leave=False) as bar:
+    # the total is the plan (an upper bound: every round that may name an effect), lowered
+    # as rounds end; tqdm's estimate of the time left is the plan's remaining simulations at
+    # the rate so far
+    with tqdm(total=n_simulations(cfg), desc="gap (simulations planned)", unit="sim",
+              disable=quiet, file=sys.stderr, leave=False) as bar:
         def tick(msg: str) -> None:
-            bar.set_postfix_str(msg[:40], refresh=False)
             bar.update(1)
 
+        def plan(n: int) -> None:
+            bar.total = max(n, bar.n)
+            bar.refresh()
+
         try:
-            result = run_gap(rec, cfg, progress=tick)
+            result = run_gap(rec, cfg, progress=tick, plan=plan)
         except GapError as exc:
             print(f"evcal gap: {args.recording}: {exc}", file=sys.stderr)
             return 1
@@ -98,6 +116,9 @@ def run(args: argparse.Namespace) -> int:
         for s in result.steps) or "none"
     print(f"named effects: {named}")
     print(f"gap {result.initial.gap:.2f} -> {result.final.gap:.2f}; report in {paths['markdown']}")
+    print("not explained:")
+    for line in summary(result.final.disc):
+        print(f"  {line}")
     return 0
 
 

@@ -53,6 +53,7 @@ from ..offline import OffEIConfig, offei
 from ..recording import Recording
 from ..sim.effects import Effect, LogOffset, effect_set, make_effect
 from .model import Model, SimSettings, _shrink, estimate_read_noise, simulate_model
+from .render import RenderCache
 from .stats import NOMINAL_LOG_OFFSET_DN
 
 
@@ -231,6 +232,7 @@ def model_corrected(rec: Recording, effects: Mapping[str, Effect] | list[Effect]
     settings = SimSettings(internal_rate_hz=cfg.internal_rate_hz,
                            read_noise_dn=estimate_read_noise(rec.frames),
                            interpolation=cfg.interpolation)
+    render = RenderCache()  # the interpolated frames, rendered once for every simulation
     valid = cal_m.valid.ravel()
     c_m = cal_m.contrast.astype(np.float64).ravel()
     b_m = cal_m.bias.astype(np.float64).ravel()
@@ -251,7 +253,7 @@ def model_corrected(rec: Recording, effects: Mapping[str, Effect] | list[Effect]
             bs = np.zeros(c_m.shape)
             for k in range(cfg.n_seeds):
                 sim = simulate_model(Model(c0, b0, offset, with_eff), rec,
-                                     cfg.seed * 1000 + k, settings)
+                                     cfg.seed * 1000 + k, settings, render)
                 if label == "effects":  # filtered as the measurement was; the ideal not
                     sim = denoise(sim)
                 fit = offei(sim, sim_cfg)

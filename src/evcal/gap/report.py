@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from ..jsonable import dumps, to_jsonable
+from .explain import summary
 from .workflow import Evaluation, GapResult
 
 
@@ -79,6 +80,10 @@ def write_markdown(result: GapResult, out_dir: Path, *, plots: bool = True) -> P
     lines += [f"Recording: {info.get('source', '')} — sensor {info['sensor']}, "
               f"{info['n_events']} events, {info['n_frames']} frames, "
               f"{info['duration_s']:.2f} s.", ""]
+    win = info.get("window") or {}
+    if win.get("cut"):
+        lines += [f"Analysed: its busiest {win['frames']} of {win['of_frames']} frames "
+                  f"({win['events']} of {win['of_events']} events; `--max-pixel-steps`).", ""]
     named = result.named_effects
     lines += [f"**Named effects** (in the order added): {', '.join(named) if named else 'none'}",
               "", f"Gap (mean standardised discrepancy, about 1 when the model explains the "
@@ -128,6 +133,11 @@ def write_markdown(result: GapResult, out_dir: Path, *, plots: bool = True) -> P
             prev = s.after
     lines += ["Error bars: 2 standard deviations over the simulation seeds. D: mean squared "
               "standardised discrepancy of the statistic's components.", ""]
+    lines += ["## What the model does not explain", "",
+              "Where the final model and the measurement still disagree (each statistic's "
+              "worst component; measured vs simulated):", ""]
+    lines += [f"- {line}" for line in summary(result.final.disc)]
+    lines.append("")
     path = out_dir / "report.md"
     path.write_text("\n".join(lines), encoding="utf-8")
     return path

@@ -533,6 +533,7 @@ class Discrepancy:
     z: dict[str, np.ndarray]
     per_stat: dict[str, float]
     labels: dict[str, list[str]]
+    n_sims: int = 0  # the simulations (seeds) the spread is from
 
     @property
     def gap(self) -> float:
@@ -544,17 +545,29 @@ class Discrepancy:
         return f"{self.labels[name][k]} (z = {z[k]:+.1f})"
 
 
-def discrepancy(measured: dict[str, StatValue], sims: list[dict[str, StatValue]]
-                ) -> Discrepancy:
+def discrepancy(measured: dict[str, StatValue], sims: list[dict[str, StatValue]], *,
+                spread: Discrepancy | None = None) -> Discrepancy:
+    """The discrepancy of ``measured`` against the simulations ``sims``.
+
+    With one simulation (a candidate screened on one seed) the seed-to-seed variance is
+    taken from ``spread``, an evaluation of a neighbouring model on several seeds (the spread
+    of a statistic changes little between the models one round compares); the mean of one
+    simulation is one draw, so ``1 + 1/n`` is 2 there. Without ``spread`` one simulation has
+    no spread (its floors only)."""
     n = len(sims)
     meas, mean, std, z, per, labels = {}, {}, {}, {}, {}, {}
     for name, mv in measured.items():
         arr = np.stack([s[name].values for s in sims])
         mu = arr.mean(0)
-        var = arr.var(0, ddof=1) if n > 1 else np.zeros_like(mu)
+        if n > 1:
+            var = arr.var(0, ddof=1)
+        elif spread is not None:
+            var = spread.sim_std[name] ** 2
+        else:
+            var = np.zeros_like(mu)
         sd = np.sqrt(var * (1 + 1 / n) + (REL_FLOOR * np.abs(mu)) ** 2 + mv.floor ** 2)
         zz = (mv.values - mu) / sd
         meas[name], mean[name], std[name], z[name] = mv.values, mu, np.sqrt(var), zz
         per[name] = float(np.mean(zz * zz))
         labels[name] = mv.labels
-    return Discrepancy(meas, mean, std, z, per, labels)
+    return Discrepancy(meas, mean, std, z, per, labels, n)

@@ -22,15 +22,19 @@ them.
 from __future__ import annotations
 
 import math
+import threading
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from ..jsonable import to_jsonable
+from ..online import usable_cores
 from ..recording import Recording
 from ..sim.effects import EFFECT_NAMES, Effect
+from .explain import unexplained
 from .model import (
     Model,
     SimSettings,
@@ -42,7 +46,16 @@ from .model import (
     simulate_model,
     variants,
 )
-from .stats import Discrepancy, GapError, Observation, discrepancy, observe, summarise
+from .render import RenderCache
+from .stats import (
+    Discrepancy,
+    GapError,
+    Observation,
+    StatValue,
+    discrepancy,
+    observe,
+    summarise,
+)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -63,12 +76,34 @@ class GapConfig:
     # made with it (see _Runner.debias)
     debias: bool = True
     candidates: tuple[str, ...] = EFFECT_NAMES
+    # screening: every candidate is simulated with one seed (the spread of the statistics
+    # from the current model's seeds) and only the best ``confirm_top`` with all of them
+    screen: bool = True
+    confirm_top: int = 2
+    # when no single candidate qualifies and the gap is still above this, pairs of the best
+    # ``beam_width`` singles are tried together (two effects that explain the data only
+    # together are named together)
+    beam_width: int = 3
+    beam_min_gap: float = 3.0
+    # the workflow analyses at most this many pixel-steps of simulation (pixels x internal
+    # samples): a longer recording is cut to its busiest contiguous frames that fit (the
+    # statistics need events, not hours; the rendered frames stay in memory)
+    max_pixel_steps: int = 700_000_000
+    # threads that simulate at once (None: the usable cores)
+    workers: int | None = None
 
     def __post_init__(self) -> None:
         if self.max_effects < 0:
             raise ValueError(f"max_effects={self.max_effects} must be >= 0")
         if self.n_seeds < 2:
             raise ValueError(f"n_seeds={self.n_seeds} must be >= 2 (the spread needs two)")
+        if self.confirm_top < 1 or self.beam_width < 0:
+            raise ValueError(f"confirm_top={self.confirm_top} must be >= 1 and "
+                             f"beam_width={self.beam_width} >= 0")
+        if self.max_pixel_steps < 1_000_000:
+            raise ValueError(f"max_pixel_steps={self.max_pixel_steps} must be >= 1e6")
+        if self.workers is not None and self.workers < 1:
+            raise ValueError(f"workers={self.workers} must be >= 1")
         unknown = set(self.candidates) - set(EFFECT_NAMES)
         if unknown:
             raise ValueError(f"unknown candidate effect(s) {sorted(unknown)}")
@@ -79,10 +114,16 @@ class Evaluation:
     model: Model
     sims: list[Observation]  # during a run; empty in a GapResult (see run_gap)
     disc: Discrepancy
+    summaries: list[dict[str, StatValue]] = field(default_factory=list)
 
     @property
     def gap(self) -> float:
         return self.disc.gap
+
+    @property
+    def screened(self) -> bool:
+        """Evaluated on one seed only (its spread borrowed): a candidate not yet confirmed."""
+        return self.disc.n_sims < 2
 
 
 @dataclass
@@ -139,6 +180,10 @@ class GapResult:
                 "moved_statistics": s.moved_statistics(),
             } for s in self.steps],
             "statistics": stats,
+            # what the final model still does not explain, worst first (also when nothing
+            # was named): statistic, regime, direction, in words
+            "unexplained": unexplained(d1),
+            "window": self.recording_info.get("window"),
         }
 
 
@@ -164,19 +209,60 @@ class _Runner:
         self.settings = SimSettings(internal_rate_hz=cfg.internal_rate_hz,
                                     read_noise_dn=estimate_read_noise(rec.frames),
                                     interpolation=cfg.interpolation)
+        # common random numbers: every model is simulated with the same seeds, the first of
+        # them also the anchor's (its last simulation, when it agreed, is that seed's)
         self.seeds = [cfg.seed * 1000 + k for k in range(cfg.n_seeds)]
-        self.anchor_seed = cfg.seed * 1000 + 999
+        self.render = RenderCache(on_use=self._counted)
+        self.workers = cfg.workers or usable_cores()
+        self.simulations = 0
+        self._lock = threading.Lock()
+        # the round's candidates as screened (the beam's pairs start from them)
+        self.screened_pool: dict[str, tuple[Effect, Evaluation]] = {}
 
-    def evaluate(self, model: Model, what: str) -> Evaluation:
-        model = anchor(model, self.rec, self.meas, self.anchor_seed, self.settings)
-        self.tick(f"{what}: anchor")
-        sims = []
-        for s in self.seeds:
-            sims.append(observe(simulate_model(model, self.rec, s, self.settings),
-                                trusted=self.trusted))
-            self.tick(f"{what}: seed {s}")
-        disc = discrepancy(self.meas_stats, [summarise(o) for o in sims])
-        return Evaluation(model, sims, disc)
+    def _counted(self) -> None:
+        """One more simulation (the render cache serves each one once)."""
+        with self._lock:
+            self.simulations += 1
+        self.tick("simulation")
+
+    def _simulate(self, model: Model, seed: int) -> Observation:
+        return observe(simulate_model(model, self.rec, seed, self.settings, self.render),
+                       trusted=self.trusted)
+
+    def evaluate(self, model: Model, what: str, *, spread: Evaluation | None = None
+                 ) -> Evaluation:
+        """Anchor ``model`` and simulate it with every seed (in parallel), or, with
+        ``spread``, with the first seed only (a screening; the seed-to-seed spread is
+        ``spread``'s)."""
+        model, first = anchor(model, self.rec, self.meas, self.seeds[0], self.settings,
+                              render=self.render, trusted=self.trusted)
+        sims = [first] if first is not None else []
+        n = 1 if spread is not None else len(self.seeds)
+        ev = Evaluation(model, sims, self.meas_disc([], None), [summarise(o) for o in sims])
+        return self.extend(ev, n, what, spread=spread)
+
+    def extend(self, ev: Evaluation, n: int, what: str, *, spread: Evaluation | None = None
+               ) -> Evaluation:
+        """``ev`` with simulations up to ``n`` seeds (the missing ones run in parallel)."""
+        todo = self.seeds[len(ev.sims):n]
+        sims = list(ev.sims)
+        if todo:
+            with ThreadPoolExecutor(max_workers=min(self.workers, len(todo))) as pool:
+                sims += list(pool.map(lambda s: self._simulate(ev.model, s), todo))
+        summaries = list(ev.summaries) + [summarise(o) for o in sims[len(ev.summaries):]]
+        disc = self.meas_disc(summaries, spread if len(sims) < 2 else None)
+        return Evaluation(ev.model, sims, disc, summaries)
+
+    def confirm(self, ev: Evaluation, what: str) -> Evaluation:
+        """A screened evaluation completed with every seed."""
+        return self.extend(ev, len(self.seeds), what) if ev.screened else ev
+
+    def meas_disc(self, summaries: list[dict[str, StatValue]], spread: Evaluation | None
+                  ) -> Discrepancy:
+        if not summaries:
+            return Discrepancy({}, {}, {}, {}, {}, {}, 0)
+        return discrepancy(self.meas_stats, summaries,
+                           spread=spread.disc if spread is not None else None)
 
     def candidate_model(self, current: Model, eff: Effect) -> Model:
         if eff.name == "log_offset":
@@ -251,29 +337,97 @@ class _Runner:
     def best_candidate(self, current: Evaluation, tried: dict[str, dict[str, Any]], *,
                        skip: str) -> tuple[float, Effect, Evaluation] | None:
         """Every candidate but ``skip`` not in ``current``'s model, fitted from its
-        simulations and evaluated on top of it; the one of the lowest score."""
-        best: tuple[float, Effect, Evaluation] | None = None
+        simulations and evaluated on top of it; the one of the lowest score.
+
+        Screened first (one seed each, the candidates in parallel, the spread of the
+        statistics from ``current``); the ``confirm_top`` best are simulated with every seed
+        and compared on that."""
+        self.screened_pool = {}
+        fitted: list[tuple[str, Effect]] = []
         for name in self.cfg.candidates:
             if name in current.model.effects or name == skip:
                 continue
-            fitted = fit_candidate(name, self.meas, current.sims, current.model, self.rec)
-            if fitted is None:
+            eff = fit_candidate(name, self.meas, current.sims, current.model, self.rec)
+            if eff is None:
                 tried[name] = {"parameters": None, "gap": None}
                 continue
-            for eff in variants(fitted):  # discrete alternatives: the gap decides
-                ev = self.evaluate(self.candidate_model(current.model, eff),
-                                   f"candidate {name}")
-                score = ev.gap + self.cfg.penalty_per_parameter * eff.n_fitted
-                if name in tried and tried[name]["score"] <= score:
-                    tried[name].setdefault("variants", []).append(
-                        {"parameters": eff.parameters(), "gap": ev.gap})
-                    continue
-                tried[name] = {"parameters": eff.parameters(), "gap": ev.gap, "score": score,
-                               "variants": [{"parameters": e["parameters"], "gap": e["gap"]}
-                                            for e in [tried.get(name)] if e is not None]}
-                if best is None or score < best[0]:
-                    best = (score, eff, ev)
+            # discrete alternatives the moment estimate cannot tell: the gap decides
+            fitted += [(name, e) for e in variants(eff)]
+        if not fitted:
+            return None
+        evals = self.evaluate_many([(e, self.candidate_model(current.model, e))
+                                    for _, e in fitted], current)
+        pen = self.cfg.penalty_per_parameter
+        ranked = sorted(range(len(fitted)),
+                        key=lambda i: evals[i].gap + pen * fitted[i][1].n_fitted)
+        if self.cfg.screen:
+            for i in ranked[:self.cfg.confirm_top]:
+                evals[i] = self.confirm(evals[i], f"confirm {fitted[i][0]}")
+        best: tuple[float, Effect, Evaluation] | None = None
+        for (name, eff), ev in zip(fitted, evals, strict=True):
+            score = ev.gap + pen * eff.n_fitted
+            entry = {"parameters": eff.parameters(), "gap": ev.gap, "score": score,
+                     "seeds": ev.disc.n_sims}
+            old = tried.get(name)
+            if old is not None and old.get("score") is not None and \
+                    (old["seeds"], -old["score"]) >= (entry["seeds"], -score):
+                old.setdefault("variants", []).append(
+                    {"parameters": eff.parameters(), "gap": ev.gap})
+            else:
+                entry["variants"] = [] if old is None or old.get("score") is None else \
+                    [{"parameters": old["parameters"], "gap": old["gap"]}]
+                tried[name] = entry
+            if not ev.screened and (best is None or score < best[0]):
+                best = (score, eff, ev)
+            self.screened_pool[name] = (eff, ev)
         return best
+
+    def evaluate_many(self, models: list[tuple[Effect, Model]], current: Evaluation
+                      ) -> list[Evaluation]:
+        """Each model evaluated on top of ``current``: screened on one seed when the config
+        says so (the models in parallel), else on every seed (one after the other, each on
+        every core)."""
+        if not self.cfg.screen:
+            return [self.evaluate(m, f"candidate {e.name}") for e, m in models]
+        with ThreadPoolExecutor(max_workers=self.workers) as pool:
+            return list(pool.map(lambda em: self.evaluate(em[1], f"screen {em[0].name}",
+                                                          spread=current), models))
+
+    def best_pair(self, current: Evaluation, tried: dict[str, dict[str, Any]]
+                  ) -> tuple[float, list[tuple[Effect, Evaluation]]] | None:
+        """When no single candidate qualifies: pairs of the ``beam_width`` best singles of
+        the round, the second fitted on top of the first's simulations (two effects that
+        explain the data only together: each hides the other's signature). The pair of the
+        lowest score, confirmed on every seed, with the evaluation of its first effect
+        alone."""
+        singles = sorted((tried[n]["score"], n) for n in self.screened_pool
+                          if tried.get(n, {}).get("score") is not None)
+        top = [n for _, n in singles[:self.cfg.beam_width]]
+        jobs: list[tuple[Effect, Evaluation, Effect, Model]] = []
+        for i, a in enumerate(top):
+            eff_a, ev_a = self.screened_pool[a]
+            for b in top[i + 1:]:
+                eff_b = fit_candidate(b, self.meas, ev_a.sims, ev_a.model, self.rec)
+                if eff_b is None:
+                    continue
+                jobs.append((eff_a, ev_a, eff_b, self.candidate_model(ev_a.model, eff_b)))
+        if not jobs:
+            return None
+        evals = self.evaluate_many([(j[2], j[3]) for j in jobs], current)
+        pen = self.cfg.penalty_per_parameter
+        scores = [ev.gap + pen * (j[0].n_fitted + j[2].n_fitted) for j, ev in zip(
+            jobs, evals, strict=True)]
+        k = int(np.argmin(scores))
+        eff_a, ev_a, eff_b, _ = jobs[k]
+        ev_pair = self.confirm(evals[k], f"confirm {eff_a.name} + {eff_b.name}")
+        ev_a = self.confirm(ev_a, f"confirm {eff_a.name}")
+        score = ev_pair.gap + pen * (eff_a.n_fitted + eff_b.n_fitted)
+        tried[f"{eff_a.name} + {eff_b.name}"] = {
+            "parameters": {eff_a.name: eff_a.parameters(), eff_b.name: eff_b.parameters()},
+            "gap": ev_pair.gap, "score": score, "seeds": ev_pair.disc.n_sims,
+            "pairs_screened": {f"{j[0].name} + {j[2].name}": float(ev.gap)
+                               for j, ev in zip(jobs, evals, strict=True)}}
+        return score, [(eff_a, ev_a), (eff_b, ev_pair)]
 
     def finish(self, current: Evaluation, ev: Evaluation, eff: Effect,
                tried: dict[str, dict[str, Any]]) -> tuple[Effect, Evaluation]:
@@ -349,16 +503,70 @@ def _cast(eff: Effect, key: str, value: float) -> Any:
     return round(float(value), 6)
 
 
-def n_simulations(cfg: GapConfig) -> int:
-    """Upper-bound estimate of simulations (for a progress bar)."""
-    per = cfg.n_seeds + 1
+ANCHOR_SIMS = 2  # simulations an anchor takes, typically (one of them counted as a seed's)
+
+
+def n_simulations(cfg: GapConfig, rounds: int | None = None) -> int:
+    """Simulations the workflow plans (for the progress bar's estimate of the time left):
+    the base model on every seed, then per round every candidate screened (or evaluated),
+    the best confirmed, and the named one's bias correction and refinement; ``rounds``
+    (default: as many as ``max_effects`` allows, plus the round that names nothing)."""
+    n_rounds = cfg.max_effects + 1 if rounds is None else rounds
+    full = ANCHOR_SIMS - 1 + cfg.n_seeds
     k = len(cfg.candidates)
-    return per * (1 + sum(k - i for i in range(cfg.max_effects + 1)) + 6 * cfg.max_effects)
+    screen = ANCHOR_SIMS if cfg.screen else full
+    total = full
+    for i in range(n_rounds):
+        cands = max(k - i, 0)
+        total += cands * screen + (cfg.confirm_top * (cfg.n_seeds - 1) if cfg.screen else 0)
+        if i < n_rounds - 1:
+            total += 4 * full  # the named effect: bias correction and refinement
+    return total
+
+
+def working_window(rec: Recording, max_pixel_steps: int, internal_rate_hz: float
+                   ) -> tuple[Recording, dict[str, Any]]:
+    """``rec`` cut to the contiguous frames with the most events between them whose
+    simulation fits ``max_pixel_steps`` (pixels x internal samples), or ``rec`` itself when
+    all of it fits; and what was kept (``window``: first and last frame time, frames, events,
+    and the whole recording's).
+
+    The statistics are averages over pixels and windows: a longer recording sharpens them
+    far less than it costs. The busiest stretch holds the most information about the sensor
+    (still parts are kept when the whole fits)."""
+    fr = rec.frames
+    n_pix = rec.sensor.height * rec.sensor.width
+    t = fr.t_us
+    dur_s = (int(t[-1]) - int(t[0])) * 1e-6
+    info: dict[str, Any] = {"first_frame_us": int(t[0]), "last_frame_us": int(t[-1]),
+                            "frames": len(fr), "of_frames": len(fr), "cut": False}
+    if n_pix * (dur_s * internal_rate_hz + len(fr)) <= max_pixel_steps:
+        return rec, info
+    max_s = max_pixel_steps / n_pix / internal_rate_hz
+    ev_t = rec.events["t_us"]
+    at = np.searchsorted(ev_t, t, side="left")  # events before each frame
+    # for each first frame, the last frame within max_s; the pair with the most events
+    last = np.searchsorted(t, t + int(max_s * 1e6), side="right") - 1
+    last = np.maximum(last, np.minimum(np.arange(t.size) + 3, t.size - 1))
+    counts = at[last] - at[np.arange(t.size)]
+    k0 = int(np.argmax(counts))
+    k1 = int(last[k0])
+    sub = fr.select(slice(k0, k1 + 1))
+    events = rec.events_between(int(t[k0]), int(t[k1]) + 1)
+    cut = Recording(rec.sensor, events.copy(), sub, dict(rec.metadata))
+    info.update({"first_frame_us": int(t[k0]), "last_frame_us": int(t[k1]),
+                 "frames": k1 - k0 + 1, "cut": True, "events": int(events.size),
+                 "of_events": rec.n_events})
+    return cut, info
 
 
 def run_gap(rec: Recording, config: GapConfig | None = None, *,
-            progress: Callable[[str], None] | None = None) -> GapResult:
+            progress: Callable[[str], None] | None = None,
+            plan: Callable[[int], None] | None = None) -> GapResult:
     """Run the gap workflow on ``rec`` (measured or simulated; it needs frames).
+
+    ``progress(what)`` is called after every simulation; ``plan(n)`` whenever the number
+    of simulations the run plans changes (it names nothing more: the rounds left drop out).
 
     Raises
     ------
@@ -370,6 +578,8 @@ def run_gap(rec: Recording, config: GapConfig | None = None, *,
         raise GapError("the gap workflow needs a recording with at least 4 frames (APS or "
                        "images.txt): simulations are driven by the measured frames")
     tick = progress or (lambda _msg: None)
+    full = rec
+    rec, window = working_window(rec, cfg.max_pixel_steps, cfg.internal_rate_hz)
     run = _Runner(rec, cfg, tick)
     base = fit_base(rec)
     current = run.evaluate(base, "base model")
@@ -380,7 +590,12 @@ def run_gap(rec: Recording, config: GapConfig | None = None, *,
     def n_sensor() -> int:  # max_effects counts sensor effects, not the timestamp scheme
         return sum(s.effect.name != SCHEME_EFFECT for s in steps)
 
+    rounds = 0
     while n_sensor() < cfg.max_effects:
+        if plan is not None:
+            plan(run.simulations + n_simulations(cfg, cfg.max_effects - n_sensor() + 1)
+                 - n_simulations(cfg, 0))
+        rounds += 1
         tried: dict[str, dict[str, Any]] = {}
         # the timestamp scheme first: once the timestamps are seen to lie on a step grid,
         # every sensor candidate is fitted and simulated with the scheme (how a frame-driven
@@ -404,14 +619,28 @@ def run_gap(rec: Recording, config: GapConfig | None = None, *,
             current = ev_q
             tried = {k: v for k, v in tried.items() if k != SCHEME_EFFECT}
         if best is None or _gain(current.gap, best[0]) <= _need(cfg, current):
-            rejected = tried
-            break
+            pair = None
+            if cfg.beam_width >= 2 and current.gap > cfg.beam_min_gap and \
+                    n_sensor() + 2 <= cfg.max_effects:
+                pair = run.best_pair(current, tried)
+            if pair is None or _gain(current.gap, pair[0]) <= _need(cfg, current):
+                rejected = tried
+                break
+            # named together: each step as the loop would have named it
+            (eff_a, ev_a), (eff_b, ev_pair) = pair[1]
+            steps.append(Step(eff_a, current, ev_a, tried))
+            steps.append(Step(eff_b, ev_a, ev_pair, {}))
+            current = ev_pair
+            continue
         _, eff, ev = best
         eff, ev = run.finish(current, ev, eff, tried)
         steps.append(Step(eff, current, ev, tried))
         current = ev
-    info = {"sensor": str(rec.sensor), "n_events": rec.n_events,
-            "n_frames": len(rec.frames), "duration_s": rec.duration_s}
+    if plan is not None:
+        plan(run.simulations)
+    info = {"sensor": str(rec.sensor), "n_events": full.n_events,
+            "n_frames": len(full.frames), "duration_s": full.duration_s, "window": window,
+            "simulations": run.simulations}
     settings = {"seed": cfg.seed, "n_seeds": cfg.n_seeds, "internal_rate_hz": cfg.internal_rate_hz,
                 "read_noise_dn": run.settings.read_noise_dn,
                 "penalty_per_parameter": cfg.penalty_per_parameter,

@@ -1,0 +1,158 @@
+"""The latent intensity of a recording, rendered once and shared by every simulation.
+
+Every model the gap workflow evaluates is simulated on the same input: the measured frames,
+interpolated (along the optical flow, :mod:`.flow`) at the same internal sample times. Only
+the model (maps, effects) and the seed change between simulations. Interpolating along the
+flow costs several image warps per sample time, far more than the simulator's kernel, so the
+sequence is rendered once into memory (:class:`RenderCache`) and every simulation reads it
+(:class:`CachedSource`). Per-seed randomness of the input (the quantisation dither) is added
+on the way out.
+
+Float32 while the sequence fits ``max_bytes`` at 4 bytes a value, float16 (a relative step of
+5e-4, a log-intensity step 200x below the smallest thresholds) while it fits at 2; beyond
+that nothing is cached and each simulation renders again (the workflow keeps its working
+window small enough that this does not happen: ``GapConfig.max_pixel_steps``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import threading
+from collections.abc import Callable
+
+import numpy as np
+
+from ..recording import Frames
+from ..sim.sources import FrameInterpolator
+
+# bytes of rendered intensity kept at most (float32 below half of it, float16 above)
+DEFAULT_MAX_BYTES = 2 << 30
+
+
+def frames_key(frames: Frames, interpolation: str, times_us: np.ndarray) -> bytes:
+    """Content key of a rendered sequence: the frames' pixels and times, the interpolation
+    and the sample times."""
+    h = hashlib.blake2b(digest_size=16)
+    h.update(np.ascontiguousarray(frames.images).tobytes())
+    h.update(np.ascontiguousarray(frames.t_us, np.int64).tobytes())
+    h.update(np.ascontiguousarray(times_us, np.int64).tobytes())
+    h.update(f"{interpolation},{frames.images.dtype},{frames.images.shape}".encode())
+    return h.digest()
+
+
+class CachedSource:
+    """A source (``t_s -> [H, W]`` DN) reading a rendered sequence, plus a per-pixel offset
+    (the seed's dither), floored at 0. Only the cached sample times can be asked for."""
+
+    def __init__(self, data: np.ndarray, times_s: np.ndarray, add: np.ndarray | None):
+        self._data = data
+        self._times_s = times_s
+        self._add = None if add is None else np.asarray(add, np.float32)
+
+    def _index(self, ts: np.ndarray) -> np.ndarray:
+        i = np.searchsorted(self._times_s, ts)
+        i = np.clip(i, 0, self._times_s.size - 1)
+        # the simulator asks with times_us * 1e-6: the same floats the cache was keyed with
+        if not np.array_equal(self._times_s[i], ts):
+            bad = ts[self._times_s[i] != ts][:3]
+            raise ValueError(f"times {bad.tolist()} s are not among the rendered sample times")
+        return i
+
+    def render_block(self, t_s: np.ndarray | list[float], out: np.ndarray | None = None
+                     ) -> np.ndarray:
+        ts = np.asarray(t_s, np.float64).reshape(-1)
+        idx = self._index(ts)
+        shape = (ts.size, *self._data.shape[1:])
+        if out is None:
+            out = np.empty(shape, np.float32)
+        elif out.shape != shape or out.dtype != np.float32:
+            raise ValueError(f"out has shape {out.shape}, dtype {out.dtype}; expected "
+                             f"float32 {shape}")
+        for j, i in enumerate(idx):  # one frame copy per sample time, vectorised over pixels
+            np.copyto(out[j], self._data[i], casting="unsafe")
+            if self._add is not None:
+                out[j] += self._add
+        if self._add is not None:
+            np.maximum(out, 0.0, out=out)
+        return out
+
+    def __call__(self, t_s: float) -> np.ndarray:
+        one: np.ndarray = self.render_block([t_s])[0]
+        return one
+
+
+class RenderCache:
+    """Rendered sequences by content (:func:`frames_key`), least recently used dropped first
+    while the total exceeds ``max_bytes``. ``make_source(frames)`` builds the interpolator of
+    a key's frames when it must be rendered."""
+
+    def __init__(self, max_bytes: int = DEFAULT_MAX_BYTES,
+                 on_use: Callable[[], None] | None = None):
+        self.max_bytes = int(max_bytes)
+        self._on_use = on_use  # called once per source served (one per simulation)
+        self._entries: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
+        self.renders = 0  # sequences rendered (for the benchmark and the tests)
+        self.hits = 0
+        self._lock = threading.Lock()
+
+    def nbytes(self) -> int:
+        return sum(d.nbytes for d, _ in self._entries.values())
+
+    def source(self, key: bytes, times_us: np.ndarray, shape: tuple[int, int],
+               make_source: Callable[[], FrameInterpolator], add: np.ndarray | None = None
+               ) -> CachedSource | _Offset:
+        """The cached sequence of ``key`` as a source, rendered now if it is new; when it
+        cannot be kept within ``max_bytes`` the interpolator itself (no cache)."""
+        with self._lock:  # simulations on several threads: one renders, the others wait
+            src = self._source(key, times_us, shape, make_source, add)
+        if self._on_use is not None:
+            self._on_use()
+        return src
+
+    def _source(self, key: bytes, times_us: np.ndarray, shape: tuple[int, int],
+                make_source: Callable[[], FrameInterpolator], add: np.ndarray | None
+                ) -> CachedSource | _Offset:
+        times_s = np.asarray(times_us, np.int64) * 1e-6
+        hit = self._entries.get(key)
+        if hit is not None:
+            self.hits += 1
+            self._entries[key] = self._entries.pop(key)  # most recently used last
+            return CachedSource(hit[0], hit[1], add)
+        n_values = times_s.size * shape[0] * shape[1]
+        if 2 * n_values > self.max_bytes:
+            return _Offset(make_source(), add)
+        dtype = np.float32 if 4 * n_values <= self.max_bytes // 2 else np.float16
+        while self._entries and self.nbytes() + n_values * np.dtype(dtype).itemsize \
+                > self.max_bytes:
+            self._entries.pop(next(iter(self._entries)))
+        src = make_source()
+        data = np.empty((times_s.size, *shape), dtype)
+        block = 64
+        buf = np.empty((block, *shape), np.float32)
+        for k in range(0, times_s.size, block):
+            n = min(block, times_s.size - k)
+            rendered = src.render_block(times_s[k:k + n], out=buf[:n])
+            data[k:k + n] = rendered
+        self.renders += 1
+        self._entries[key] = (data, times_s)
+        return CachedSource(data, times_s, add)
+
+
+class _Offset:
+    """An uncached source plus a per-pixel offset, floored at 0 (as :class:`CachedSource`)."""
+
+    def __init__(self, src: FrameInterpolator, add: np.ndarray | None):
+        self._src = src
+        self._add = None if add is None else np.asarray(add, np.float32)
+
+    def render_block(self, t_s: np.ndarray | list[float], out: np.ndarray | None = None
+                     ) -> np.ndarray:
+        res: np.ndarray = self._src.render_block(t_s, out=out)
+        if self._add is not None:
+            res += self._add[None]
+            np.maximum(res, 0.0, out=res)
+        return res
+
+    def __call__(self, t_s: float) -> np.ndarray:
+        one: np.ndarray = self.render_block([t_s])[0]
+        return one

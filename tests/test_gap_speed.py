@@ -1,0 +1,144 @@
+"""The gap workflow's cost-saving parts: the shared render of the interpolated frames, the
+screening spread, the working window, the read-noise runs of still pixels, the beam over
+pairs, and the words for what remains unexplained."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from evcal.gap.explain import sentence, summary, unexplained
+from evcal.gap.model import SimSettings, fit_base, latent_frames, simulate_model
+from evcal.gap.render import RenderCache
+from evcal.gap.stats import StatValue, discrepancy, observe, summarise
+from evcal.gap.workflow import GapConfig, _Runner, working_window
+from evcal.recording import Frames, Recording
+from evcal.sim.effects import LogOffset, Refractory, ShotNoise
+from evcal.sim.ideal import SimConfig
+from evcal.sim.nonideal import simulate
+from evcal.sim.scene import Trajectory
+from evcal.sim.sources import MovingScene, SpeedProfile
+
+H, W = 32, 40
+
+
+def small_recording(seed: int, effects: list, *, duration_s: float = 1.0,
+                    frame_rate_hz: float = 100.0) -> Recording:
+    traj = Trajectory(pan_px=20.0, seed=seed)
+    cfg = SimConfig(height=H, width=W, duration_s=duration_s, frame_rate_hz=frame_rate_hz,
+                    internal_rate_hz=1000.0, log_offset=1.0, seed=seed, trajectory=traj)
+    src = MovingScene(cfg.scene, (H, W), traj, speed=SpeedProfile(
+        segments=((0.3 * duration_s, 0.0), (0.7 * duration_s, 1.5))))
+    return simulate(cfg, effects, source=src).recording
+
+
+@pytest.mark.parametrize("interpolation", ["linear", "flow"])
+def test_a_cached_render_gives_the_same_events(interpolation: str) -> None:
+    rec = small_recording(5, [])
+    model = fit_base(rec).with_effect(Refractory(period_us=700.0))
+    settings = SimSettings(interpolation=interpolation)
+    plain = [simulate_model(model, rec, s, settings).events for s in (1, 2)]
+    cache = RenderCache()
+    cached = [simulate_model(model, rec, s, settings, cache).events for s in (1, 2)]
+    assert cache.renders == 1 and cache.hits == 1  # rendered once, the second seed read it
+    for a, b in zip(plain, cached, strict=True):
+        np.testing.assert_array_equal(a, b)
+    # float16 when float32 does not fit: the same events but for a few near-ties
+    half = RenderCache(max_bytes=int(2.5 * cache.nbytes() / 2))
+    ev16 = simulate_model(model, rec, 1, settings, half).events
+    assert half.nbytes() * 2 == cache.nbytes()
+    assert abs(ev16.size - plain[0].size) <= 0.01 * plain[0].size
+    # nothing kept when even float16 does not fit: rendered on the fly, same events
+    none = RenderCache(max_bytes=1000)
+    np.testing.assert_array_equal(simulate_model(model, rec, 1, settings, none).events,
+                                  plain[0])
+    assert none.nbytes() == 0
+
+
+def test_one_seed_borrows_the_spread_of_an_evaluation() -> None:
+    meas = {"s": StatValue("s", np.array([1.0, 2.0]), ["a", "b"], 0.0)}
+    sims = [{"s": StatValue("s", np.array([v, 2.0 + v]), ["a", "b"], 0.0)}
+            for v in (0.9, 1.1, 1.0)]
+    full = discrepancy(meas, sims)
+    one = discrepancy(meas, sims[:1], spread=full)
+    sd = full.sim_std["s"]
+    mu = np.array([0.9, 2.9])
+    expect = (np.array([1.0, 2.0]) - mu) / np.sqrt(sd**2 * 2 + (0.03 * mu) ** 2)
+    np.testing.assert_allclose(one.z["s"], expect)
+    assert one.n_sims == 1 and full.n_sims == 3
+
+
+def test_a_long_recording_is_cut_to_its_busiest_frames() -> None:
+    rec = small_recording(9, [], duration_s=2.0)
+    whole, info = working_window(rec, 10**9, 1000.0)
+    assert whole is rec and not info["cut"]
+    budget = H * W * 600  # 0.6 s at 1 kHz
+    cut, info = working_window(rec, budget, 1000.0)
+    assert info["cut"] and info["frames"] < info["of_frames"]
+    t0, t1 = cut.frames.t_us[0], cut.frames.t_us[-1]
+    assert (t1 - t0) * 1e-6 <= 0.6 + 1e-9
+    # the busiest stretch: the scene moves in the last 70 %, so the window lies there
+    assert t0 >= rec.frames.t_us[0] + 0.3e6 - 10_000
+    assert cut.n_events == info["events"] and (cut.events["t_us"] >= t0).all()
+    assert (cut.events["t_us"] <= t1).all()
+
+
+def test_read_noise_of_still_pixels_is_taken_out_and_motion_kept() -> None:
+    rng = np.random.default_rng(0)
+    k = 30
+    still = np.full((k, 4, 4), 40.0)
+    ramp = np.linspace(20, 370, k)[:, None, None] * np.ones((1, 4, 4))
+    imgs = np.concatenate([still, ramp], axis=2) + rng.normal(0, 1.0, (k, 4, 8))
+    frames = Frames(np.arange(k, dtype=np.int64) * 10_000, imgs.astype(np.float32),
+                    np.zeros(k, np.int64))
+    lat = latent_frames(frames, 1.0)
+    # still pixels: one run, their mean, constant in time
+    assert np.ptp(lat[:, :, :4], axis=0).max() < 1e-4
+    assert np.abs(lat[:, :, :4] - 40.0).max() < 1.0
+    # a ramp of 12 DN per frame (far beyond the noise): every frame kept as it is
+    np.testing.assert_array_equal(lat[:, :, 4:], frames.images[:, :, 4:])
+    # no noise to take out: unchanged
+    np.testing.assert_array_equal(latent_frames(frames, 0.2), frames.images)
+
+
+def test_the_beam_names_a_pair_together() -> None:
+    """Shot noise and a dark level hidden together: the pair of the round's best singles,
+    the second fitted on the first's simulations, includes both."""
+    truth = [ShotNoise(rate_hz=1.5), LogOffset(dark_dn=40.0)]
+    rec = small_recording(13, truth, duration_s=1.5, frame_rate_hz=200.0)
+    cfg = GapConfig(n_seeds=2, seed=3, beam_width=3,
+                    candidates=("shot_noise", "log_offset", "leak", "refractory"))
+    run = _Runner(rec, cfg, lambda _m: None)
+    base = run.evaluate(fit_base(rec), "base")
+    tried: dict = {}
+    best = run.best_candidate(base, tried, skip="")
+    assert best is not None
+    pair = run.best_pair(base, tried)
+    assert pair is not None
+    score, steps = pair
+    assert {e.name for e, _ in steps} == {"shot_noise", "log_offset"}
+    assert not steps[1][1].screened and steps[1][1].gap < base.gap
+    assert score == pytest.approx(steps[1][1].gap + 0.1 * sum(e.n_fitted for e, _ in steps))
+
+
+def test_what_remains_is_said_in_words() -> None:
+    s = sentence("static_rate_vs_intensity", "static, I (DN) 12..31", 0.41, 1.27, -8.2)
+    assert s.startswith("still pixels (static, I (DN) 12..31) fire 3.1x fewer events than "
+                        "the model (0.41 vs 1.27 events per pixel-second, z = -8.2)")
+    s = sentence("offei_residual_vs_intensity", "log I - pixel median -inf..-0.4", 0.27, 0.14,
+                 23.5)
+    assert "more positive than the model by 0.13" in s
+    rec = small_recording(17, [])
+    obs = observe(rec)
+    st = summarise(obs)
+    shifted = {k: StatValue(v.name, v.values * (3.0 if k == "static_rate_vs_intensity"
+                                                 else 1.0) + (0.5 if k == "static_rate_vs_"
+                                                              "intensity" else 0.0),
+                            v.labels, v.floor) for k, v in st.items()}
+    disc = discrepancy(shifted, [st, st])
+    items = unexplained(disc)
+    assert items and items[0]["statistic"] == "static_rate_vs_intensity"
+    assert "more events than the model" in items[0]["sentence"]
+    nothing = summary(discrepancy(st, [st, st]))
+    assert nothing == ["nothing significant: every statistic within the model's noise "
+                       "(D < 2)"]
