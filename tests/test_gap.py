@@ -25,13 +25,17 @@ from evcal.io import write_recording
 from evcal.recording import Frames, Recording
 from evcal.sim.effects import (
     EFFECT_NAMES,
+    ApsFpn,
     Bandwidth,
     Effect,
+    Exposure,
     HotPixels,
     Leak,
     LogOffset,
     Refractory,
+    RowNoise,
     ShotNoise,
+    ThresholdLight,
     ThresholdNoise,
     TimestampJitter,
     TimestampQuantisation,
@@ -71,10 +75,15 @@ CASES: dict[str, list[Effect]] = {
     "log_offset": [LogOffset(dark_dn=45.0)],
     "timestamp_jitter": [TimestampJitter(sigma_us=500.0)],
     "timestamp_quantisation": [TimestampQuantisation(step_us=500.0)],
+    "threshold_light": [ThresholdLight(exponent=0.25)],
+    "row_noise": [RowNoise(rate_hz=0.5)],
+    "aps_fpn": [ApsFpn(sigma_dn=5.0, seed=2)],
+    "exposure": [Exposure(lag_us=2000.0, exposure_us=4000.0)],
 }
 SEEDS = {"refractory": 23, "leak": 29, "shot_noise": 31, "bandwidth": 37,
          "threshold_noise": 41, "hot_pixels": 43, "log_offset": 47, "timestamp_jitter": 53,
-         "timestamp_quantisation": 59}
+         "timestamp_quantisation": 59,
+         "threshold_light": 73, "row_noise": 79, "aps_fpn": 83, "exposure": 89}
 TWO_EFFECTS: list[Effect] = [ShotNoise(rate_hz=1.2), LogOffset(dark_dn=35.0)]
 
 

@@ -62,6 +62,12 @@ WORDS: dict[str, _Words] = {
     "speed_response": _Words("events per unit of log change", "", True, "more", "fewer"),
     "lag_vs_intensity": _Words("the weight of the previous window's change in a window's "
                                "events (lag)", "", False, "larger", "smaller"),
+    "sensitivity_vs_intensity": _Words("pixels", "events per unit of log change", True,
+                                       "more events per unit of log change",
+                                       "fewer events per unit of log change", "fire"),
+    "line_coincidence": _Words("still pixels' events that other pixels of their row or "
+                               "column share within 20 us", "per pixel-second", True,
+                               "more", "fewer", "are"),
     "timestamp_quantum": _Words("the share of timestamps on the grid", "", True, "larger",
                                 "smaller"),
 }

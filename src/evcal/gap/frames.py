@@ -1,16 +1,302 @@
-"""The frames that drive a model's simulation: the measured frames as the model says the
-sensor's events saw them (frame-side effects change them; without any, they are unchanged)."""
+"""The frame side of the model: which frames drive a simulation, and the fitters of the
+APS-frame effects (``aps_fpn``, ``exposure``).
+
+The simulations of the gap workflow are driven by the measured APS frames. Two properties of
+real DAVIS frames make those frames differ from the intensity the DVS part of the pixels saw:
+
+- **DSNU** (``aps_fpn``): each pixel's frame value carries its own constant dark offset
+  ``o[y, x]``; the events saw the light without it. :func:`model_frames` subtracts the
+  per-pixel estimate ``o_hat`` (the effect's ``offset_dn`` map). Drawing a fresh random
+  pattern instead would add a second pattern rather than remove the real one.
+- **Exposure** (``exposure``): a frame is the intensity averaged over its exposure, and its
+  timestamp may mark the start (dv-processing), middle (libcaer) or end of it; the frame
+  represents the intensity ``lag_us`` after its stamp. :func:`model_frames` moves the frame
+  times by ``lag_us`` (the frames attached to a simulation, and with them the statistics'
+  windows, keep the stamped times).
+
+Both fitters are moment estimates against the current model's simulations (which show
+neither effect): per pixel, the dark offset that best explains the pixel's events
+(:func:`fit_aps_fpn`); for the recording, the lag of the frame times that best explains the
+events (:func:`fit_exposure`).
+"""
 
 from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from ..recording import Frames
+import numpy as np
+
+from ..recording import Frames, Recording
+from ..sim.effects import ApsFpn, Effect, Exposure
+from .stats import Observation, fit_pixels
 
 if TYPE_CHECKING:
     from .model import Model
 
+# dark offsets tried per pixel (DN): DSNU of CMOS APS is a few DN (its sigma); +-16 covers 4
+# sigma of 4 DN without letting the pixel's darkest frame go below the offset
+FPN_GRID_DN = np.arange(-16.0, 16.01, 1.0)
+# activity bins over which the estimation noise of o_hat is pooled
+FPN_NOISE_BINS = 6
+# lags tried, as multiples of the larger of the exposure and a quarter of the frame interval
+LAG_GRID = np.linspace(-1.5, 1.5, 25)
+
 
 def model_frames(model: Model, frames: Frames) -> Frames:
-    """``frames`` as the model's frame-side effects transform them (none yet: unchanged)."""
-    return frames
+    """The frames that drive a simulation of ``model``: ``frames`` less the model's per-pixel
+    dark offsets (``aps_fpn`` with its ``offset_dn`` map; values floored at 0, float32), at
+    times moved by the ``exposure`` lag (rounded to us). ``frames`` itself when the model has
+    neither (or ``aps_fpn`` without a map: a drawn pattern cannot remove the real one).
+    Deterministic: no random draw."""
+    fpn = model.effects.get(ApsFpn.name)
+    exp = model.effects.get(Exposure.name)
+    has_map = isinstance(fpn, ApsFpn) and fpn.offset_dn is not None
+    lag = int(round(float(exp.lag_us))) if isinstance(exp, Exposure) else 0
+    if not has_map and lag == 0:
+        return frames
+    images = frames.images
+    if has_map:
+        assert isinstance(fpn, ApsFpn)
+        o = fpn.offsets_dn(frames.shape).astype(np.float32)
+        images = np.maximum(images.astype(np.float32) - o[None], np.float32(0.0))
+    return Frames(t_us=frames.t_us + lag, images=images, exposure_us=frames.exposure_us)
+
+
+def corrected_recording(model: Model, rec: Recording) -> Recording:
+    """``rec`` with the frames of :func:`model_frames` (for refitting the base maps on the
+    frames the events saw, as the workflow does for ``log_offset``)."""
+    fr = model_frames(model, rec.frames)
+    if fr is rec.frames:
+        return rec
+    return Recording(rec.sensor, rec.events, fr, dict(rec.metadata))
+
+
+# ------------------------------------------------------------------------------ aps_fpn
+
+
+def offset_residuals(obs: Observation, grid_dn: np.ndarray, log_offset: float) -> np.ndarray:
+    """Per dark offset ``o`` of ``grid_dn`` and pixel: the unexplained fraction of the
+    pixel's fit ``dL = c P + b E`` with ``L = log(F - o + log_offset)`` of the frames ``F``
+    (``[n_grid, n_pixels]``; inf where ``o`` exceeds the pixel's darkest frame, NaN where the
+    pixel has no fit).
+
+    A pixel's dark offset compresses (or stretches) its frames' log changes more in the dark
+    than in the light, which a constant ``c`` cannot follow: the fraction is least at the
+    offset the frames actually carry. It is scale-free (``SSR / TSS``), so shrinking all
+    ``dL`` by a larger offset does not win by itself."""
+    F = obs.intensity.astype(np.float64)
+    P = (obs.on - obs.off).astype(np.float64)
+    E = (obs.on + obs.off).astype(np.float64)
+    w = obs.usable.astype(np.float64)
+    f_min = np.where(obs.usable.any(0), F.min(0), 0.0)
+    out = np.full((grid_dn.size, F.shape[1]), np.nan)
+    for i, o in enumerate(grid_dn):  # a few dozen offsets, each vectorised over pixels
+        L = np.log(np.maximum(F - o, 0.0) + log_offset)
+        dL = np.diff(L, axis=0)
+        c, b, ok = fit_pixels(P, E, dL, w)
+        res = dL - np.nan_to_num(c) * P - np.nan_to_num(b) * E
+        ssr = (w * res * res).sum(0)
+        tss = (w * dL * dL).sum(0)
+        frac = np.where(ok & (tss > 0), ssr / np.maximum(tss, 1e-30), np.nan)
+        # the darkest frame must stay above the offset (F >= o + 0.5 DN)
+        out[i] = np.where(f_min - o >= 0.5, frac, np.inf)
+    return out
+
+
+def offset_estimates(obs: Observation, log_offset: float,
+                     grid_dn: np.ndarray = FPN_GRID_DN) -> np.ndarray:
+    """Per pixel, the dark offset (DN) of the least :func:`offset_residuals` on the grid,
+    refined by a parabola through its neighbours (NaN where the pixel has no fit). Kept in
+    ``obs.extra``: the workflow refits on the same simulations many times."""
+    key = f"aps_fpn_offsets/{float(log_offset)!r}/{grid_dn.tobytes().hex()}"
+    cached = obs.extra.get(key)
+    if isinstance(cached, np.ndarray):
+        return cached
+    r = offset_residuals(obs, grid_dn, log_offset)
+    valid = np.isfinite(r).any(0)
+    rr = np.where(np.isfinite(r), r, np.inf)
+    i = np.argmin(rr, axis=0)
+    n = grid_dn.size
+    cols = np.arange(r.shape[1])
+    im, ip = np.clip(i - 1, 0, n - 1), np.clip(i + 1, 0, n - 1)
+    y0, y1, y2 = rr[im, cols], rr[i, cols], rr[ip, cols]
+    inner = (i > 0) & (i < n - 1) & np.isfinite(y0) & np.isfinite(y2)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        den = y0 - 2 * y1 + y2
+        step = np.where(inner & (den > 0), 0.5 * (y0 - y2) / den, 0.0)
+    step = np.clip(np.nan_to_num(step), -0.5, 0.5)
+    d = grid_dn[1] - grid_dn[0]
+    est = grid_dn[i] + step * d
+    out: np.ndarray = np.where(valid, est, np.nan)
+    obs.extra[key] = out
+    return out
+
+
+def fit_aps_fpn(meas: Observation, sims: list[Observation], model: Model,
+                rec: Recording) -> Effect | None:
+    """DSNU of the frames: per pixel, the dark offset that best explains its events
+    (:func:`offset_estimates`) on the measurement less its mean over the simulations (which
+    have none: that takes out what the estimator reads into a pixel's frames by itself), the
+    spread of that over pixels less the estimation noise (the variance of the estimate
+    between simulations, pooled over pixels of similar activity) is ``sigma_dn^2``.
+
+    The map removed from the frames is each pixel's difference shrunk towards 0 by its noise,
+    ``s^2 / (s^2 + v)`` (as the base maps are shrunk: estimation noise must not be put into
+    the model as a pattern), with its mean removed: a common dark level of the frames is the
+    ``log_offset`` effect's business. ``None`` when the spread is within the noise.
+
+    Refitted on simulations made with the map, the estimate comes out about 10-15 % above
+    the ``sigma_dn`` they were made with (the interpolated frames add a misfit of their
+    own): the workflow's bias correction scales the map down accordingly
+    (:meth:`~evcal.sim.effects.ApsFpn.with_params` scales it with ``sigma_dn``)."""
+    if len(sims) < 2:
+        return None
+    lo = float(model.log_offset)
+    om = offset_estimates(meas, lo)
+    os_ = np.stack([offset_estimates(s, lo) for s in sims])
+    ok = np.isfinite(om) & np.isfinite(os_).all(0)
+    if ok.sum() < 50:
+        return None
+    k_sims = os_.shape[0]
+    d = om - os_.mean(0)
+    v_pix = os_.var(0, ddof=1)
+    # pooled per activity bin: K seeds give a poor variance for one pixel
+    count = (meas.on + meas.off).sum(0).astype(np.float64)
+    edges = np.unique(np.quantile(count[ok], np.linspace(0, 1, FPN_NOISE_BINS + 1)))
+    edges[0], edges[-1] = -np.inf, np.inf
+    bins = np.clip(np.searchsorted(edges, count, side="right") - 1, 0, edges.size - 2)
+    v_bin = np.array([np.mean(v_pix[ok & (bins == j)]) if (ok & (bins == j)).any() else np.nan
+                      for j in range(edges.size - 1)])
+    v_bin = np.where(np.isfinite(v_bin), v_bin, float(np.mean(v_pix[ok])))
+    noise = v_bin[bins] * (1.0 + 1.0 / k_sims)  # of d: the measured and the mean simulated
+    dc = d - float(np.mean(d[ok]))
+    s2 = float(np.mean(dc[ok] ** 2) - np.mean(noise[ok]))
+    # a spread the noise could make: the variance's own sampling error is about
+    # sqrt(2 / n) of it
+    if s2 <= 2.0 * np.sqrt(2.0 / ok.sum()) * float(np.mean(dc[ok] ** 2)):
+        return None
+    k = s2 / (s2 + noise)
+    o_hat = np.where(ok, k * dc, 0.0)
+    o_hat = o_hat - float(np.mean(o_hat[ok]))
+    return ApsFpn(sigma_dn=round(float(np.sqrt(s2)), 3), mean_dn=0.0,
+                  offset_dn=o_hat.reshape(meas.shape))
+
+
+# ------------------------------------------------------------------------------ exposure
+
+
+def lag_residuals(obs: Observation, lags_us: np.ndarray,
+                  pixels: np.ndarray | None = None) -> np.ndarray:
+    """Per lag: the unexplained fraction of the per-pixel fit ``dL = c P + b E`` when the
+    events are counted in windows between frame times + lag (``dL`` the frames' log change,
+    at the nominal offset, as the statistics use). Only windows that every lag keeps inside
+    the recording's frames are used, so each lag is scored on the same equations. Kept in
+    ``obs.extra``."""
+    ckey = f"exposure_lag_residuals/{lags_us.tobytes().hex()}"
+    if pixels is not None:  # only these pixels' windows (bool mask over pixels)
+        ckey += "/" + np.packbits(pixels).tobytes().hex()
+    cached = obs.extra.get(ckey)
+    if isinstance(cached, np.ndarray):
+        return cached
+    ft = obs.frame_t_us.astype(np.int64)
+    n_w, npix = obs.on.shape
+    span = float(np.max(np.abs(lags_us))) if lags_us.size else 0.0
+    inside = (ft[:-1] - span >= ft[0]) & (ft[1:] + span <= ft[-1])
+    dL = np.diff(obs.log_i, axis=0)
+    w = (obs.usable & inside[:, None]).astype(np.float64)
+    if pixels is not None:
+        w *= pixels[None, :]
+    pix = obs.pix.astype(np.int64)
+    on = obs.p > 0
+    out = np.full(lags_us.size, np.nan)
+    tss = float((w * dL * dL).sum())
+    if tss <= 0:
+        return out
+    for i, lag in enumerate(lags_us):  # a few dozen lags, each vectorised over events
+        win = np.searchsorted(ft + int(round(lag)), obs.t_us, side="right") - 1
+        keep = (win >= 0) & (win < n_w)
+        key = win[keep] * npix + pix[keep]
+        n_on = np.bincount(key[on[keep]], minlength=n_w * npix).reshape(n_w, npix)
+        n_off = np.bincount(key[~on[keep]], minlength=n_w * npix).reshape(n_w, npix)
+        P = (n_on - n_off).astype(np.float64)
+        E = (n_on + n_off).astype(np.float64)
+        c, b, ok = fit_pixels(P, E, dL, w)
+        res = dL - np.nan_to_num(c) * P - np.nan_to_num(b) * E
+        out[i] = float((w * res * res)[:, ok].sum() / max((w * dL * dL)[:, ok].sum(), 1e-30))
+    obs.extra[ckey] = out
+    return out
+
+
+def _lag_minimum(lags: np.ndarray, r: np.ndarray) -> float:
+    """The lag of the least residual, refined by a parabola through its neighbours."""
+    i = int(np.nanargmin(r))
+    lag = float(lags[i])
+    if 0 < i < lags.size - 1:
+        y0, y1, y2 = r[i - 1], r[i], r[i + 1]
+        den = y0 - 2 * y1 + y2
+        if den > 0:
+            lag += float(np.clip(0.5 * (y0 - y2) / den, -0.5, 0.5)) * float(lags[1] - lags[0])
+    return lag
+
+
+def fit_exposure(meas: Observation, sims: list[Observation], model: Model,
+                 rec: Recording) -> Effect | None:
+    """Where the frames' exposure lies: the lag of the frame times at which the measured
+    events best match the frames' changes (:func:`lag_residuals`, a grid of +-1.5 times the
+    larger of the exposure and a quarter of the frame interval), less the same on the
+    simulations (driven by the frames at their stamps, they show what the interpolation
+    alone puts there). The exposure time is the recording's (median of
+    ``Frames.exposure_us``). ``None`` when the lag is within one grid step of the
+    simulations'."""
+    if not sims:
+        return None
+    ft = meas.frame_t_us
+    interval = float(np.median(np.diff(ft)))
+    exp_us = float(np.median(rec.frames.exposure_us)) if len(rec.frames) else 0.0
+    # a lag of a quarter of the interval and more is seen: a DAVIS's events and its
+    # frames' stamps may disagree by several ms, far beyond a short exposure
+    scale = max(exp_us, 0.25 * interval)
+    lags = LAG_GRID * scale
+    rm = lag_residuals(meas, lags)
+    if not np.isfinite(rm).any():
+        return None
+    lm = _lag_minimum(lags, rm)
+    ls = [_lag_minimum(lags, r) for r in (lag_residuals(s, lags) for s in sims)
+          if np.isfinite(r).any()]
+    if not ls:
+        return None
+    lag = lm - float(np.mean(ls))
+    if abs(lag) < float(lags[1] - lags[0]):
+        return None
+    # a frame's timing moves every pixel's events alike; a slow photoreceptor (bandwidth)
+    # delays the dark pixels' events most: the lag must be about the same at every light
+    per_light = _lag_by_light(meas, sims, lags)
+    if per_light is not None:
+        lo, hi = min(per_light), max(per_light)
+        if lo * lag <= 0 or abs(hi) > LAG_LIGHT_RATIO * abs(lo):
+            return None
+    return Exposure(lag_us=round(lag, 1), exposure_us=exp_us)
+
+
+# the largest ratio between the lags of the dark and the bright pixels that a frame's timing
+# (the same for all pixels) is taken to explain
+LAG_LIGHT_RATIO = 2.0
+
+
+def _lag_by_light(meas: Observation, sims: list[Observation], lags: np.ndarray
+                  ) -> list[float] | None:
+    """The lag (measured less simulated) in each third of the pixels by their mean
+    intensity, or ``None`` when a third has no minimum."""
+    imean = meas.intensity.mean(0)
+    edges = np.quantile(imean, [0.0, 1 / 3, 2 / 3, 1.0])
+    out = []
+    for j in range(3):
+        px = (imean >= edges[j]) & (imean <= edges[j + 1]) if j == 2 else \
+            (imean >= edges[j]) & (imean < edges[j + 1])
+        rm = lag_residuals(meas, lags, px)
+        rs = [lag_residuals(s, lags, px) for s in sims]
+        if not np.isfinite(rm).any() or not all(np.isfinite(r).any() for r in rs):
+            return None
+        out.append(_lag_minimum(lags, rm) - float(np.mean([_lag_minimum(lags, r)
+                                                           for r in rs])))
+    return out

@@ -28,7 +28,6 @@ from ..sim.effects import (
     Bandwidth,
     Effect,
     HotPixels,
-    Leak,
     LogOffset,
     Refractory,
     ShotNoise,
@@ -39,6 +38,8 @@ from ..sim.effects import (
 from ..sim.ideal import SimConfig
 from ..sim.nonideal import simulate
 from ..sim.sources import FrameInterpolator
+from . import fitters_events as _events
+from . import frames as _frames
 from .render import RenderCache, frames_key
 from .stats import (
     NOMINAL_LOG_OFFSET_DN,
@@ -368,18 +369,6 @@ def _static_excess(meas: Observation, sims: list[Observation], pol: int) -> Any:
     i_mid = 0.5 * (meas.intensity[1:] + meas.intensity[:-1])
     ws = np.broadcast_to(meas.window_s[:, None], st.shape)
     return (cnt_m - cnt_s)[keep], i_mid[keep], ws[keep]
-
-
-def _fit_leak(meas: Observation, sims: list[Observation], model: Model,
-              rec: Recording) -> Effect | None:
-    on = _static_excess(meas, sims, +1)
-    off = _static_excess(meas, sims, -1)
-    if on is None or off is None:
-        return None
-    rate = (on[0].sum() - off[0].sum()) / on[2].sum()
-    if rate <= 0:
-        return None
-    return Leak(rate_hz=round(float(rate), 4))
 
 
 def _fit_shot_noise(meas: Observation, sims: list[Observation], model: Model,
@@ -736,7 +725,7 @@ def _fit_timestamp_quantisation(meas: Observation, sims: list[Observation], mode
 
 FITTERS = {
     "refractory": _fit_refractory,
-    "leak": _fit_leak,
+    "leak": _events.fit_leak,  # rate and light exponent (evcal.gap.fitters_events)
     "shot_noise": _fit_shot_noise,
     "bandwidth": _fit_bandwidth,
     "threshold_noise": _fit_threshold_noise,
@@ -744,6 +733,10 @@ FITTERS = {
     "log_offset": _fit_log_offset,
     "timestamp_jitter": _fit_timestamp_jitter,
     "timestamp_quantisation": _fit_timestamp_quantisation,
+    "aps_fpn": _frames.fit_aps_fpn,  # APS-frame effects: evcal.gap.frames
+    "exposure": _frames.fit_exposure,
+    "threshold_light": _events.fit_threshold_light,  # event-side effects: .fitters_events
+    "row_noise": _events.fit_row_noise,
 }
 
 

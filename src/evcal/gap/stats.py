@@ -34,6 +34,10 @@ speed_response                 events per unit |dL| in (dark, bright) x (slow, f
 lag_vs_intensity               weight of dL of the previous window in P, per           bandw.
                                intensity bin
 timestamp_quantum              fraction of timestamps divisible by 10, 100, 1000 us    jitter
+sensitivity_vs_intensity       events per unit |dL| in 5 bins of absolute intensity,   offset,
+                               over all windows' (|dL| > 0.1)                          th.light
+line_coincidence               still-window events per pixel-second with >= 2 other    row
+                               still events of the same row (column) within 20 us      noise
 =============================  ======================================================  ======
 """
 
@@ -52,6 +56,9 @@ NOMINAL_LOG_OFFSET_DN = 1.0
 STATIC_DL = 0.05  # |dL| below this in a window and its neighbours: static
 STATIC_HALF_WIDTH = 3
 MIN_FIT_EVENTS = 10
+# a statistic over fitted pixels needs at least this many of them; fewer: NaN (see
+# discrepancy: a component that is NaN in the measurement or a simulation is left out)
+MIN_STAT_PIXELS = 20
 IEI_EDGES_LOG10 = np.array([0.0, 1.0, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0, 4.5, 5.0, 5.5, 7.0])
 
 
@@ -379,8 +386,8 @@ def stat_residual_vs_time(obs: Observation, n_bins: int = 5) -> StatValue:
 def stat_fit_population(obs: Observation) -> StatValue:
     f = _fit(obs)
     ok = f["ok"]
-    if ok.sum() < 5:
-        v = np.zeros(3)
+    if ok.sum() < MIN_STAT_PIXELS:
+        v = np.full(3, np.nan)  # too few fitted pixels to say anything
     else:
         c, b = f["c"][ok], f["b"][ok]
         q1, q3 = np.percentile(c, [25, 75])
@@ -391,8 +398,10 @@ def stat_fit_population(obs: Observation) -> StatValue:
 def stat_stability(obs: Observation) -> StatValue:
     f = _fit(obs)
     m = f["ok12"]
-    if m.sum() < 5:
-        v = np.zeros(2)
+    if m.sum() < MIN_STAT_PIXELS:
+        # a sparse recording (a still camera) has few pixels busy enough to be fitted in
+        # each half: a median of a handful of pixels says nothing
+        v = np.full(2, np.nan)
     else:
         v = np.array([np.median(np.abs(f["c1"] - f["c2"])[m]),
                       np.median(np.abs(f["b1"] - f["b2"])[m])])
@@ -481,6 +490,92 @@ def timestamp_quantum(t: np.ndarray) -> StatValue:
                                               "t % 1000 us == 0"], 0.01)
 
 
+def stat_sensitivity_vs_intensity(obs: Observation, n_bins: int = 5) -> StatValue:
+    """Events per unit ``|dL|`` (nominal log) in windows with ``|dL| > 0.1``, in ``n_bins``
+    quantile bins of the window's absolute mean intensity, over the same for all of them.
+
+    The shape over absolute intensity is what tells a dark level under the log (sensitivity
+    ``I / (I + d)``: flat in the bright, falling below ``d``) from thresholds that scale with
+    light as a power (``I^e``: the same slope in log I everywhere); the per-pixel residual
+    against the pixel's own median (:func:`stat_residual_vs_intensity`) sees both alike."""
+    f = _fit(obs)
+    adl = np.abs(f["dL"])
+    m = obs.usable & (adl > 0.1)
+    if obs.trusted is not None:
+        m &= obs.trusted
+    i_mid = 0.5 * (obs.intensity[1:] + obs.intensity[:-1])
+    key = np.log(np.maximum(i_mid[m].astype(np.float64), 0.0) + NOMINAL_LOG_OFFSET_DN)
+    edges = _quantile_edges(key, n_bins)
+    idx = np.clip(np.searchsorted(edges, key, side="right") - 1, 0, edges.size - 2)
+    nb = edges.size - 1
+    ev = np.bincount(idx, weights=f["E"][m], minlength=nb)
+    dl = np.bincount(idx, weights=adl[m], minlength=nb)
+    total = ev.sum() / max(dl.sum(), 1e-12)
+    v = np.where(dl > 0, ev / np.maximum(dl, 1e-12), 0.0) / max(total, 1e-12)
+    lab_edges = np.exp(edges) - NOMINAL_LOG_OFFSET_DN
+    return StatValue("sensitivity_vs_intensity", v, _edge_labels(lab_edges, "I (DN)"), 0.02)
+
+
+LINE_COINCIDENCE_US = 20  # a readout-line burst's events lie within this of each other
+LINE_COINCIDENCE_MIN = 2  # other events of the line within it: three make a burst
+
+
+def line_events(obs: Observation, axis: str) -> dict[str, np.ndarray]:
+    """Events in still windows of their pixel, sorted by (line, time) along ``axis`` ("row":
+    line = y, "column": line = x), with the number of other such events of their line within
+    +-:data:`LINE_COINCIDENCE_US` (``n_near``), their line and window.
+
+    Still windows only: there an event is noise (a pixel's own signal needs a change the
+    frames show), so events that coincide along a line are a correlated disturbance of the
+    line, not an edge sweeping it (edges fire lines of pixels at once by geometry)."""
+    key_name = f"line_{axis}"
+    if key_name in obs.extra:
+        cached: dict[str, np.ndarray] = obs.extra[key_name]
+        return cached
+    h, w = obs.shape
+    st = _static(obs)
+    win = np.clip(np.searchsorted(obs.frame_t_us, obs.t_us, side="right") - 1, 0,
+                  obs.n_windows - 1)
+    keep = st[win, obs.pix]
+    pix, t, win = obs.pix[keep], obs.t_us[keep].astype(np.int64), win[keep]
+    line = pix // w if axis == "row" else pix % w
+    dt = LINE_COINCIDENCE_US
+    t_rel = t - (int(t.min()) if t.size else 0)
+    span = (int(t_rel.max()) if t.size else 0) + 4 * dt + 1
+    key = line.astype(np.int64) * span + t_rel  # lines far apart in key space
+    order = np.argsort(key, kind="stable")
+    key = key[order]
+    n_near = (np.searchsorted(key, key + dt, side="right")
+              - np.searchsorted(key, key - dt, side="left") - 1)
+    out = {"key": key, "line": line[order], "win": win[order], "pix": pix[order],
+           "t": t[order], "n_near": n_near}
+    obs.extra[key_name] = out
+    return out
+
+
+def still_pixel_seconds(obs: Observation) -> float:
+    """Pixel-seconds of still windows (the exposure of :func:`line_events`)."""
+    st = _static(obs)
+    return float((st * obs.window_s[:, None]).sum())
+
+
+def stat_line_coincidence(obs: Observation) -> StatValue:
+    """Events per still pixel-second that have at least :data:`LINE_COINCIDENCE_MIN` other
+    still events of their row (resp. column) within +-:data:`LINE_COINCIDENCE_US`: bursts of
+    a readout or bias line (``row_noise``). Independent noise almost never does that (shot
+    noise at 2 Hz in a 346-pixel row: 1e-4 chance of one other event within 20 us); the floor
+    of 0.02 Hz keeps chance coincidences of busy noisy scenes from counting."""
+    exposure = still_pixel_seconds(obs)
+    vals = []
+    for axis in ("row", "column"):
+        le = line_events(obs, axis)
+        n = float((le["n_near"] >= LINE_COINCIDENCE_MIN).sum())
+        vals.append(n / exposure if exposure > 0 else 0.0)
+    return StatValue("line_coincidence", np.asarray(vals),
+                     ["same-row bursts (Hz per still pixel)",
+                      "same-column bursts (Hz per still pixel)"], 0.02)
+
+
 STATISTICS = (
     stat_iei_distribution,
     stat_iei_lower_edge,
@@ -497,6 +592,8 @@ STATISTICS = (
     stat_speed_response,
     stat_lag,
     stat_timestamp_quantum,
+    stat_sensitivity_vs_intensity,
+    stat_line_coincidence,
 )
 
 
@@ -553,21 +650,27 @@ def discrepancy(measured: dict[str, StatValue], sims: list[dict[str, StatValue]]
     taken from ``spread``, an evaluation of a neighbouring model on several seeds (the spread
     of a statistic changes little between the models one round compares); the mean of one
     simulation is one draw, so ``1 + 1/n`` is 2 there. Without ``spread`` one simulation has
-    no spread (its floors only)."""
+    no spread (its floors only).
+
+    A component that is NaN (too little data for it) in the measurement or in any simulation
+    is left out (z = 0); a statistic with none left counts D = 1, what a model that explains
+    the data gives, so it neither raises nor dilutes the gap."""
     n = len(sims)
     meas, mean, std, z, per, labels = {}, {}, {}, {}, {}, {}
     for name, mv in measured.items():
         arr = np.stack([s[name].values for s in sims])
-        mu = arr.mean(0)
-        if n > 1:
-            var = arr.var(0, ddof=1)
-        elif spread is not None:
-            var = spread.sim_std[name] ** 2
-        else:
-            var = np.zeros_like(mu)
-        sd = np.sqrt(var * (1 + 1 / n) + (REL_FLOOR * np.abs(mu)) ** 2 + mv.floor ** 2)
-        zz = (mv.values - mu) / sd
+        ok = np.isfinite(mv.values) & np.isfinite(arr).all(0)
+        with np.errstate(invalid="ignore"):
+            mu = arr.mean(0)
+            if n > 1:
+                var = arr.var(0, ddof=1)
+            elif spread is not None:
+                var = spread.sim_std[name] ** 2
+            else:
+                var = np.zeros_like(mu)
+            sd = np.sqrt(var * (1 + 1 / n) + (REL_FLOOR * np.abs(mu)) ** 2 + mv.floor ** 2)
+            zz = np.where(ok, (mv.values - mu) / np.where(ok, sd, 1.0), 0.0)
         meas[name], mean[name], std[name], z[name] = mv.values, mu, np.sqrt(var), zz
-        per[name] = float(np.mean(zz * zz))
+        per[name] = float(np.mean(zz[ok] ** 2)) if ok.any() else 1.0
         labels[name] = mv.labels
     return Discrepancy(meas, mean, std, z, per, labels, n)

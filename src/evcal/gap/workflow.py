@@ -85,6 +85,10 @@ class GapConfig:
     # together are named together)
     beam_width: int = 3
     beam_min_gap: float = 3.0
+    # the best candidate and a confirmed one of another effect within this score of it are
+    # both bias-corrected (and refined) before one is named
+    close_margin: float = 0.5
+    close_relative: float = 0.25  # ... or within this share of its gap above 1
     # the workflow analyses at most this many pixel-steps of simulation (pixels x internal
     # samples): a longer recording is cut to its busiest contiguous frames that fit (the
     # statistics need events, not hours; the rendered frames stay in memory)
@@ -187,8 +191,9 @@ class GapResult:
         }
 
 
-def _list(a: np.ndarray) -> list[float]:
-    return [float(x) for x in np.asarray(a, np.float64).ravel()]
+def _list(a: np.ndarray) -> list[float | None]:
+    """Values for JSON: ``None`` where a statistic had too little data (NaN)."""
+    return [float(x) if np.isfinite(x) else None for x in np.asarray(a, np.float64).ravel()]
 
 
 class _Runner:
@@ -216,8 +221,10 @@ class _Runner:
         self.workers = cfg.workers or usable_cores()
         self.simulations = 0
         self._lock = threading.Lock()
-        # the round's candidates as screened (the beam's pairs start from them)
+        # the round's candidates as screened (the beam's pairs start from them), and those
+        # confirmed on every seed, best first
         self.screened_pool: dict[str, tuple[Effect, Evaluation]] = {}
+        self.confirmed: list[tuple[float, Effect, Evaluation]] = []
 
     def _counted(self) -> None:
         """One more simulation (the render cache serves each one once)."""
@@ -343,6 +350,7 @@ class _Runner:
         statistics from ``current``); the ``confirm_top`` best are simulated with every seed
         and compared on that."""
         self.screened_pool = {}
+        self.confirmed = []
         fitted: list[tuple[str, Effect]] = []
         for name in self.cfg.candidates:
             if name in current.model.effects or name == skip:
@@ -377,10 +385,27 @@ class _Runner:
                 entry["variants"] = [] if old is None or old.get("score") is None else \
                     [{"parameters": old["parameters"], "gap": old["gap"]}]
                 tried[name] = entry
-            if not ev.screened and (best is None or score < best[0]):
-                best = (score, eff, ev)
+            if not ev.screened:
+                self.confirmed.append((score, eff, ev))
+                if best is None or score < best[0]:
+                    best = (score, eff, ev)
             self.screened_pool[name] = (eff, ev)
+        self.confirmed.sort(key=lambda t: t[0])
         return best
+
+    def runner_up(self, best: tuple[float, Effect, Evaluation]
+                  ) -> tuple[float, Effect, Evaluation] | None:
+        """The confirmed candidate of another effect whose score is within ``close_margin``
+        of ``best``'s (or ``close_relative`` of its gap above 1): moment estimates can be
+        biased (a threshold that grows in the dark reads 0.8x its exponent, a bandwidth
+        limit 0.5x its cutoff, and a frame lag then explains its delay better), so two
+        effects that explain the data about as well are compared once both are
+        bias-corrected."""
+        margin = max(self.cfg.close_margin, self.cfg.close_relative * (best[0] - 1.0))
+        for c in self.confirmed:
+            if c[1].name != best[1].name and c[0] <= best[0] + margin:
+                return c
+        return None
 
     def evaluate_many(self, models: list[tuple[Effect, Model]], current: Evaluation
                       ) -> list[Evaluation]:
@@ -632,8 +657,17 @@ def run_gap(rec: Recording, config: GapConfig | None = None, *,
             steps.append(Step(eff_b, ev_a, ev_pair, {}))
             current = ev_pair
             continue
+        close = run.runner_up(best)
         _, eff, ev = best
         eff, ev = run.finish(current, ev, eff, tried)
+        if close is not None:
+            # a close second, compared at its bias-corrected value too
+            eff2, ev2 = run.finish(current, close[2], close[1], tried)
+            pen = cfg.penalty_per_parameter
+            tried[eff2.name]["finished_gap"] = ev2.gap
+            if ev2.gap + pen * eff2.n_fitted < ev.gap + pen * eff.n_fitted and \
+                    _gain(current.gap, ev2.gap + pen * eff2.n_fitted) > _need(cfg, current):
+                eff, ev = eff2, ev2
         steps.append(Step(eff, current, ev, tried))
         current = ev
     if plan is not None:

@@ -32,11 +32,28 @@ name                      what the sensor does                                  
                           ``log(I + SimConfig.log_offset)``; ``dark_dn`` in frame DN
 ``timestamp_jitter``      Gaussian timestamp noise ``sigma_us``, then quantisation to    sigma_us
                           multiples of ``quantum_us`` (events re-sorted)
+``threshold_light``       contrast thresholds that grow in the dark:                    exponent
+                          ``th(I) = th * ((I + dark) / ref_dn)**(-exponent)`` (both
+                          polarities; ``dark`` the log offset the sensor sees): events
+                          fire when the integral of ``dL / th(I)`` crosses one threshold
+``row_noise``             correlated bursts along a readout line (``axis`` row or       rate_hz
+                          column): each line bursts at ``rate_hz``, a ``fraction`` of
+                          its pixels firing (ON or OFF) within ``spread_us``
+``aps_fpn``               APS frames only: a constant dark offset ``o[y, x]`` (DN) per   sigma_dn
+                          pixel added to the frame value (dark signal non-uniformity,
+                          spread ``sigma_dn``, mean ``mean_dn``); the DVS part of the
+                          pixel does not see it. A given ``offset_dn`` map, else drawn
+                          from ``seed``
+``exposure``              APS frames only: a frame averages the intensity over           lag_us
+                          ``exposure_us``, its exposure's centre ``lag_us`` after the
+                          frame's timestamp (``exposure_us / 2``: stamped at the start
+                          of exposure, dv-processing; 0: at its middle, libcaer)
 ========================  =========================================================  ==========
 
 APS frames (exposure, motion blur, read noise, 8-bit quantisation) are described by
-:class:`ApsConfig`; they are the simulator's frame model, not a candidate of the gap workflow
-(which takes the measured frames as its input).
+:class:`ApsConfig`. ``aps_fpn`` and ``exposure`` act on them only (:meth:`ApsConfig.
+with_effects` puts them into the frame model); in the gap workflow they say how the measured
+frames that drive the simulation must be corrected (:func:`evcal.gap.frames.model_frames`).
 
 Intensities ``I`` are in frame units (DN, 0..255 is the 8-bit range); rates in events per
 second per pixel (Hz); times in microseconds.
@@ -45,7 +62,8 @@ second per pixel (Hz); times in microseconds.
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, field, fields, replace
+from functools import lru_cache
 from typing import Any, ClassVar
 
 import numpy as np
@@ -245,6 +263,223 @@ class TimestampQuantisation(Effect):
         _check(self.name, np.isfinite(self.phase_us), "phase_us must be finite", self.phase_us)
 
 
+@dataclass(frozen=True, kw_only=True)
+class ThresholdLight(Effect):
+    """Contrast thresholds that depend on the present photocurrent:
+    ``th(I) = th * ((I + dark) / ref_dn)**(-exponent)`` for both polarities (``th`` the
+    pixel's threshold at ``ref_dn``, ``dark`` the log offset the sensor sees).
+
+    Events fire when the integral of ``dL / th(I)`` since the last event crosses one
+    threshold, which is a fixed-threshold comparator on the response
+    ``G(x) = ln(ref_dn) + ((x / ref_dn)**exponent - 1) / exponent`` of ``x = I + dark``
+    (``ln x`` at exponent 0): the simulator runs its comparator on ``G``, while shot noise,
+    leak and the bandwidth keep seeing the true intensity (their laws are in photocurrent).
+    Scale-free where ``log_offset`` is not: the threshold ratio between two intensities
+    depends on their ratio only, whereas a dark level desensitises only pixels near it.
+
+    ``pixel_ref_dn`` (``[H, W]``, in units of ``I + dark``, not reported) is, when given, the
+    reference of each pixel in place of ``ref_dn``: the intensity at which the threshold map
+    holds. A map fitted with intensity-blind OffEI gives each pixel its threshold at the
+    light it saw (the gap workflow's base model), so the fitter sets it to that light;
+    otherwise the law would be applied twice, once by the fit and once by the simulator."""
+
+    name: ClassVar[str] = "threshold_light"
+    primary: ClassVar[str] = "exponent"
+    exponent: float = 0.2
+    ref_dn: float = 128.0
+    pixel_ref_dn: np.ndarray | None = field(default=None, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        _check(self.name, np.isfinite(self.exponent) and 0 <= self.exponent <= 1,
+               "exponent must be in [0, 1]", self.exponent)
+        _check(self.name, np.isfinite(self.ref_dn) and self.ref_dn > 0, "ref_dn must be > 0",
+               self.ref_dn)
+        if self.pixel_ref_dn is not None:
+            m = np.asarray(self.pixel_ref_dn)
+            _check(self.name, m.ndim == 2 and bool(np.isfinite(m).all()) and bool(
+                (m > 0).all()), "pixel_ref_dn must be a finite positive 2-D map", m.shape)
+
+    def parameters(self) -> dict[str, Any]:
+        return {"exponent": self.exponent, "ref_dn": self.ref_dn}
+
+    def with_params(self, **changes: Any) -> Effect:
+        values: dict[str, Any] = {**self.parameters(), "pixel_ref_dn": self.pixel_ref_dn,
+                                  **changes}
+        return type(self)(**values)
+
+    def references(self, shape: tuple[int, int]) -> np.ndarray:
+        """Per-pixel reference (``[H, W]`` float64, units of ``I + dark``)."""
+        if self.pixel_ref_dn is None:
+            return np.full(shape, float(self.ref_dn))
+        m = np.asarray(self.pixel_ref_dn, np.float64)
+        if m.shape != tuple(shape):
+            raise EffectError(f"{self.name}: pixel_ref_dn has shape {m.shape}, the sensor "
+                              f"{tuple(shape)}")
+        return m
+
+    def threshold_factor(self, intensity_dn: np.ndarray, dark_dn: float,
+                         ref: np.ndarray | float | None = None) -> np.ndarray:
+        """``th(I) / th`` at intensity ``I`` (DN) with the sensor's dark level ``dark_dn``
+        (reference ``ref``, default ``ref_dn``)."""
+        r = self.ref_dn if ref is None else ref
+        x = np.maximum(np.asarray(intensity_dn, np.float64) + dark_dn, 1e-3)
+        return np.asarray((x / r) ** (-self.exponent))
+
+    def response(self, intensity_dn: np.ndarray, dark_dn: float,
+                 ref: np.ndarray | float | None = None) -> np.ndarray:
+        """``G(I + dark)``: the log intensity a fixed-threshold comparator must see to fire
+        as the sensor does (the integral of ``d ln x / th-factor``; reference ``ref``,
+        default ``ref_dn``)."""
+        r = np.asarray(self.ref_dn if ref is None else ref, np.float64)
+        x = np.maximum(np.asarray(intensity_dn, np.float64) + dark_dn, 1e-3)
+        if self.exponent == 0:
+            return np.log(x)
+        e = float(self.exponent)
+        return np.asarray(np.log(r) + ((x / r) ** e - 1.0) / e)
+
+
+@dataclass(frozen=True, kw_only=True)
+class RowNoise(Effect):
+    """Bursts of events along one readout line: every row (``axis="row"``) or column
+    (``"column"``) bursts as a Poisson process of ``rate_hz``; in a burst each pixel of the
+    line fires with probability ``fraction``, ON with probability ``on_fraction`` (a glitch
+    on a shared line is a short pulse that goes both ways; which threshold a pixel crosses
+    depends on where its own reference sits), at the burst time plus a half-normal delay of
+    ``spread_us`` (the arbiter serialises the burst). Independent of light and of the
+    pixel's state otherwise."""
+
+    name: ClassVar[str] = "row_noise"
+    primary: ClassVar[str] = "rate_hz"
+    n_fitted: ClassVar[int] = 2
+    rate_hz: float = 0.5
+    fraction: float = 0.3
+    axis: str = "row"
+    spread_us: float = 5.0
+    on_fraction: float = 0.5
+
+    def __post_init__(self) -> None:
+        _check(self.name, np.isfinite(self.rate_hz) and self.rate_hz >= 0,
+               "rate_hz must be finite and >= 0", self.rate_hz)
+        _check(self.name, 0 < self.fraction <= 1, "fraction must be in (0, 1]", self.fraction)
+        _check(self.name, self.axis in ("row", "column"), "axis must be 'row' or 'column'",
+               self.axis)
+        _check(self.name, np.isfinite(self.spread_us) and self.spread_us >= 0,
+               "spread_us must be finite and >= 0", self.spread_us)
+        _check(self.name, 0 <= self.on_fraction <= 1, "on_fraction must be in [0, 1]",
+               self.on_fraction)
+
+    def events(self, shape: tuple[int, int], t_lo_us: int, t_hi_us: int,
+               rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(t_us, pixel, polarity)`` of the bursts in ``[t_lo_us, t_hi_us]`` on a sensor of
+        ``shape`` (H, W), pixel index ``y W + x``, sorted by time."""
+        h, w = shape
+        n_lines, length = (h, w) if self.axis == "row" else (w, h)
+        dur_s = max(t_hi_us - t_lo_us, 0) * 1e-6
+        n_b = rng.poisson(self.rate_hz * dur_s, n_lines)
+        line = np.repeat(np.arange(n_lines), n_b)
+        t_b = rng.integers(t_lo_us, t_hi_us + 1, line.size)
+        # one row of member draws per burst: bursts x line length, small (rate x time x lines)
+        member = rng.random((line.size, length)) < self.fraction
+        b_idx, pos = np.nonzero(member)
+        delay = np.rint(np.abs(rng.normal(0.0, self.spread_us, b_idx.size))).astype(np.int64)
+        pol = np.where(rng.random(b_idx.size) < self.on_fraction, 1, -1).astype(np.int8)
+        t = np.minimum(t_b[b_idx] + delay, t_hi_us)
+        ln = line[b_idx]
+        pix = (ln * w + pos) if self.axis == "row" else (pos * w + ln)
+        order = np.argsort(t, kind="stable")
+        return t[order].astype(np.int64), pix[order].astype(np.int32), pol[order]
+
+
+@dataclass(frozen=True, kw_only=True)
+class ApsFpn(Effect):
+    """Dark signal non-uniformity of the APS frames (fixed-pattern offset): each pixel's frame
+    value carries its own constant dark level ``o[y, x]`` (DN) on top of the light; the DVS
+    part of the pixel (its own photoreceptor and comparators) does not see it.
+
+    ``offset_dn`` is the per-pixel map when it is known (the gap workflow's estimate,
+    :func:`evcal.gap.frames.fit_aps_fpn`); otherwise :meth:`offsets_dn` draws it as
+    ``N(mean_dn, sigma_dn)`` from ``seed``. The map is not one of the :meth:`parameters`
+    (reports stay small); :meth:`with_params` keeps it, scaled about its mean by the ratio of
+    a new ``sigma_dn`` to the old.
+    """
+
+    name: ClassVar[str] = "aps_fpn"
+    primary: ClassVar[str] = "sigma_dn"
+    sigma_dn: float = 3.0
+    mean_dn: float = 0.0
+    seed: int = 0
+    offset_dn: np.ndarray | None = field(default=None, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        _check(self.name, np.isfinite(self.sigma_dn) and self.sigma_dn >= 0,
+               "sigma_dn must be finite and >= 0", self.sigma_dn)
+        _check(self.name, np.isfinite(self.mean_dn), "mean_dn must be finite", self.mean_dn)
+        _check(self.name, int(self.seed) == self.seed and self.seed >= 0,
+               "seed must be an integer >= 0", self.seed)
+        if self.offset_dn is not None:
+            m = np.asarray(self.offset_dn)
+            _check(self.name, m.ndim == 2 and bool(np.isfinite(m).all()),
+                   "offset_dn must be a finite 2-D map", m.shape)
+
+    def parameters(self) -> dict[str, Any]:
+        return {"sigma_dn": self.sigma_dn, "mean_dn": self.mean_dn, "seed": self.seed}
+
+    def with_params(self, **changes: Any) -> Effect:
+        # a new sigma_dn scales the map about its mean: the map is what the gap workflow
+        # simulates, so its bias correction and search of sigma_dn must move the map (a
+        # parameter that moved nothing would drift freely under the bias correction)
+        values: dict[str, Any] = {**self.parameters(), "offset_dn": self.offset_dn, **changes}
+        m = values["offset_dn"]
+        if m is not None and "offset_dn" not in changes and self.sigma_dn > 0:
+            m = np.asarray(m, np.float64)
+            mu = float(m.mean())
+            values["offset_dn"] = mu + (m - mu) * (float(values["sigma_dn"]) / self.sigma_dn)
+        return type(self)(**values)
+
+    def offsets_dn(self, shape: tuple[int, int]) -> np.ndarray:
+        """The per-pixel dark offsets (DN, float64 ``[H, W]``): the map when given (its
+        shape must be ``shape``), else drawn (deterministic for ``seed`` and ``shape``)."""
+        if self.offset_dn is not None:
+            m = np.asarray(self.offset_dn, np.float64)
+            if m.shape != tuple(shape):
+                raise EffectError(f"{self.name}: offset_dn has shape {m.shape}, frames "
+                                  f"{tuple(shape)}")
+            return m
+        drawn: np.ndarray = _dark_offsets(float(self.sigma_dn), float(self.mean_dn),
+                                          int(self.seed), (int(shape[0]), int(shape[1])))
+        out: np.ndarray = drawn.copy()  # the cached array must not be changed by a caller
+        return out
+
+
+@lru_cache(maxsize=8)
+def _dark_offsets(sigma_dn: float, mean_dn: float, seed: int, shape: tuple[int, int]
+                  ) -> np.ndarray:
+    # its own generator (not the simulator's stream): adding DSNU changes no other draw, and
+    # every frame of a recording gets the same pattern
+    rng = np.random.default_rng([seed, 0xD5A0])
+    out: np.ndarray = mean_dn + sigma_dn * rng.standard_normal(shape)
+    return out
+
+
+@dataclass(frozen=True, kw_only=True)
+class Exposure(Effect):
+    """Exposure integration and timestamp placement of the APS frames: a frame is the mean of
+    the intensity over ``exposure_us``, centred ``lag_us`` after the frame's timestamp
+    (``exposure_us / 2`` when the stamp is the start of exposure, as dv-processing's
+    ``dv::Frame::timestamp``; 0 at its middle, as libcaer's frame timestamp; ``-exposure_us
+    / 2`` at its end). Events are instants; only the frames are affected."""
+
+    name: ClassVar[str] = "exposure"
+    primary: ClassVar[str] = "lag_us"
+    lag_us: float = 2500.0
+    exposure_us: float = 5000.0
+
+    def __post_init__(self) -> None:
+        _check(self.name, np.isfinite(self.lag_us), "lag_us must be finite", self.lag_us)
+        _check(self.name, np.isfinite(self.exposure_us) and self.exposure_us >= 0,
+               "exposure_us must be finite and >= 0", self.exposure_us)
+
+
 def quantise_events(t_us: np.ndarray, pix: np.ndarray, pol: np.ndarray, lab: np.ndarray,
                     q: TimestampQuantisation, t0_us: int, *, n_pix: int,
                     t_end_us: float | None = None, refractory: Refractory | None = None
@@ -281,20 +516,32 @@ def quantise_events(t_us: np.ndarray, pix: np.ndarray, pol: np.ndarray, lab: np.
     return out
 
 
+APS_TIMESTAMPS = ("start", "middle", "end")
+
+
 @dataclass(frozen=True, kw_only=True)
 class ApsConfig:
-    """APS frame model: exposure (motion blur), read noise, 8-bit quantisation.
+    """APS frame model: exposure (motion blur), timestamp placement, dark offsets, read noise,
+    8-bit quantisation.
 
-    A frame at time ``t`` is the mean of the intensity over ``[t - exposure/2, t +
-    exposure/2]`` (``blur_samples`` renders; one render when ``exposure_us`` is 0), plus
-    Gaussian read noise of ``read_noise_dn`` (DN), rounded and clipped to 0..255 when
-    ``quantise``. Frame times are the middle of the exposure.
+    A frame stamped ``t`` is the mean of the intensity over ``[c - exposure/2, c +
+    exposure/2]`` (``blur_samples`` renders; one render when ``exposure_us`` is 0), ``c = t +``
+    :attr:`centre_lag_us`: the stamp marks the ``timestamp`` (start, middle or end) of the
+    exposure, or the centre lies ``lag_us`` after it when that is given. Then each pixel's
+    dark offset is added (DSNU: ``N(dsnu_mean_dn, dsnu_sigma_dn)`` per pixel, drawn once from
+    ``dsnu_seed``, the same in every frame), Gaussian read noise of ``read_noise_dn`` (DN),
+    and the value is rounded and clipped to 0..255 when ``quantise``.
     """
 
     exposure_us: int = 0
     read_noise_dn: float = 0.0
     quantise: bool = True
     blur_samples: int = 5
+    timestamp: str = "middle"
+    lag_us: float | None = None
+    dsnu_sigma_dn: float = 0.0
+    dsnu_mean_dn: float = 0.0
+    dsnu_seed: int = 0
 
     def __post_init__(self) -> None:
         _check("aps", int(self.exposure_us) >= 0, "exposure_us must be >= 0", self.exposure_us)
@@ -302,12 +549,50 @@ class ApsConfig:
                self.read_noise_dn)
         _check("aps", int(self.blur_samples) >= 1, "blur_samples must be >= 1",
                self.blur_samples)
+        _check("aps", self.timestamp in APS_TIMESTAMPS,
+               f"timestamp must be one of {APS_TIMESTAMPS}", self.timestamp)
+        _check("aps", self.lag_us is None or bool(np.isfinite(self.lag_us)),
+               "lag_us must be finite or None", self.lag_us)
+        _check("aps", np.isfinite(self.dsnu_sigma_dn) and self.dsnu_sigma_dn >= 0,
+               "dsnu_sigma_dn must be finite and >= 0", self.dsnu_sigma_dn)
+        _check("aps", bool(np.isfinite(self.dsnu_mean_dn)), "dsnu_mean_dn must be finite",
+               self.dsnu_mean_dn)
+
+    @property
+    def centre_lag_us(self) -> float:
+        """Where the exposure's centre lies after the frame's timestamp (us)."""
+        if self.lag_us is not None:
+            return float(self.lag_us)
+        half = 0.5 * float(self.exposure_us)
+        return {"start": half, "middle": 0.0, "end": -half}[self.timestamp]
+
+    def dark_offsets_dn(self, shape: tuple[int, int]) -> np.ndarray | None:
+        """Per-pixel dark offsets (DN, ``[H, W]``), ``None`` without DSNU."""
+        if self.dsnu_sigma_dn == 0 and self.dsnu_mean_dn == 0:
+            return None
+        return _dark_offsets(float(self.dsnu_sigma_dn), float(self.dsnu_mean_dn),
+                             int(self.dsnu_seed), (int(shape[0]), int(shape[1])))
+
+    def with_effects(self, effects: Mapping[str, Effect]) -> ApsConfig:
+        """This frame model with the frame-side effects of ``effects`` (``aps_fpn``:
+        the DSNU; ``exposure``: exposure time and centre); unchanged without them."""
+        out = self
+        fpn = effects.get(ApsFpn.name)
+        if isinstance(fpn, ApsFpn):
+            out = replace(out, dsnu_sigma_dn=float(fpn.sigma_dn),
+                          dsnu_mean_dn=float(fpn.mean_dn), dsnu_seed=int(fpn.seed))
+        exp = effects.get(Exposure.name)
+        if isinstance(exp, Exposure):
+            out = replace(out, exposure_us=int(round(exp.exposure_us)),
+                          lag_us=float(exp.lag_us))
+        return out
 
 
 EFFECTS: dict[str, type[Effect]] = {
     cls.name: cls
     for cls in (Refractory, Leak, ShotNoise, Bandwidth, ThresholdNoise, HotPixels, LogOffset,
-                TimestampJitter, TimestampQuantisation)
+                TimestampJitter, TimestampQuantisation, ThresholdLight, RowNoise, ApsFpn,
+                Exposure)
 }
 EFFECT_NAMES: tuple[str, ...] = tuple(EFFECTS)
 
@@ -316,8 +601,9 @@ LABEL_SIGNAL = 0
 LABEL_LEAK = 1
 LABEL_SHOT_NOISE = 2
 LABEL_HOT_PIXEL = 3
+LABEL_ROW_NOISE = 4
 LABEL_LEGEND = {LABEL_SIGNAL: "signal", LABEL_LEAK: "leak", LABEL_SHOT_NOISE: "shot_noise",
-                LABEL_HOT_PIXEL: "hot_pixels"}
+                LABEL_HOT_PIXEL: "hot_pixels", LABEL_ROW_NOISE: "row_noise"}
 
 
 def make_effect(name: str, **params: Any) -> Effect:

@@ -54,6 +54,17 @@ def _normal(state: np.ndarray, i: int) -> Any:  # pragma: no cover - compiled
     return math.sqrt(-2.0 * math.log(1.0 - u1)) * math.cos(TWO_PI * u2)
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _response(x: float, tl_exp: float, tl_ref: float) -> Any:  # pragma: no cover - compiled
+    """The comparator's input at ``x = I + dark``: ``ln x``, or with thresholds growing in
+    the dark as ``(x / tl_ref)**(-tl_exp)`` the integral of ``d ln x`` over that factor
+    (:class:`~evcal.sim.effects.ThresholdLight`), which fixed thresholds then compare."""
+    if tl_exp == 0.0:
+        return math.log(x)
+    x = max(x, 1e-3)
+    return math.log(tl_ref) + ((x / tl_ref) ** tl_exp - 1.0) / tl_exp
+
+
 @numba.njit(cache=True, nogil=True)
 def _grow(buf: np.ndarray, n: int) -> Any:  # pragma: no cover - compiled
     out = np.empty(max(2 * buf.size, n + 1024), buf.dtype)
@@ -144,7 +155,7 @@ def _search(j0: np.ndarray, n_slow: np.ndarray, slow_idx: np.ndarray, k: int,
             u_shot: np.ndarray, th_sigma: np.ndarray, refr_us: np.ndarray,
             refr_delay: np.ndarray, shot_rate_hz: np.ndarray, shot_ref_dn: np.ndarray,
             shot_exp: np.ndarray, bw_cutoff_hz: np.ndarray, bw_ref_dn: np.ndarray,
-            bw_min_hz: np.ndarray,
+            bw_min_hz: np.ndarray, tl_exp: float, tl_ref: np.ndarray,
             t_f: np.ndarray, t_i: np.ndarray, pix: np.ndarray, pol: np.ndarray,
             lab: np.ndarray, n: int) -> Any:  # pragma: no cover - compiled
     """The exact crossing search of step ``k`` for the pixels ``slow_idx[j0:n_slow]``;
@@ -164,8 +175,9 @@ def _search(j0: np.ndarray, n_slow: np.ndarray, slow_idx: np.ndarray, k: int,
         inten32 = intensity[k, i]
         inten = np.float64(inten32)
         r = ref[i]
-        a = lf[i] if lf_ok[i] else math.log(np.float64(i_prev[i]) + log_offset)
-        lraw = math.log(inten + log_offset)
+        a = lf[i] if lf_ok[i] else _response(np.float64(i_prev[i]) + log_offset, tl_exp,
+                                             tl_ref[i])
+        lraw = _response(inten + log_offset, tl_exp, tl_ref[i])
         if bw:
             fc_hz = max(bw_min_hz, bw_cutoff_hz * (inten + log_offset) / bw_ref_dn)
             alpha = 1.0 - math.exp(-TWO_PI * fc_hz * dt_s)
@@ -287,7 +299,7 @@ def _search(j0: np.ndarray, n_slow: np.ndarray, slow_idx: np.ndarray, k: int,
                         dead_until[i] = tf + refr_us
         ref[i] = r
         lf[i] = b
-        if not bw:
+        if not bw and tl_exp == 0.0:
             # float32 rounds by far less than the margin, except below its normal range:
             # there hi goes to 0 (no shortcut) and lo up to the smallest normal
             hi = math.exp(r + th_on[i]) * (1.0 - _MARGIN)
@@ -332,6 +344,8 @@ def run_steps(
     bw_cutoff_hz: Any,
     bw_ref_dn: Any,
     bw_min_hz: Any,
+    tl_exp: Any,  # ThresholdLight exponent (0: thresholds independent of light)
+    tl_ref: Any,  # its reference intensity per pixel (units of I + dark)
     # output, appended from n on (grown as needed; the grown arrays are returned)
     t_f: Any,
     t_i: Any,
@@ -388,7 +402,10 @@ def run_steps(
         # draw of the pixel's step either way, so its random stream does not depend on the
         # pass that handles it) and the no-crossing test
         # without light dependence, the drift goes into the test's loop (ref is read once)
-        fused = leak and leak_light_exp == 0.0 and shortcut and not bw
+        # the intensity-domain bounds assume the comparator sees ln(I + dark): not with a
+        # low-pass or a light-dependent threshold, which run the exact search everywhere
+        exact = bw or tl_exp != 0.0 or not shortcut
+        fused = leak and leak_light_exp == 0.0 and not exact
         if leak and not fused:
             for i in range(n_pix):
                 rate = leak_rate[i]
@@ -412,7 +429,7 @@ def run_steps(
                 if shot_exp != 1.0:
                     x = x ** shot_exp
                 shot_quiet[i] = u * x > c_quiet
-        if bw or not shortcut:
+        if exact:
             for i in range(n_pix):
                 slow[i] = 1
         elif fused:
@@ -456,7 +473,8 @@ def run_steps(
                            i_prev, hi_i, lo_i, ref_i, ref, th_on_nom, th_off_nom, th_on,
                            th_off, dead_until, last_fire, leak_debt, rng_state, u_shot,
                            th_sigma, refr_us, refr_delay, shot_rate_hz, shot_ref_dn, shot_exp,
-                           bw_cutoff_hz, bw_ref_dn, bw_min_hz, t_f, t_i, pix, pol, lab, n)
+                           bw_cutoff_hz, bw_ref_dn, bw_min_hz, tl_exp, tl_ref, t_f, t_i, pix,
+                           pol, lab, n)
             if j < n_slow:
                 t_f = _grow(t_f, n)
                 t_i = _grow(t_i, n)

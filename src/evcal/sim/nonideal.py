@@ -7,8 +7,8 @@ same reference initialisation), renders the intensity at the internal rate
 source's ``render_block`` where it has one), and runs the numba kernel of
 :mod:`evcal.sim.kernel` over each block, appending to event buffers kept for the whole run
 (the kernel sorts each step's events, so steps come out in time order). Effects that need no
-per-pixel sequence (hot pixels, timestamp jitter) are applied to the event arrays afterwards.
-With no effect it reproduces the ideal simulator's events.
+per-pixel sequence (hot pixels, row noise, timestamp jitter) are applied to the event arrays
+afterwards. With no effect it reproduces the ideal simulator's events.
 
 Truth (``SimResult.truth``): ``contrast``, ``bias`` maps, the effective ``log_offset``, the
 ``seed``, ``effects`` (``{name: parameters}``), ``labels`` (uint8 per event, see
@@ -29,6 +29,7 @@ from ..recording import Frames, Recording
 from .effects import (
     LABEL_HOT_PIXEL,
     LABEL_LEGEND,
+    LABEL_ROW_NOISE,
     ApsConfig,
     Bandwidth,
     Effect,
@@ -36,7 +37,9 @@ from .effects import (
     Leak,
     LogOffset,
     Refractory,
+    RowNoise,
     ShotNoise,
+    ThresholdLight,
     ThresholdNoise,
     TimestampJitter,
     TimestampQuantisation,
@@ -59,13 +62,22 @@ def effective_log_offset(cfg: SimConfig, effects: Mapping[str, Effect]) -> float
 
 def _aps_frame(source: Source, t_us: int, aps: ApsConfig, rng: np.random.Generator,
                first: np.ndarray | None = None) -> np.ndarray:
+    """The APS frame stamped ``t_us``: the intensity averaged over the exposure (centred
+    ``aps.centre_lag_us`` after the stamp), plus the pixels' dark offsets (DSNU, which only
+    the frame readout sees), read noise, quantisation."""
+    centre_us = t_us + aps.centre_lag_us
     if aps.exposure_us > 0:
         offs = (np.arange(aps.blur_samples) + 0.5) / aps.blur_samples - 0.5
-        img = np.mean([source(max(0.0, (t_us + o * aps.exposure_us) * 1e-6)) for o in offs],
-                      axis=0)
+        img = np.mean([source(max(0.0, (centre_us + o * aps.exposure_us) * 1e-6))
+                       for o in offs], axis=0)
+    elif centre_us != t_us or first is None:
+        img = source(max(0.0, centre_us * 1e-6))
     else:
-        img = source(t_us * 1e-6) if first is None else first
+        img = first
     img = np.asarray(img, np.float64)
+    dark = aps.dark_offsets_dn(img.shape[-2:])
+    if dark is not None:
+        img = img + dark
     if aps.read_noise_dn > 0:
         img = img + rng.normal(0.0, aps.read_noise_dn, img.shape)
     if aps.quantise:
@@ -73,6 +85,20 @@ def _aps_frame(source: Source, t_us: int, aps: ApsConfig, rng: np.random.Generat
         return result
     result_72: np.ndarray = np.maximum(img, 0.0).astype(np.float32)
     return result_72
+
+
+def _merged(events: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
+            added: tuple[np.ndarray, np.ndarray, np.ndarray], label: int
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``events`` (times, pixels, polarities, labels) with the ``added`` events of one
+    ``label`` (times, pixels, polarities), sorted by time (stable: the kernel's order of
+    events at the same time is kept)."""
+    t = np.concatenate([events[0], added[0]])
+    order = np.argsort(t, kind="stable")
+    pix = np.concatenate([events[1], added[1]])[order]
+    pol = np.concatenate([events[2], added[2]])[order]
+    lab = np.concatenate([events[3], np.full(added[0].size, label, np.uint8)])[order]
+    return t[order], pix, pol, lab
 
 
 def _resized(buf: np.ndarray, size: int, n: int) -> np.ndarray:
@@ -127,7 +153,8 @@ def simulate(
     True
     """
     eff = effect_set(effects)
-    aps = aps if aps is not None else ApsConfig(quantise=cfg.quantise_frames)
+    # the frame-side effects (aps_fpn, exposure) act on the APS frames only
+    aps = (aps if aps is not None else ApsConfig(quantise=cfg.quantise_frames)).with_effects(eff)
     rng = np.random.default_rng(cfg.seed)
     if maps is None:
         c, b = draw_maps(cfg, rng)
@@ -150,7 +177,14 @@ def simulate(
     npix = cfg.height * cfg.width
 
     i0 = np.asarray(source(times[0] * 1e-6), np.float32)
-    l0 = np.log(i0.astype(np.float64) + offset).ravel()
+    tl = eff.get(ThresholdLight.name)
+    # light-dependent thresholds: the comparator runs on the response G(I + dark) (see
+    # ThresholdLight); the noise and bandwidth laws in the kernel keep the true intensity
+    tl_exp = float(tl.exponent) if isinstance(tl, ThresholdLight) else 0.0
+    tl_ref = (tl.references((cfg.height, cfg.width)).ravel().copy()
+              if isinstance(tl, ThresholdLight) else np.full(cfg.height * cfg.width, 128.0))
+    l0 = (tl.response(i0.ravel(), offset, tl_ref) if isinstance(tl, ThresholdLight) and
+          tl_exp > 0 else np.log(i0.astype(np.float64) + offset).ravel())
     # as IdealDvs.reset: residual L - ref uniform in (-th_off, th_on)
     u = rng.uniform(0.0, 1.0, npix)
     ref = l0 - (u * (th_on_nom + th_off_nom) - th_off_nom)
@@ -239,7 +273,7 @@ def simulate(
             block, times[k : k + kk + 1], offset, lf, lf_ok, i_prev, hi_i, lo_i, ref_i, ref,
             th_on_nom, th_off_nom, th_on, th_off, dead, last_fire, leak_rate, debt, rng_state,
             th_sigma, refr_us, refr_delay, leak_exp, leak_ref, shot_rate, shot_ref, shot_exp,
-            bw_cut, bw_ref, bw_min, buf_tf, buf_ti, buf_pix, buf_p, buf_lab, n_ev)
+            bw_cut, bw_ref, bw_min, tl_exp, tl_ref, buf_tf, buf_ti, buf_pix, buf_p, buf_lab, n_ev)
         k += kk
         want = int(1.1 * n_ev * n_steps / k) + 1024
         if k < n_steps and want > buf_tf.size:
@@ -265,12 +299,16 @@ def simulate(
         h_pix = np.repeat(hp, counts).astype(np.int32)
         h_t = r_hot.integers(t_lo, t_hi + 1, h_pix.size)
         h_p = np.where(r_hot.random(h_pix.size) < hot.on_fraction, 1, -1).astype(np.int8)
-        t_int = np.concatenate([t_int, h_t])
-        pix = np.concatenate([pix, h_pix])
-        pol = np.concatenate([pol, h_p])
-        lab = np.concatenate([lab, np.full(h_pix.size, LABEL_HOT_PIXEL, np.uint8)])
-        order = np.argsort(t_int, kind="stable")
-        t_int, pix, pol, lab = t_int[order], pix[order], pol[order], lab[order]
+        t_int, pix, pol, lab = _merged((t_int, pix, pol, lab), (h_t, h_pix, h_p),
+                                       LABEL_HOT_PIXEL)
+
+    rown = eff.get(RowNoise.name)
+    if isinstance(rown, RowNoise) and rown.rate_hz > 0:
+        # a disturbance of a shared readout or bias line, not of any pixel's state: added
+        # after the kernel, like hot pixels (its own generator, so no other draw moves)
+        (r_row,) = rng.spawn(1)
+        added = rown.events((cfg.height, cfg.width), int(times[0]), int(times[-1]), r_row)
+        t_int, pix, pol, lab = _merged((t_int, pix, pol, lab), added, LABEL_ROW_NOISE)
 
     if t_origin_us:
         t_int = t_int + int(t_origin_us)
