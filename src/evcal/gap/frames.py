@@ -189,14 +189,24 @@ def lag_residuals(obs: Observation, lags_us: np.ndarray,
                   pixels: np.ndarray | None = None) -> np.ndarray:
     """Per lag: the unexplained fraction of the per-pixel fit ``dL = c P + b E`` when the
     events are counted in windows between frame times + lag (``dL`` the frames' log change,
-    at the nominal offset, as the statistics use). Only windows that every lag keeps inside
-    the recording's frames are used, so each lag is scored on the same equations. Kept in
-    ``obs.extra``."""
-    ckey = f"exposure_lag_residuals/{lags_us.tobytes().hex()}"
-    if pixels is not None:  # only these pixels' windows (bool mask over pixels)
-        ckey += "/" + np.packbits(pixels).tobytes().hex()
+    at the nominal offset, as the statistics use), over all pixels or those of the bool mask
+    ``pixels``. Only windows that every lag keeps inside the recording's frames are used, so
+    each lag is scored on the same equations."""
+    ssr, tss = _lag_pixel_sums(obs, lags_us)
+    if pixels is not None:
+        ssr, tss = ssr[:, pixels], tss[:, pixels]
+    den = tss.sum(1)
+    out: np.ndarray = np.where(den > 0, ssr.sum(1) / np.maximum(den, 1e-30), np.nan)
+    return out
+
+
+def _lag_pixel_sums(obs: Observation, lags_us: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per lag and pixel: the squared residual and the squared change summed over the
+    pixel's windows (0 where its fit fails). A pixel's fit does not depend on the others', so
+    any subset of pixels is scored from these sums. Kept in ``obs.extra``."""
+    ckey = f"exposure_lag_sums/{lags_us.tobytes().hex()}"
     cached = obs.extra.get(ckey)
-    if isinstance(cached, np.ndarray):
+    if isinstance(cached, tuple):
         return cached
     ft = obs.frame_t_us.astype(np.int64)
     n_w, npix = obs.on.shape
@@ -204,14 +214,10 @@ def lag_residuals(obs: Observation, lags_us: np.ndarray,
     inside = (ft[:-1] - span >= ft[0]) & (ft[1:] + span <= ft[-1])
     dL = np.diff(obs.log_i, axis=0)
     w = (obs.usable & inside[:, None]).astype(np.float64)
-    if pixels is not None:
-        w *= pixels[None, :]
     pix = obs.pix.astype(np.int64)
     on = obs.p > 0
-    out = np.full(lags_us.size, np.nan)
-    tss = float((w * dL * dL).sum())
-    if tss <= 0:
-        return out
+    ssr = np.zeros((lags_us.size, npix))
+    tss = np.zeros((lags_us.size, npix))
     for i, lag in enumerate(lags_us):  # a few dozen lags, each vectorised over events
         win = np.searchsorted(ft + int(round(lag)), obs.t_us, side="right") - 1
         keep = (win >= 0) & (win < n_w)
@@ -222,9 +228,10 @@ def lag_residuals(obs: Observation, lags_us: np.ndarray,
         E = (n_on + n_off).astype(np.float64)
         c, b, ok = fit_pixels(P, E, dL, w)
         res = dL - np.nan_to_num(c) * P - np.nan_to_num(b) * E
-        out[i] = float((w * res * res)[:, ok].sum() / max((w * dL * dL)[:, ok].sum(), 1e-30))
-    obs.extra[ckey] = out
-    return out
+        ssr[i] = np.where(ok, (w * res * res).sum(0), 0.0)
+        tss[i] = np.where(ok, (w * dL * dL).sum(0), 0.0)
+    obs.extra[ckey] = (ssr, tss)
+    return ssr, tss
 
 
 def _lag_minimum(lags: np.ndarray, r: np.ndarray) -> float:
