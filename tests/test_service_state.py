@@ -33,9 +33,22 @@ while True:
 
 def test_snapshots_survive_kill_9_of_the_writer(tmp_path):
     seen = set()
+    start_s = 0.0
     for k in range(8):
+        t0 = time.monotonic()
         p = subprocess.Popen([sys.executable, "-c", WRITER, str(tmp_path), str(k)])
-        time.sleep(0.4 + random.Random(k).random() * 0.4)  # seeded: a repeatable run
+        if k == 0:
+            # the writer's imports take about a second (more on a busy machine): the kills
+            # must come while it writes, so they wait that long first
+            deadline = t0 + 60
+            while len([f for f in tmp_path.iterdir() if ".tmp-" not in f.name]) < 2:
+                assert time.monotonic() < deadline, "the writer wrote no snapshot in 60 s"
+                assert p.poll() is None, "the writer exited"
+                time.sleep(0.05)
+            start_s = time.monotonic() - t0
+        # seeded: a repeatable run
+        time.sleep(max(0.0, start_s - (time.monotonic() - t0))
+                   + 0.4 + random.Random(k).random() * 0.4)
         p.kill()
         p.wait(10)
         for f in tmp_path.iterdir():
