@@ -139,14 +139,16 @@ def test_spill_residual_of_moved_events_equals_a_fresh_observation() -> None:
     assert (updated[-2:] > _SpillResidual(obs).stat().values[-2:]).all()
 
 
-@pytest.mark.parametrize("seed", [59, pytest.param(159, marks=pytest.mark.slow)])
+@pytest.mark.parametrize("seed", [59, pytest.param(159, marks=[pytest.mark.slow,
+                                                               pytest.mark.extended])])
 def test_nothing_hidden_names_nothing(seed: int) -> None:
     res = _run("none", seed, 2)
     assert res.named_effects == []
     assert res.initial.gap < 3.0
 
 
-@pytest.mark.parametrize("seed", [61, pytest.param(161, marks=pytest.mark.slow)])
+@pytest.mark.parametrize("seed", [61, pytest.param(161, marks=[pytest.mark.slow,
+                                                               pytest.mark.extended])])
 def test_two_hidden_effects_are_both_named(seed: int) -> None:
     # measured on seed 161: shot noise 1.09 Hz (true 1.2), dark 37.2 DN (true 35)
     res = _run("two", seed, 2)
