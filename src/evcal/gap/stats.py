@@ -431,13 +431,21 @@ def stat_rate_tail(obs: Observation) -> StatValue:
     return StatValue("rate_tail", v, labels, 0.05)
 
 
-def stat_speed_response(obs: Observation) -> StatValue:
+def _changing_windows(obs: Observation) -> tuple[dict[str, Any], np.ndarray, np.ndarray,
+                                                  np.ndarray]:
+    """The fit, abs(dL), the windows whose frames change by more than 0.1 in log (usable,
+    and trusted where the observation has a mask) and the windows' mean intensity."""
     f = _fit(obs)
     adl = np.abs(f["dL"])
     m = obs.usable & (adl > 0.1)
     if obs.trusted is not None:
         m &= obs.trusted
     i_mid = 0.5 * (obs.intensity[1:] + obs.intensity[:-1])
+    return f, adl, m, i_mid
+
+
+def stat_speed_response(obs: Observation) -> StatValue:
+    f, adl, m, i_mid = _changing_windows(obs)
     ie = _quantile_edges(i_mid[m], 2)
     se = _quantile_edges(adl[m] / obs.window_s[:, None].repeat(adl.shape[1], 1)[m], 2)
     speed = adl / obs.window_s[:, None]
@@ -498,12 +506,7 @@ def stat_sensitivity_vs_intensity(obs: Observation, n_bins: int = 5) -> StatValu
     ``I / (I + d)``: flat in the bright, falling below ``d``) from thresholds that scale with
     light as a power (``I^e``: the same slope in log I everywhere); the per-pixel residual
     against the pixel's own median (:func:`stat_residual_vs_intensity`) sees both alike."""
-    f = _fit(obs)
-    adl = np.abs(f["dL"])
-    m = obs.usable & (adl > 0.1)
-    if obs.trusted is not None:
-        m &= obs.trusted
-    i_mid = 0.5 * (obs.intensity[1:] + obs.intensity[:-1])
+    f, adl, m, i_mid = _changing_windows(obs)
     key = np.log(np.maximum(i_mid[m].astype(np.float64), 0.0) + NOMINAL_LOG_OFFSET_DN)
     edges = _quantile_edges(key, n_bins)
     idx = np.clip(np.searchsorted(edges, key, side="right") - 1, 0, edges.size - 2)
