@@ -622,12 +622,10 @@ def run_gap(rec: Recording, config: GapConfig | None = None, *,
     def n_sensor() -> int:  # max_effects counts sensor effects, not the timestamp scheme
         return sum(s.effect.name != SCHEME_EFFECT for s in steps)
 
-    rounds = 0
     while n_sensor() < cfg.max_effects:
         if plan is not None:
             plan(run.simulations + n_simulations(cfg, cfg.max_effects - n_sensor() + 1)
                  - n_simulations(cfg, 0))
-        rounds += 1
         tried: dict[str, dict[str, Any]] = {}
         # the timestamp scheme first: once the timestamps are seen to lie on a step grid,
         # every sensor candidate is fitted and simulated with the scheme (how a frame-driven
