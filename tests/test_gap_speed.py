@@ -142,3 +142,58 @@ def test_what_remains_is_said_in_words() -> None:
     nothing = summary(discrepancy(st, [st, st]))
     assert nothing == ["nothing significant: every statistic within the model's noise "
                        "(D < 2)"]
+
+
+def test_counting_order_is_the_stable_argsort() -> None:
+    from evcal.accumulate import order_by_key
+    from evcal.errors import EvcalError
+
+    rng = np.random.default_rng(3)
+    key = rng.integers(0, 50, 10_000)
+    np.testing.assert_array_equal(order_by_key(key, 50), np.argsort(key, kind="stable"))
+    assert order_by_key(np.zeros(0, np.int64), 5).size == 0
+    with pytest.raises(EvcalError, match=r"\[0, 50\)"):
+        order_by_key(np.array([3, 50]), 50)
+
+
+def test_one_pass_window_sums_give_the_per_pixel_fit_and_residual() -> None:
+    from evcal.gap.stats import fit_from_sums, fit_pixels, residual_from_sums, window_sums
+
+    rng = np.random.default_rng(4)
+    n_w, npix = 30, 200
+    P = rng.integers(-3, 4, (n_w, npix))
+    E = np.abs(P) + rng.integers(0, 3, (n_w, npix))
+    dL = 0.2 * P + 0.01 * E + rng.normal(0, 0.02, (n_w, npix))
+    w = (rng.random((n_w, npix)) > 0.1).astype(np.float64)
+    sums = window_sums(P, E, dL, w)
+    for k, t in enumerate([P * P, P * E, E * E, P * dL, E * dL, E, dL * dL]):
+        np.testing.assert_allclose(sums[k], (w * t).sum(0), rtol=1e-12, atol=1e-9)
+    halves = window_sums(P, E, dL, w, split=12)
+    np.testing.assert_allclose(halves[0], window_sums(P[:12], E[:12], dL[:12], w[:12]))
+    np.testing.assert_allclose(halves[0] + halves[1], sums, atol=1e-9)
+    c, b, ok = fit_pixels(P, E, dL, w)
+    assert ok.all() and abs(np.median(c) - 0.2) < 0.01 and abs(np.median(b) - 0.01) < 0.01
+    res = dL - c * P - b * E
+    np.testing.assert_allclose(residual_from_sums(sums, c, b), (w * res * res).sum(0),
+                               rtol=1e-6, atol=1e-12)
+    c2, b2, _ = fit_from_sums(*sums[:6])
+    np.testing.assert_array_equal(c, c2)
+
+
+def test_observations_of_the_same_frames_share_their_frame_arrays() -> None:
+    from evcal.gap.stats import every_nth_row
+
+    rec = small_recording(6, [])
+    meas = observe(rec)
+    sim = observe(simulate_model(fit_base(rec), rec, 1, SimSettings(interpolation="linear")))
+    assert sim.log_i is meas.log_i and sim.usable is meas.usable and sim.shared is meas.shared
+    assert not meas.log_i.flags.writeable  # shared: nobody may write into them
+    # a sample of rows: the same per-pixel arrays and events of those rows
+    sub = every_nth_row(meas, 3)
+    rows = np.arange(0, H, 3)
+    assert sub.shape == (rows.size, W) and sub.n_pixels == rows.size * W
+    keep = np.isin(meas.pix // W, rows)
+    assert sub.t_us.size == keep.sum()
+    np.testing.assert_array_equal(sub.on.sum(), meas.on.reshape(-1, H, W)[:, rows].sum())
+    np.testing.assert_array_equal(np.bincount(sub.pix, minlength=sub.n_pixels),
+                                  (sub.on + sub.off).sum(0))

@@ -15,6 +15,7 @@ from typing import Any
 import numba
 import numpy as np
 
+from .errors import ErrorReason, EvcalError
 from .events import SensorSize
 from .recording import Recording
 from .stream import frame_intervals
@@ -30,6 +31,33 @@ def _accumulate(x: np.ndarray, y: np.ndarray, p: np.ndarray, width: int, on: np.
         else:
             off[k] += 1
         last_p[k] = p[i]
+
+
+@numba.njit(cache=True, nogil=True)
+def _order_by_key(key: np.ndarray, n_keys: int) -> Any:  # pragma: no cover - compiled
+    start = np.zeros(n_keys + 1, np.int64)
+    for v in key:
+        start[v + 1] += 1
+    for i in range(n_keys):
+        start[i + 1] += start[i]
+    out = np.empty(key.size, np.int64)
+    for j in range(key.size):
+        v = key[j]
+        out[start[v]] = j
+        start[v] += 1
+    return out
+
+
+def order_by_key(key: np.ndarray, n_keys: int) -> np.ndarray:
+    """The stable order of ``key`` (integers in ``[0, n_keys)``, e.g. the pixel of each
+    event): a counting sort, linear in the events where ``np.argsort(kind="stable")`` on
+    64-bit keys is a merge sort."""
+    k = np.ascontiguousarray(key, np.int64)
+    if k.size and (int(k.min()) < 0 or int(k.max()) >= n_keys):
+        raise EvcalError(f"keys must lie in [0, {n_keys}); got {int(k.min())}..{int(k.max())}",
+                         ErrorReason.OUT_OF_RANGE)
+    result: np.ndarray = _order_by_key(k, int(n_keys))
+    return result
 
 
 class Accumulator:

@@ -24,11 +24,12 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
+import numba
 import numpy as np
 
 from ..recording import Frames, Recording
 from ..sim.effects import ApsFpn, Effect, Exposure
-from .stats import Observation, fit_pixels
+from .stats import Observation, fit_from_sums, residual_from_sums, window_sums
 
 if TYPE_CHECKING:
     from .model import Model
@@ -93,10 +94,10 @@ def offset_residuals(obs: Observation, grid_dn: np.ndarray, log_offset: float) -
     for i, o in enumerate(grid_dn):  # a few dozen offsets, each vectorised over pixels
         L = np.log(np.maximum(F - o, 0.0) + log_offset)
         dL = np.diff(L, axis=0)
-        c, b, ok = fit_pixels(P, E, dL, w)
-        res = dL - np.nan_to_num(c) * P - np.nan_to_num(b) * E
-        ssr = (w * res * res).sum(0)
-        tss = (w * dL * dL).sum(0)
+        sums = window_sums(P, E, dL, w)
+        c, b, ok = fit_from_sums(*sums[:6])
+        ssr = residual_from_sums(sums, np.nan_to_num(c), np.nan_to_num(b))
+        tss = sums[6]
         frac = np.where(ok & (tss > 0), ssr / np.maximum(tss, 1e-30), np.nan)
         # the darkest frame must stay above the offset (F >= o + 0.5 DN)
         out[i] = np.where(f_min - o >= 0.5, frac, np.inf)
@@ -200,6 +201,30 @@ def lag_residuals(obs: Observation, lags_us: np.ndarray,
     return out
 
 
+@numba.njit(cache=True, nogil=True)
+def _count_windows(t_us: np.ndarray, pix: np.ndarray, p: np.ndarray, ft: np.ndarray,
+                   P: np.ndarray, E: np.ndarray) -> None:  # pragma: no cover - compiled
+    """``P`` (ON - OFF) and ``E`` (ON + OFF) per window between the times ``ft`` and pixel
+    of the events (those outside the windows are left out), in place. A walk along the
+    windows: linear in the events when they are in time order."""
+    P[:] = 0
+    E[:] = 0
+    n_w = ft.size - 1
+    k = -1
+    t_prev = t_us[0] if t_us.size else 0
+    for j in range(t_us.size):
+        t = t_us[j]
+        if t < t_prev:  # out of time order (not expected): walk again from the start
+            k = -1
+        t_prev = t
+        while k + 1 <= n_w and ft[k + 1] <= t:
+            k += 1
+        if k < 0 or k >= n_w:
+            continue
+        E[k, pix[j]] += 1
+        P[k, pix[j]] += 1 if p[j] > 0 else -1
+
+
 def _lag_pixel_sums(obs: Observation, lags_us: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per lag and pixel: the squared residual and the squared change summed over the
     pixel's windows (0 where its fit fails). A pixel's fit does not depend on the others', so
@@ -214,22 +239,17 @@ def _lag_pixel_sums(obs: Observation, lags_us: np.ndarray) -> tuple[np.ndarray, 
     inside = (ft[:-1] - span >= ft[0]) & (ft[1:] + span <= ft[-1])
     dL = np.diff(obs.log_i, axis=0)
     w = (obs.usable & inside[:, None]).astype(np.float64)
-    pix = obs.pix.astype(np.int64)
-    on = obs.p > 0
     ssr = np.zeros((lags_us.size, npix))
     tss = np.zeros((lags_us.size, npix))
-    for i, lag in enumerate(lags_us):  # a few dozen lags, each vectorised over events
-        win = np.searchsorted(ft + int(round(lag)), obs.t_us, side="right") - 1
-        keep = (win >= 0) & (win < n_w)
-        key = win[keep] * npix + pix[keep]
-        n_on = np.bincount(key[on[keep]], minlength=n_w * npix).reshape(n_w, npix)
-        n_off = np.bincount(key[~on[keep]], minlength=n_w * npix).reshape(n_w, npix)
-        P = (n_on - n_off).astype(np.float64)
-        E = (n_on + n_off).astype(np.float64)
-        c, b, ok = fit_pixels(P, E, dL, w)
-        res = dL - np.nan_to_num(c) * P - np.nan_to_num(b) * E
-        ssr[i] = np.where(ok, (w * res * res).sum(0), 0.0)
-        tss[i] = np.where(ok, (w * dL * dL).sum(0), 0.0)
+    P = np.empty((n_w, npix), np.int32)
+    E = np.empty((n_w, npix), np.int32)
+    for i, lag in enumerate(lags_us):  # a few dozen lags, each one pass over the events
+        _count_windows(obs.t_us, obs.pix, obs.p, ft + int(round(lag)), P, E)
+        sums = window_sums(P, E, dL, w)
+        c, b, ok = fit_from_sums(*sums[:6])
+        ssr[i] = np.where(ok, residual_from_sums(sums, np.nan_to_num(c), np.nan_to_num(b)),
+                          0.0)
+        tss[i] = np.where(ok, sums[6], 0.0)
     obs.extra[ckey] = (ssr, tss)
     return ssr, tss
 

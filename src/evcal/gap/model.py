@@ -49,6 +49,7 @@ from .stats import (
     _iei,
     _static,
     discrepancy,
+    every_nth_row,
     fit_from_sums,
     observe,
     timestamp_quantum,
@@ -235,7 +236,8 @@ def _bins(meas: Observation, ok: np.ndarray, n_bins: int) -> np.ndarray:
 def anchor(model: Model, rec: Recording, meas: Observation, seed: int,
            settings: SimSettings, *, n_bins: int = 6, max_iter: int = 3,
            tol: float = 0.01, render: RenderCache | None = None,
-           trusted: np.ndarray | None = None) -> tuple[Model, Observation | None]:
+           trusted: np.ndarray | None = None, anchored: bool = False
+           ) -> tuple[Model, Observation | None]:
     """Correct ``c`` and ``b`` so a simulation of the model, fitted like the measurement, gives
     the measured fits.
 
@@ -248,6 +250,11 @@ def anchor(model: Model, rec: Recording, meas: Observation, seed: int,
     shifted by the median difference. Curves, not per-pixel ratios, so the fit noise of single
     pixels does not enter the maps. Up to ``max_iter`` simulations, until the population
     median agrees within ``tol`` after at least one correction.
+
+    ``anchored``: the maps were anchored before (an effect added to an anchored model, or a
+    parameter changed): the first simulation is accepted without a correction when it
+    agrees within ``2 tol`` in every activity bin, not only in the median (an effect that
+    does not move the fit costs one simulation, not two).
 
     Returns the anchored model and, when the loop ended on a simulation of that very model
     (it agreed), that simulation's observation (with ``trusted``): the workflow counts it as
@@ -286,6 +293,9 @@ def anchor(model: Model, rec: Recording, meas: Observation, seed: int,
         for j in range(nb):
             m = both & (bins == j)
             db[j] = np.median(fm["b"][m] - b_pred[m]) if m.sum() >= 10 else d_all
+        if it == 0 and anchored and abs(med_s / med_m - 1.0) < tol and \
+                np.all(np.abs(lr) < 2 * tol) and np.all(np.abs(db) < 2 * tol * med_m):
+            return model, obs
         c = np.maximum(model.contrast * k_pix, 1e-3)
         b = np.clip(model.bias * k_pix + db[bins].reshape(model.bias.shape), -0.8 * c, 0.8 * c)
         model = replace(model, contrast=c, bias=b)
@@ -453,9 +463,14 @@ def _fit_threshold_noise(meas: Observation, sims: list[Observation], model: Mode
 
 def _filter_fit_error(obs: Observation, cutoff_hz: float, offset: float) -> float:
     """Unexplained fraction of ``dLf = c P + b E`` where ``Lf`` is the frames' log intensity
-    through the bandwidth low-pass with this cutoff (per pixel, at frame rate)."""
+    through the bandwidth low-pass with this cutoff (per pixel, at frame rate). Kept in
+    ``obs.extra`` (the measurement's is asked for again every round)."""
     from .stats import fit_pixels  # noqa: PLC0415
 
+    key = f"bandwidth_fit_error/{float(cutoff_hz)!r}/{float(offset)!r}"
+    if key in obs.extra:
+        cached: float = obs.extra[key]
+        return cached
     f = _fit(obs)
     ref = Bandwidth().ref_dn
     L = np.log(obs.intensity.astype(np.float64) + offset)
@@ -472,7 +487,9 @@ def _filter_fit_error(obs: Observation, cutoff_hz: float, offset: float) -> floa
     res = dlf - np.nan_to_num(c) * f["P"] - np.nan_to_num(b) * f["E"]
     m = ok[None, :] & obs.usable
     tss = (dlf[m] ** 2).sum()
-    return float((res[m] ** 2).sum() / max(tss, 1e-12))
+    err = float((res[m] ** 2).sum() / max(tss, 1e-12))
+    obs.extra[key] = err
+    return err
 
 
 def _fit_bandwidth(meas: Observation, sims: list[Observation], model: Model,
@@ -638,6 +655,7 @@ SPILL_MIN_DROP = 1.0
 # how far the spill estimate may lie from the short-IEI one (which interpolated frames bias by
 # up to about 1.5x) and still be taken as the size of the same jitter
 SPILL_IEI_RATIO = 2.0
+JITTER_EVENTS = 500_000  # measured events the jitter fitter's curves are made of, about
 JITTER_GRID_US = np.concatenate([[0.0], np.geomspace(3, 3000, 16)])
 
 
@@ -679,7 +697,11 @@ def _fit_timestamp_jitter(meas: Observation, sims: list[Observation], model: Mod
         share = np.bincount(res, minlength=q).max() / max(t.size, 1)
         if share >= 0.99:
             q_hat = q
-    g_iei, g_spill = _jitter_curves(meas, sims, q_hat)
+    # the curves are per-pixel statistics: a sample of rows holding about JITTER_EVENTS
+    # events gives them (the grid jitters every event of it again for each sigma)
+    n = int(np.clip(np.ceil(meas.t_us.size / JITTER_EVENTS), 1, 8))
+    g_iei, g_spill = _jitter_curves(every_nth_row(meas, n), [every_nth_row(s, n) for s in sims],
+                                    q_hat)
     if int(np.argmin(g_iei)) == 0 and q_hat == 1:
         return None
     sigma = _grid_minimum(JITTER_GRID_US, g_iei)

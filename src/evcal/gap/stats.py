@@ -43,11 +43,15 @@ line_coincidence               still-window events per pixel-second with >= 2 ot
 
 from __future__ import annotations
 
+import threading
+import weakref
 from dataclasses import dataclass, field
 from typing import Any
 
+import numba
 import numpy as np
 
+from ..accumulate import order_by_key
 from ..errors import EvcalError
 from ..recording import Recording
 from ..solver import NormalEquations, SolveLimits, solve_pixels
@@ -98,6 +102,9 @@ class Observation:
     # well enough for timing statistics (all True unless given; see evcal.gap.flow.trusted)
     trusted: np.ndarray | None = None
     extra: dict[str, Any] = field(default_factory=dict)
+    # what depends on the frames only (static windows): shared by the observations of the
+    # same frames (a measurement and its simulations), computed once
+    shared: dict[str, Any] = field(default_factory=dict)
 
     @property
     def n_windows(self) -> int:
@@ -143,27 +150,138 @@ def observe(rec: Recording, *, saturation_dn: tuple[float, float] = (0.0, 255.0)
     on_m = ev["p"] > 0
     on = np.bincount(key[on_m], minlength=n_w * npix).reshape(n_w, npix).astype(np.int32)
     off = np.bincount(key[~on_m], minlength=n_w * npix).reshape(n_w, npix).astype(np.int32)
-    inten = fr.images.reshape(len(fr), npix).astype(np.float32)
-    log_i = np.log(np.maximum(inten.astype(np.float64), 0.0) + NOMINAL_LOG_OFFSET_DN)
-    lo, hi = saturation_dn
-    ok = (inten > lo) & (inten < hi)
-    usable = ok[1:] & ok[:-1]
+    inten, log_i, usable, shared = _frame_arrays(fr.images, saturation_dn)
     if trusted is not None:
         trusted = np.asarray(trusted, bool)
         if trusted.shape != (n_w, npix):
             raise GapError(f"trusted mask has shape {trusted.shape}, expected {(n_w, npix)}")
-    return Observation((h, w), ft.copy(), on, off, log_i, inten, usable, ev["t_us"].copy(),
-                       pix, ev["p"].copy(), trusted)
+    obs = Observation((h, w), ft.copy(), on, off, log_i, inten, usable, ev["t_us"].copy(),
+                      pix, ev["p"].copy(), trusted, shared=shared)
+    obs.extra["win"] = win.astype(np.int32)
+    return obs
+
+
+_FRAME_LOCK = threading.Lock()
+# id(images) -> (weak reference to images, saturation, arrays): the simulations of a run are
+# driven by (and carry) the measured frames themselves
+_FRAME_CACHE: dict[int, tuple[Any, tuple[float, ...], Any]] = {}
+
+
+def _frame_arrays(images: np.ndarray, saturation_dn: tuple[float, float]
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
+    """Intensity, log intensity at the nominal offset and usable windows of ``images``
+    (read-only), and the dictionary shared by the observations of these frames: computed
+    once per frames and reused while they live (a run observes the same frames some
+    hundred times)."""
+    with _FRAME_LOCK:
+        hit = _FRAME_CACHE.get(id(images))
+        if hit is not None and hit[0]() is images and hit[1] == tuple(saturation_dn):
+            arrays: tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, Any]] = hit[2]
+            return arrays
+    n_f = images.shape[0]
+    inten = images.reshape(n_f, -1).astype(np.float32)
+    log_i = np.log(np.maximum(inten.astype(np.float64), 0.0) + NOMINAL_LOG_OFFSET_DN)
+    lo, hi = saturation_dn
+    ok = (inten > lo) & (inten < hi)
+    usable = ok[1:] & ok[:-1]
+    for a in (inten, log_i, usable):
+        a.setflags(write=False)
+    arrays = (inten, log_i, usable, {})
+    key = id(images)
+
+    def forget(_ref: Any) -> None:
+        with _FRAME_LOCK:
+            if key in _FRAME_CACHE and _FRAME_CACHE[key][0]() is None:
+                del _FRAME_CACHE[key]
+
+    try:
+        ref = weakref.ref(images, forget)
+    except TypeError:  # not weakly referable (a memory map's base, say): not cached
+        return arrays
+    with _FRAME_LOCK:
+        _FRAME_CACHE[key] = (ref, tuple(saturation_dn), arrays)
+    return arrays
+
+
+def every_nth_row(obs: Observation, n: int) -> Observation:
+    """``obs`` on every ``n``-th row of the sensor (rows 0, n, 2n, ...): for per-pixel
+    statistics and fitters that need many pixels but not all of them (the sample is the
+    same for a measurement and its simulations)."""
+    if n <= 1:
+        return obs
+    h, w = obs.shape
+    rows = np.arange(0, h, n)
+    cols = (rows[:, None] * w + np.arange(w)[None, :]).ravel()
+    new_index = np.full(h * w, -1, np.int64)
+    new_index[cols] = np.arange(cols.size)
+    keep = new_index[obs.pix] >= 0
+    return Observation((rows.size, w), obs.frame_t_us, obs.on[:, cols], obs.off[:, cols],
+                       obs.log_i[:, cols], obs.intensity[:, cols], obs.usable[:, cols],
+                       obs.t_us[keep], new_index[obs.pix[keep]], obs.p[keep],
+                       None if obs.trusted is None else obs.trusted[:, cols])
+
+
+def event_windows(obs: Observation) -> np.ndarray:
+    """The window of each event of ``obs`` (int32)."""
+    if "win" not in obs.extra:
+        obs.extra["win"] = np.clip(np.searchsorted(obs.frame_t_us, obs.t_us, side="right") - 1,
+                                   0, obs.n_windows - 1).astype(np.int32)
+    result: np.ndarray = obs.extra["win"]
+    return result
 
 
 # ------------------------------------------------------------------------------ per-pixel fit
 
 
+@numba.njit(cache=True, nogil=True)
+def _window_sums(P: np.ndarray, E: np.ndarray, dL: np.ndarray, w: np.ndarray, split: int
+                 ) -> Any:  # pragma: no cover - compiled
+    """Per pixel, over the windows before ``split`` ([0]) and from it on ([1]): the weighted
+    sums of P P, P E, E E, P dL, E dL, E and dL dL (one pass over the windows)."""
+    n_w, npix = P.shape
+    out = np.zeros((2, 7, npix))
+    for k in range(n_w):
+        h = 0 if k < split else 1
+        for i in range(npix):
+            wi = np.float64(w[k, i])
+            if wi == 0.0:
+                continue
+            p = np.float64(P[k, i])
+            e = np.float64(E[k, i])
+            y = np.float64(dL[k, i])
+            out[h, 0, i] += wi * p * p
+            out[h, 1, i] += wi * p * e
+            out[h, 2, i] += wi * e * e
+            out[h, 3, i] += wi * p * y
+            out[h, 4, i] += wi * e * y
+            out[h, 5, i] += wi * e
+            out[h, 6, i] += wi * y * y
+    return out
+
+
+def window_sums(P: np.ndarray, E: np.ndarray, dL: np.ndarray, wgt: np.ndarray,
+                split: int | None = None) -> np.ndarray:
+    """Per-pixel weighted sums ``[7, npix]`` of P P, P E, E E, P dL, E dL, E, dL dL over the
+    windows (``[2, 7, npix]``: before and from window ``split``, when given)."""
+    arrs = [np.ascontiguousarray(a) for a in (P, E, dL, wgt)]
+    n_w = arrs[0].shape[0]
+    out: np.ndarray = _window_sums(*arrs, n_w if split is None else int(split))
+    return out[0] if split is None else out
+
+
 def fit_pixels(P: np.ndarray, E: np.ndarray, dL: np.ndarray, wgt: np.ndarray
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Closed-form per-pixel least squares of ``dL = c P + b E``; returns ``c, b, ok``."""
-    return fit_from_sums((wgt * P * P).sum(0), (wgt * P * E).sum(0), (wgt * E * E).sum(0),
-                         (wgt * P * dL).sum(0), (wgt * E * dL).sum(0), (wgt * E).sum(0))
+    return fit_from_sums(*window_sums(P, E, dL, wgt)[:6])
+
+
+def residual_from_sums(sums: np.ndarray, c: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Per pixel, the weighted sum of squared residuals ``dL - c P - b E`` from the sums of
+    :func:`window_sums` (expanded: no second pass over the windows)."""
+    spp, spe, see, spy, sey, _, syy = sums
+    ss = syy - 2 * c * spy - 2 * b * sey + c * c * spp + 2 * c * b * spe + b * b * see
+    out: np.ndarray = np.maximum(ss, 0.0)
+    return out
 
 
 def fit_from_sums(spp: np.ndarray, spe: np.ndarray, see: np.ndarray, spy: np.ndarray,
@@ -190,22 +308,33 @@ def _fit(obs: Observation) -> dict[str, Any]:
         return cached
     P = (obs.on - obs.off).astype(np.float64)
     E = (obs.on + obs.off).astype(np.float64)
-    dL = obs.log_i[1:] - obs.log_i[:-1]
-    wgt = obs.usable.astype(np.float64)
-    c, b, ok = fit_pixels(P, E, dL, wgt)
-    half = obs.n_windows // 2
-    w1 = wgt.copy()
-    w1[half:] = 0
-    w2 = wgt.copy()
-    w2[:half] = 0
-    c1, b1, ok1 = fit_pixels(P, E, dL, w1)
-    c2, b2, ok2 = fit_pixels(P, E, dL, w2)
+    dL = _shared(obs, "dL", lambda: obs.log_i[1:] - obs.log_i[:-1])
+    wgt = _shared(obs, "wgt", lambda: obs.usable.astype(np.float64))
+    halves = window_sums(P, E, dL, wgt, split=obs.n_windows // 2)
+    c, b, ok = fit_from_sums(*(halves[0] + halves[1])[:6])
+    c1, b1, ok1 = fit_from_sums(*halves[0][:6])
+    c2, b2, ok2 = fit_from_sums(*halves[1][:6])
     res = np.where(ok[None, :] & obs.usable, dL - np.nan_to_num(c) * P - np.nan_to_num(b) * E,
                    np.nan)
     out = {"P": P, "E": E, "dL": dL, "c": c, "b": b, "ok": ok, "res": res,
            "c1": c1, "c2": c2, "b1": b1, "b2": b2, "ok12": ok1 & ok2}
     obs.extra["fit"] = out
     return out
+
+
+def _shared(obs: Observation, key: str, make: Any) -> np.ndarray:
+    """``obs.shared[key]``, made (read-only) by ``make()`` on first use."""
+    if key not in obs.shared:
+        a = np.asarray(make())
+        a.setflags(write=False)
+        obs.shared[key] = a
+    result: np.ndarray = obs.shared[key]
+    return result
+
+
+def _i_mid(obs: Observation) -> np.ndarray:
+    """Each window's mean of its two frames' intensity, DN."""
+    return _shared(obs, "i_mid", lambda: 0.5 * (obs.intensity[1:] + obs.intensity[:-1]))
 
 
 def _quantile_edges(v: np.ndarray, n: int) -> np.ndarray:
@@ -253,13 +382,11 @@ def _iei(obs: Observation) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     if "iei" in obs.extra:
         cached: tuple[np.ndarray, np.ndarray, np.ndarray] = obs.extra["iei"]
         return cached
-    order = np.argsort(obs.pix, kind="stable")
+    order = order_by_key(obs.pix, obs.n_pixels)
     ps, ts, pp = obs.pix[order], obs.t_us[order], obs.p[order]
     same = ps[1:] == ps[:-1]
     if obs.trusted is not None:  # both events of a pair in trusted windows of their pixel
-        win = np.clip(np.searchsorted(obs.frame_t_us, ts, side="right") - 1, 0,
-                      obs.n_windows - 1)
-        tr = obs.trusted[win, ps]
+        tr = obs.trusted[event_windows(obs)[order], ps]
         same &= tr[1:] & tr[:-1]
     iei = (ts[1:] - ts[:-1])[same].astype(np.float64)
     opp = (pp[1:] != pp[:-1])[same]
@@ -289,8 +416,8 @@ def _static(obs: Observation) -> np.ndarray:
     """Windows of a still pixel: |dL| < STATIC_DL in the window and STATIC_HALF_WIDTH windows
     either side (a short pause of a moving texture is not still: sub-quantum changes there
     still make events that frames cannot show)."""
-    if "static" in obs.extra:
-        result: np.ndarray = obs.extra["static"]
+    if "static" in obs.shared:
+        result: np.ndarray = obs.shared["static"]
         return result
     dl = np.abs(obs.log_i[1:] - obs.log_i[:-1]) < STATIC_DL
     st = dl.copy()
@@ -300,7 +427,8 @@ def _static(obs: Observation) -> np.ndarray:
         st[:k] = False
         st[-k:] = False
     st &= obs.usable
-    obs.extra["static"] = st
+    st.setflags(write=False)
+    obs.shared["static"] = st
     result_272: np.ndarray = st
     return result_272
 
@@ -308,7 +436,7 @@ def _static(obs: Observation) -> np.ndarray:
 def _static_bins(obs: Observation, n_bins: int = 4
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     st = _static(obs)
-    i_mid = 0.5 * (obs.intensity[1:] + obs.intensity[:-1])
+    i_mid = _i_mid(obs)
     ws = np.broadcast_to(obs.window_s[:, None], st.shape)
     key = i_mid[st]
     edges = _quantile_edges(key, n_bins)
@@ -440,7 +568,7 @@ def _changing_windows(obs: Observation) -> tuple[dict[str, Any], np.ndarray, np.
     m = obs.usable & (adl > 0.1)
     if obs.trusted is not None:
         m &= obs.trusted
-    i_mid = 0.5 * (obs.intensity[1:] + obs.intensity[:-1])
+    i_mid = _i_mid(obs)
     return f, adl, m, i_mid
 
 
@@ -537,8 +665,7 @@ def line_events(obs: Observation, axis: str) -> dict[str, np.ndarray]:
         return cached
     h, w = obs.shape
     st = _static(obs)
-    win = np.clip(np.searchsorted(obs.frame_t_us, obs.t_us, side="right") - 1, 0,
-                  obs.n_windows - 1)
+    win = event_windows(obs)
     keep = st[win, obs.pix]
     pix, t, win = obs.pix[keep], obs.t_us[keep].astype(np.int64), win[keep]
     line = pix // w if axis == "row" else pix % w
@@ -546,8 +673,12 @@ def line_events(obs: Observation, axis: str) -> dict[str, np.ndarray]:
     t_rel = t - (int(t.min()) if t.size else 0)
     span = (int(t_rel.max()) if t.size else 0) + 4 * dt + 1
     key = line.astype(np.int64) * span + t_rel  # lines far apart in key space
-    order = np.argsort(key, kind="stable")
+    # by line, stable: the events are in time order, so this is the order of the key
+    order = order_by_key(line, h if axis == "row" else w)
     key = key[order]
+    if key.size > 1 and np.any(key[1:] < key[:-1]):  # events not in time order
+        order = order[np.argsort(key, kind="stable")]
+        key = line.astype(np.int64)[order] * span + t_rel[order]
     n_near = (np.searchsorted(key, key + dt, side="right")
               - np.searchsorted(key, key - dt, side="left") - 1)
     out = {"key": key, "line": line[order], "win": win[order], "pix": pix[order],

@@ -225,6 +225,8 @@ class _Runner:
         # confirmed on every seed, best first
         self.screened_pool: dict[str, tuple[Effect, Evaluation]] = {}
         self.confirmed: list[tuple[float, Effect, Evaluation]] = []
+        # ids of models whose maps were refitted, not anchored (see evaluate)
+        self._refitted: set[int] = set()
 
     def _counted(self) -> None:
         """One more simulation (the render cache serves each one once)."""
@@ -236,13 +238,16 @@ class _Runner:
         return observe(simulate_model(model, self.rec, seed, self.settings, self.render),
                        trusted=self.trusted)
 
-    def evaluate(self, model: Model, what: str, *, spread: Evaluation | None = None
-                 ) -> Evaluation:
+    def evaluate(self, model: Model, what: str, *, spread: Evaluation | None = None,
+                 anchored: bool | None = None) -> Evaluation:
         """Anchor ``model`` and simulate it with every seed (in parallel), or, with
         ``spread``, with the first seed only (a screening; the seed-to-seed spread is
-        ``spread``'s)."""
+        ``spread``'s). ``anchored``: its maps are those of an anchored model (see
+        :func:`.model.anchor`; by default, unless :meth:`candidate_model` refitted them)."""
+        if anchored is None:
+            anchored = id(model) not in self._refitted
         model, first = anchor(model, self.rec, self.meas, self.seeds[0], self.settings,
-                              render=self.render, trusted=self.trusted)
+                              render=self.render, trusted=self.trusted, anchored=anchored)
         sims = [first] if first is not None else []
         n = 1 if spread is not None else len(self.seeds)
         ev = Evaluation(model, sims, self.meas_disc([], None), [summarise(o) for o in sims])
@@ -282,7 +287,10 @@ class _Runner:
         if eff.name == "log_offset":
             base = fit_base(self.rec, log_offset=float(eff.parameters()["dark_dn"]))
             m = Model(base.contrast, base.bias, base.log_offset, dict(current.effects))
-            return m.with_effect(eff)
+            m = m.with_effect(eff)
+            # (a reused id can only cost an anchor one more simulation)
+            self._refitted.add(id(m))
+            return m
         return current.with_effect(eff)
 
     def debias(self, current: Evaluation, best: Evaluation, eff: Effect
@@ -359,10 +367,12 @@ class _Runner:
         self.screened_pool = {}
         self.confirmed = []
         fitted: list[tuple[str, Effect]] = []
-        for name in self.cfg.candidates:
-            if name in current.model.effects or name == skip:
-                continue
-            eff = fit_candidate(name, self.meas, current.sims, current.model, self.rec)
+        names = [n for n in self.cfg.candidates if n not in current.model.effects and n != skip]
+        # the fitters on every core too (the slow ones are numpy and numba without the GIL)
+        with ThreadPoolExecutor(max_workers=self.workers) as pool:
+            effs = list(pool.map(lambda n: fit_candidate(n, self.meas, current.sims,
+                                                         current.model, self.rec), names))
+        for name, eff in zip(names, effs, strict=True):
             if eff is None:
                 tried[name] = {"parameters": None, "gap": None}
                 continue
@@ -398,7 +408,20 @@ class _Runner:
                     best = (score, eff, ev)
             self.screened_pool[name] = (eff, ev)
         self.confirmed.sort(key=lambda t: t[0])
+        # only the beam's candidates are simulated on top of; the others' observations
+        # (a hundred MB each at 240x180) are let go now, not at the end of the round
+        keep = {id(self.screened_pool[n][1]) for n in self.beam_top(tried)}
+        keep |= {id(ev) for _, _, ev in self.confirmed}
+        for ev in evals:
+            if id(ev) not in keep:
+                ev.sims.clear()
         return best
+
+    def beam_top(self, tried: dict[str, dict[str, Any]]) -> list[str]:
+        """The ``beam_width`` screened candidates of the lowest score."""
+        singles = sorted((tried[n]["score"], n) for n in self.screened_pool
+                         if tried.get(n, {}).get("score") is not None)
+        return [n for _, n in singles[:self.cfg.beam_width]]
 
     def runner_up(self, best: tuple[float, Effect, Evaluation]
                   ) -> tuple[float, Effect, Evaluation] | None:
@@ -432,9 +455,7 @@ class _Runner:
         explain the data only together: each hides the other's signature). The pair of the
         lowest score, confirmed on every seed, with the evaluation of its first effect
         alone."""
-        singles = sorted((tried[n]["score"], n) for n in self.screened_pool
-                          if tried.get(n, {}).get("score") is not None)
-        top = [n for _, n in singles[:self.cfg.beam_width]]
+        top = self.beam_top(tried)
         jobs: list[tuple[Effect, Evaluation, Effect, Model]] = []
         for i, a in enumerate(top):
             eff_a, ev_a = self.screened_pool[a]
@@ -493,7 +514,9 @@ class _Runner:
                 e = eff.with_params(**{key: _cast(eff, key, v0 * f)})
             except ValueError:  # outside the parameter's range (e.g. sigma above 1)
                 return eff, best  # no three-point search: the moment estimate stands
-            ev = self.evaluate(self.candidate_model(current, e), f"refine {eff.name}")
+            # screened (one seed, ``best``'s spread): only a winner is confirmed
+            ev = self.evaluate(self.candidate_model(current, e), f"refine {eff.name}",
+                               spread=best)
             gaps.append(ev.gap)
             evals.append((e, ev))
         y = np.asarray(gaps)
@@ -503,13 +526,19 @@ class _Runner:
             xv = float(np.clip(x[1] + 0.5 * (x[1] - x[0]) * (y[0] - y[2]) / den, x[0], x[2]))
             if abs(xv) > 0.05 and int(np.argmin(y)) != 0 and int(np.argmin(y)) != 2:
                 e = eff.with_params(**{key: _cast(eff, key, v0 * np.exp(xv))})
-                ev = self.evaluate(self.candidate_model(current, e), f"refine {eff.name}")
+                ev = self.evaluate(self.candidate_model(current, e), f"refine {eff.name}",
+                                   spread=best)
                 gaps.append(ev.gap)
                 evals.append((e, ev))
         i = int(np.argmin(gaps))
-        # keep the moment estimate unless the search clearly beats it (the gap is noisy)
-        if gaps[i] < best.gap - max(0.3, 0.1 * best.gap):
-            return evals[i]
+        # keep the moment estimate unless the search clearly beats it (the gap is noisy),
+        # screened and then on every seed
+        margin = max(0.3, 0.1 * best.gap)
+        if gaps[i] < best.gap - margin:
+            e, ev = evals[i]
+            ev = self.confirm(ev, f"confirm refined {eff.name}")
+            if ev.gap < best.gap - margin:
+                return e, ev
         return eff, best
 
 
@@ -552,7 +581,8 @@ def n_simulations(cfg: GapConfig, rounds: int | None = None) -> int:
         cands = max(k - i, 0)
         total += cands * screen + (cfg.confirm_top * (cfg.n_seeds - 1) if cfg.screen else 0)
         if i < n_rounds - 1:
-            total += 4 * full  # the named effect: bias correction and refinement
+            # the named effect: bias correction (on every seed), refinement (screened)
+            total += 2 * full + 2 * screen
     return total
 
 
@@ -592,6 +622,15 @@ def working_window(rec: Recording, max_pixel_steps: int, internal_rate_hz: float
     return cut, info
 
 
+def _moved_on(old: Evaluation, new: Evaluation) -> Evaluation:
+    """``new``, once the workflow has moved on from ``old``: ``old``'s simulated
+    observations are let go (its statistics stay, for the report; nothing simulates on top
+    of it again)."""
+    if old is not new:
+        old.sims.clear()
+    return new
+
+
 def run_gap(rec: Recording, config: GapConfig | None = None, *,
             progress: Callable[[str], None] | None = None,
             plan: Callable[[int], None] | None = None) -> GapResult:
@@ -614,7 +653,7 @@ def run_gap(rec: Recording, config: GapConfig | None = None, *,
     rec, window = working_window(rec, cfg.max_pixel_steps, cfg.internal_rate_hz)
     run = _Runner(rec, cfg, tick)
     base = fit_base(rec)
-    current = run.evaluate(base, "base model")
+    current = run.evaluate(base, "base model", anchored=False)
     initial = current
     steps: list[Step] = []
     rejected: dict[str, dict[str, Any]] = {}
@@ -646,7 +685,7 @@ def run_gap(rec: Recording, config: GapConfig | None = None, *,
             # read off the timestamps: neither bias-corrected nor refined, so the candidates
             # evaluated on top of it stand
             steps.append(Step(eff_q, current, ev_q, tried))
-            current = ev_q
+            current = _moved_on(current, ev_q)
             tried = {k: v for k, v in tried.items() if k != SCHEME_EFFECT}
         if best is None or _gain(current.gap, best[0]) <= _need(cfg, current):
             pair = None
@@ -660,7 +699,8 @@ def run_gap(rec: Recording, config: GapConfig | None = None, *,
             (eff_a, ev_a), (eff_b, ev_pair) = pair[1]
             steps.append(Step(eff_a, current, ev_a, tried))
             steps.append(Step(eff_b, ev_a, ev_pair, {}))
-            current = ev_pair
+            _moved_on(ev_a, ev_pair)
+            current = _moved_on(current, ev_pair)
             continue
         close = run.runner_up(best)
         _, eff, ev = best
@@ -674,7 +714,7 @@ def run_gap(rec: Recording, config: GapConfig | None = None, *,
                     _gain(current.gap, ev2.gap + pen * eff2.n_fitted) > _need(cfg, current):
                 eff, ev = eff2, ev2
         steps.append(Step(eff, current, ev, tried))
-        current = ev
+        current = _moved_on(current, ev)
     if plan is not None:
         plan(run.simulations)
     info = {"sensor": str(rec.sensor), "n_events": full.n_events,

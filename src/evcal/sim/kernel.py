@@ -10,8 +10,11 @@ Between two internal samples the (optionally low-passed) log intensity of a pixe
   the log intensity until the dead time ends) or delayed (``delay``: fire at its end);
 - a reference that drifts down (leak), the drift being booked so that leak events get a label
   (an ON event is labelled leak when at least half a threshold of drift is unpaid);
-- at most one shot-noise event per pixel and step (Poisson rate x step << 1), which resets the
-  reference to the present log intensity.
+- shot noise: a Poisson process whose rate depends on the light, drawn by thinning: each
+  pixel keeps the time of its next candidate from a process at the law's highest rate, and a
+  candidate becomes an event with the probability rate(I) / highest rate (at most one per
+  pixel and step); an event resets the reference to the present log intensity. Nothing is
+  drawn in a step without a candidate, so shot noise costs per event, not per step.
 
 Randomness comes from a per-pixel xorshift64* stream seeded by the caller, so results do not
 depend on the order pixels are visited in, and there is no global RNG state.
@@ -77,7 +80,6 @@ def _grow(buf: np.ndarray, n: int) -> Any:  # pragma: no cover - compiled
 _MARGIN = 1e-6
 _F32_TINY = 1.1754943508222875e-38  # smallest normal float32
 # the same for the shot-noise test (float64 products: a few 1e-16)
-_SHOT_MARGIN = 1e-12
 # events in one bucket of the per-step sort above which insertion would cost more than merging
 _MAX_BUCKET = 256
 # buckets of the per-step sort (a microsecond each, up to steps of this length)
@@ -152,7 +154,7 @@ def _search(j0: np.ndarray, n_slow: np.ndarray, slow_idx: np.ndarray, k: int,
             ref_i: np.ndarray, ref: np.ndarray, th_on_nom: np.ndarray, th_off_nom: np.ndarray,
             th_on: np.ndarray, th_off: np.ndarray, dead_until: np.ndarray,
             last_fire: np.ndarray, leak_debt: np.ndarray, rng_state: np.ndarray,
-            u_shot: np.ndarray, th_sigma: np.ndarray, refr_us: np.ndarray,
+            shot_next: np.ndarray, th_sigma: np.ndarray, refr_us: np.ndarray,
             refr_delay: np.ndarray, shot_rate_hz: np.ndarray, shot_ref_dn: np.ndarray,
             shot_exp: np.ndarray, bw_cutoff_hz: np.ndarray, bw_ref_dn: np.ndarray,
             bw_min_hz: np.ndarray, tl_exp: float, tl_ref: np.ndarray,
@@ -192,16 +194,19 @@ def _search(j0: np.ndarray, n_slow: np.ndarray, slow_idx: np.ndarray, k: int,
             return n, j
         fn = 2.0
         npol = 0
-        if shot:
-            u = u_shot[i]
-            if shot_exp == 1.0:
-                rate = shot_rate_hz * shot_ref_dn / max(inten, 0.1 * shot_ref_dn)
-            else:
-                rate = shot_rate_hz * (shot_ref_dn / max(inten, 0.1 * shot_ref_dn)) ** shot_exp
-            pr = rate * dt_s
-            if u < pr:
-                fn = u / pr
+        if shot and shot_next[i] < t1:
+            # a candidate of the process at the highest rate (the intensity floored at a
+            # tenth of the reference): an event with probability rate(I) / that rate
+            f_cand = max((shot_next[i] - t0) / dt, 0.0)
+            keep = (shot_ref_dn / max(inten, 0.1 * shot_ref_dn)) * 0.1
+            if shot_exp != 1.0:
+                keep = keep ** shot_exp
+            if _next_u01(rng_state, i) < keep:
+                fn = f_cand
                 npol = 1 if _next_u01(rng_state, i) < 0.5 else -1
+            mean_gap_us = 1e6 / (shot_rate_hz * 10.0 ** shot_exp)
+            while shot_next[i] < t1:  # at most one event per step
+                shot_next[i] += -math.log(1.0 - _next_u01(rng_state, i)) * mean_gap_us
         span = b - a
         fc = 0.0
         # two passes: crossings up to the noise event (if any), then the rest of the step
@@ -332,6 +337,7 @@ def run_steps(
     leak_rate: Any,  # Hz per pixel (0: no leak)
     leak_debt: Any,  # log units of drift not yet paid out as a labelled leak event
     rng_state: Any,  # uint64 per pixel
+    shot_next: Any,  # float us: each pixel's next shot-noise candidate (see the module doc)
     # effect parameters (0 disables)
     th_sigma: Any,
     refr_us: Any,
@@ -390,17 +396,15 @@ def run_steps(
     tmp_l = np.empty(0, np.uint8)
     slow = np.empty(n_pix, np.uint8)
     slow_idx = np.empty(n_pix, np.int64)
-    u_shot = np.empty(n_pix, np.float64)
-    shot_quiet = np.empty(n_pix, np.bool_)
     for k in range(k_steps):
         t0 = times[k]
         t1 = times[k + 1]
         dt = float(t1 - t0)
         dt_s = dt * 1e-6
         n_start = n
-        # pass 1 (loops the compiler vectorises): leak drift, the shot-noise draw (the first
-        # draw of the pixel's step either way, so its random stream does not depend on the
-        # pass that handles it) and the no-crossing test
+        # pass 1 (loops the compiler vectorises): leak drift and the no-crossing test (a
+        # pixel with a shot-noise candidate in the step is not quiet; every draw happens in
+        # pass 2, so a pixel's random stream does not depend on the shortcut)
         # without light dependence, the drift goes into the test's loop (ref is read once)
         # the intensity-domain bounds assume the comparator sees ln(I + dark): not with a
         # low-pass or a light-dependent threshold, which run the exact search everywhere
@@ -415,20 +419,7 @@ def run_steps(
                 d = rate * th_on_nom[i] * dt_s
                 ref[i] = ref[i] - d
                 leak_debt[i] += d
-        if shot:
-            # u < p = (rate ref / max(I, 0.1 ref)) dt is decided here without the division
-            # where u max(I, 0.1 ref) is clearly above rate ref dt (pass 2 decides the rest,
-            # with the division)
-            c_quiet = shot_rate_hz * shot_ref_dn ** shot_exp * dt_s * (1.0 + _SHOT_MARGIN)
-            i_min = 0.1 * shot_ref_dn
-            for i in range(n_pix):
-                u = _next_u01(rng_state, i)
-                u_shot[i] = u
-                x = np.float64(intensity[k, i])
-                x = x if x > i_min else i_min
-                if shot_exp != 1.0:
-                    x = x ** shot_exp
-                shot_quiet[i] = u * x > c_quiet
+        t1f = float(t1)
         if exact:
             for i in range(n_pix):
                 slow[i] = 1
@@ -447,7 +438,7 @@ def run_steps(
                 if drop:
                     quiet &= dead_until[i] <= t0
                 if shot:
-                    quiet &= shot_quiet[i]
+                    quiet &= shot_next[i] >= t1f
                 slow[i] = np.uint8(not quiet)
         else:
             for i in range(n_pix):
@@ -459,7 +450,7 @@ def run_steps(
                 if drop:
                     quiet &= dead_until[i] <= t0
                 if shot:
-                    quiet &= shot_quiet[i]
+                    quiet &= shot_next[i] >= t1f
                 slow[i] = np.uint8(not quiet)
         n_slow = 0
         for i in range(n_pix):
@@ -471,7 +462,7 @@ def run_steps(
         while j < n_slow:
             n, j = _search(j, n_slow, slow_idx, k, intensity, times, log_offset, lf, lf_ok,
                            i_prev, hi_i, lo_i, ref_i, ref, th_on_nom, th_off_nom, th_on,
-                           th_off, dead_until, last_fire, leak_debt, rng_state, u_shot,
+                           th_off, dead_until, last_fire, leak_debt, rng_state, shot_next,
                            th_sigma, refr_us, refr_delay, shot_rate_hz, shot_ref_dn, shot_exp,
                            bw_cutoff_hz, bw_ref_dn, bw_min_hz, tl_exp, tl_ref, t_f, t_i, pix,
                            pol, lab, n)

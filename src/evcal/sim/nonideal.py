@@ -214,6 +214,11 @@ def simulate(
     shot = eff.get(ShotNoise.name)
     shot_rate, shot_ref, shot_exp = (
         shot.kernel_law() if isinstance(shot, ShotNoise) else (0.0, 16.0, 1.0))
+    # each pixel's first shot-noise candidate (the kernel draws the following ones)
+    shot_next = np.full(npix, np.inf)
+    if shot_rate > 0:
+        shot_next = float(times[0]) + r_kernel.exponential(
+            1e6 / (shot_rate * 10.0 ** shot_exp), npix)
     bw = eff.get(Bandwidth.name)
     bw_cut, bw_ref, bw_min = (float(bw.cutoff_hz), float(bw.ref_dn), float(bw.min_cutoff_hz)
                               ) if isinstance(bw, Bandwidth) else (0.0, 128.0, 0.5)
@@ -272,8 +277,9 @@ def simulate(
         buf_tf, buf_ti, buf_pix, buf_p, buf_lab, n_ev = run_steps(
             block, times[k : k + kk + 1], offset, lf, lf_ok, i_prev, hi_i, lo_i, ref_i, ref,
             th_on_nom, th_off_nom, th_on, th_off, dead, last_fire, leak_rate, debt, rng_state,
-            th_sigma, refr_us, refr_delay, leak_exp, leak_ref, shot_rate, shot_ref, shot_exp,
-            bw_cut, bw_ref, bw_min, tl_exp, tl_ref, buf_tf, buf_ti, buf_pix, buf_p, buf_lab, n_ev)
+            shot_next, th_sigma, refr_us, refr_delay, leak_exp, leak_ref, shot_rate, shot_ref,
+            shot_exp, bw_cut, bw_ref, bw_min, tl_exp, tl_ref, buf_tf, buf_ti, buf_pix, buf_p,
+            buf_lab, n_ev)
         k += kk
         want = int(1.1 * n_ev * n_steps / k) + 1024
         if k < n_steps and want > buf_tf.size:
