@@ -110,6 +110,22 @@ def test_hidden_effect_is_named_first_and_fitted(name: str, seed: int) -> None:
     assert main_parameter(fitted) == pytest.approx(true_value(truth, fitted), rel=TOLERANCE)
 
 
+# screening on a band of rows (what a recording of a user's size gets) must name what
+# screening on every row names: the two effects of the speed benchmark's case, on seeds of
+# their own
+@pytest.mark.parametrize(("name", "seed"), [("refractory", 117), ("shot_noise", 131)])
+def test_screening_on_a_band_of_rows_names_the_hidden_effect(name: str, seed: int) -> None:
+    truth = CASES[name][0]
+    rec = hidden_recording(CASES[name], seed)
+    res = run_gap(rec, GapConfig(max_effects=1, n_seeds=3, seed=1, screen_band_min=1_000_000))
+    y0, y1 = res.recording_info["screen_band_rows"]
+    assert y1 - y0 == 16 and 0 <= y0 < y1 <= H  # 16 rows at least (a quarter would be 12)
+    assert res.named_effects[:1] == [name], res.steps[0].candidates if res.steps else {}
+    assert res.final.gap <= 0.5 * res.initial.gap
+    fitted = res.steps[0].effect
+    assert main_parameter(fitted) == pytest.approx(true_value(truth, fitted), rel=TOLERANCE)
+
+
 def main_parameter(e: Effect) -> float:
     return float(e.parameters()[e.primary])
 

@@ -197,3 +197,22 @@ def test_observations_of_the_same_frames_share_their_frame_arrays() -> None:
     np.testing.assert_array_equal(sub.on.sum(), meas.on.reshape(-1, H, W)[:, rows].sum())
     np.testing.assert_array_equal(np.bincount(sub.pix, minlength=sub.n_pixels),
                                   (sub.on + sub.off).sum(0))
+
+
+def test_progress_without_a_terminal_prints_lines_with_the_time_left(capsys,
+                                                                   monkeypatch) -> None:
+    from evcal.gap import cli
+
+    monkeypatch.setattr(cli._Progress, "EVERY_S", 0.0)
+    p = cli._Progress(10.0, quiet=False, tty=False)
+    p.tick(0.25)  # a screening on a quarter of the rows
+    p.plan(6.0)  # a round fewer than planned
+    p.tick(1.0)
+    p.close()
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 2
+    assert lines[0].startswith("evcal gap: 0.2 of 10.0 simulations planned")
+    assert "1.2 of 6.0 simulations planned" in lines[1] and "left" in lines[1]
+    quiet = cli._Progress(10.0, quiet=True, tty=False)
+    quiet.tick(1.0)
+    assert capsys.readouterr().err == ""

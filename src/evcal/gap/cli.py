@@ -89,26 +89,14 @@ def run(args: argparse.Namespace) -> int:
     except RecordingError as exc:
         print(f"evcal gap: {exc}", file=sys.stderr)
         return 1
-    quiet = args.quiet or not sys.stderr.isatty()
-    from tqdm import tqdm  # noqa: PLC0415
-
-    # the total is the plan (an upper bound: every round that may name an effect), lowered
-    # as rounds end; tqdm's estimate of the time left is the plan's remaining simulations at
-    # the rate so far
-    with tqdm(total=n_simulations(cfg), desc="gap (simulations planned)", unit="sim",
-              disable=quiet, file=sys.stderr, leave=False) as bar:
-        def tick(msg: str) -> None:
-            bar.update(1)
-
-        def plan(n: int) -> None:
-            bar.total = max(n, bar.n)
-            bar.refresh()
-
-        try:
-            result = run_gap(rec, cfg, progress=tick, plan=plan)
-        except GapError as exc:
-            print(f"evcal gap: {args.recording}: {exc}", file=sys.stderr)
-            return 1
+    progress = _Progress(n_simulations(cfg), quiet=args.quiet, tty=sys.stderr.isatty())
+    try:
+        result = run_gap(rec, cfg, progress=progress.tick, plan=progress.plan)
+    except GapError as exc:
+        print(f"evcal gap: {args.recording}: {exc}", file=sys.stderr)
+        return 1
+    finally:
+        progress.close()
     result.recording_info["source"] = str(args.recording)
     paths = write_reports(result, Path(args.out), plots=not args.no_plots, rrd=not args.no_rrd)
     named = ", ".join(
@@ -120,6 +108,63 @@ def run(args: argparse.Namespace) -> int:
     for line in summary(result.final.disc):
         print(f"  {line}")
     return 0
+
+
+class _Progress:
+    """The work done against the work planned (in simulations of the whole sensor; the plan
+    is an upper bound, every round that may name an effect, lowered as rounds end): a
+    tqdm bar on a terminal, else a line every :attr:`EVERY_S` seconds (logs and CI see
+    progress too). The time left is the planned work left at the rate so far."""
+
+    EVERY_S = 10.0
+
+    def __init__(self, total: float, *, quiet: bool, tty: bool) -> None:
+        import time  # noqa: PLC0415
+
+        self._now = time.monotonic
+        self._t0 = self._last = self._now()
+        self.total = float(total)
+        self.done = 0.0
+        self._bar = None
+        self._quiet = quiet
+        if not quiet and tty:
+            from tqdm import tqdm  # noqa: PLC0415
+
+            self._bar = tqdm(total=round(self.total, 1), desc="gap (simulations planned)",
+                             unit="sim", file=sys.stderr, leave=False,
+                             bar_format="{l_bar}{bar}| {n:.1f}/{total:.1f} "
+                                        "[{elapsed}<{remaining}]")
+
+    def tick(self, work: float) -> None:
+        self.done += work
+        if self._bar is not None:
+            self._bar.update(work)
+        elif not self._quiet and self._now() - self._last >= self.EVERY_S:
+            self._last = self._now()
+            print(f"evcal gap: {self.line()}", file=sys.stderr, flush=True)
+
+    def plan(self, total: float) -> None:
+        self.total = max(float(total), self.done)
+        if self._bar is not None:
+            self._bar.total = round(self.total, 1)
+            self._bar.refresh()
+
+    def line(self) -> str:
+        el = self._now() - self._t0
+        left = (self.total - self.done) * el / self.done if self.done > 0 else float("nan")
+        return (f"{self.done:.1f} of {self.total:.1f} simulations planned, "
+                f"{_clock(el)} elapsed, about {_clock(left)} left")
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._bar.close()
+
+
+def _clock(seconds: float) -> str:
+    if not seconds == seconds:  # NaN: no rate yet
+        return "?"
+    m, sec = divmod(int(round(seconds)), 60)
+    return f"{m // 60}:{m % 60:02d}:{sec:02d}" if m >= 60 else f"{m}:{sec:02d}"
 
 
 def _missing_modules(*, flow: bool, plots: bool, rrd: bool) -> list[str]:

@@ -85,22 +85,35 @@ def offset_residuals(obs: Observation, grid_dn: np.ndarray, log_offset: float) -
     than in the light, which a constant ``c`` cannot follow: the fraction is least at the
     offset the frames actually carry. It is scale-free (``SSR / TSS``), so shrinking all
     ``dL`` by a larger offset does not win by itself."""
-    F = obs.intensity.astype(np.float64)
-    P = (obs.on - obs.off).astype(np.float64)
-    E = (obs.on + obs.off).astype(np.float64)
-    w = obs.usable.astype(np.float64)
-    f_min = np.where(obs.usable.any(0), F.min(0), 0.0)
-    out = np.full((grid_dn.size, F.shape[1]), np.nan)
+    result: np.ndarray = _offset_residuals_of([obs], grid_dn, log_offset)[0]
+    return result
+
+
+def _offset_residuals_of(observations: list[Observation], grid_dn: np.ndarray,
+                         log_offset: float) -> list[np.ndarray]:
+    """:func:`offset_residuals` of observations of the same frames (a measurement and its
+    simulations): the frames' log changes at each offset are computed once for all."""
+    obs0 = observations[0]
+    if any(o.intensity is not obs0.intensity or o.usable is not obs0.usable
+           for o in observations[1:]):
+        return [r for o in observations for r in _offset_residuals_of([o], grid_dn,
+                                                                       log_offset)]
+    F = obs0.intensity.astype(np.float64)
+    w = obs0.usable.astype(np.float64)
+    f_min = np.where(obs0.usable.any(0), F.min(0), 0.0)
+    out = [np.full((grid_dn.size, F.shape[1]), np.nan) for _ in observations]
+    counts = [(o.on - o.off, o.on + o.off) for o in observations]
     for i, o in enumerate(grid_dn):  # a few dozen offsets, each vectorised over pixels
         L = np.log(np.maximum(F - o, 0.0) + log_offset)
         dL = np.diff(L, axis=0)
-        sums = window_sums(P, E, dL, w)
-        c, b, ok = fit_from_sums(*sums[:6])
-        ssr = residual_from_sums(sums, np.nan_to_num(c), np.nan_to_num(b))
-        tss = sums[6]
-        frac = np.where(ok & (tss > 0), ssr / np.maximum(tss, 1e-30), np.nan)
-        # the darkest frame must stay above the offset (F >= o + 0.5 DN)
-        out[i] = np.where(f_min - o >= 0.5, frac, np.inf)
+        for j, (P, E) in enumerate(counts):
+            sums = window_sums(P, E, dL, w)
+            c, b, ok = fit_from_sums(*sums[:6])
+            ssr = residual_from_sums(sums, np.nan_to_num(c), np.nan_to_num(b))
+            tss = sums[6]
+            frac = np.where(ok & (tss > 0), ssr / np.maximum(tss, 1e-30), np.nan)
+            # the darkest frame must stay above the offset (F >= o + 0.5 DN)
+            out[j][i] = np.where(f_min - o >= 0.5, frac, np.inf)
     return out
 
 
@@ -109,11 +122,25 @@ def offset_estimates(obs: Observation, log_offset: float,
     """Per pixel, the dark offset (DN) of the least :func:`offset_residuals` on the grid,
     refined by a parabola through its neighbours (NaN where the pixel has no fit). Kept in
     ``obs.extra``: the workflow refits on the same simulations many times."""
+    result: np.ndarray = offset_estimates_of([obs], log_offset, grid_dn)[0]
+    return result
+
+
+def offset_estimates_of(observations: list[Observation], log_offset: float,
+                        grid_dn: np.ndarray = FPN_GRID_DN) -> list[np.ndarray]:
+    """:func:`offset_estimates` of several observations, those not yet known computed
+    together (:func:`_offset_residuals_of`)."""
     key = f"aps_fpn_offsets/{float(log_offset)!r}/{grid_dn.tobytes().hex()}"
-    cached = obs.extra.get(key)
-    if isinstance(cached, np.ndarray):
-        return cached
-    r = offset_residuals(obs, grid_dn, log_offset)
+    todo = [o for o in observations if not isinstance(o.extra.get(key), np.ndarray)]
+    if todo:
+        for o, r in zip(todo, _offset_residuals_of(todo, grid_dn, log_offset), strict=True):
+            o.extra[key] = _grid_argmin(r, grid_dn)
+    return [o.extra[key] for o in observations]
+
+
+def _grid_argmin(r: np.ndarray, grid_dn: np.ndarray) -> np.ndarray:
+    """Per pixel (column of ``r``), the grid value of the least ``r``, refined by a
+    parabola through its neighbours; NaN where no value is finite."""
     valid = np.isfinite(r).any(0)
     rr = np.where(np.isfinite(r), r, np.inf)
     i = np.argmin(rr, axis=0)
@@ -129,7 +156,6 @@ def offset_estimates(obs: Observation, log_offset: float,
     d = grid_dn[1] - grid_dn[0]
     est = grid_dn[i] + step * d
     out: np.ndarray = np.where(valid, est, np.nan)
-    obs.extra[key] = out
     return out
 
 
@@ -153,8 +179,8 @@ def fit_aps_fpn(meas: Observation, sims: list[Observation], model: Model,
     if len(sims) < 2:
         return None
     lo = float(model.log_offset)
-    om = offset_estimates(meas, lo)
-    os_ = np.stack([offset_estimates(s, lo) for s in sims])
+    om, *est = offset_estimates_of([meas, *sims], lo)
+    os_ = np.stack(est)
     ok = np.isfinite(om) & np.isfinite(os_).all(0)
     if ok.sum() < 50:
         return None

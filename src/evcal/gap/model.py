@@ -21,7 +21,8 @@ from typing import Any
 import numpy as np
 
 from ..calibration import Calibration
-from ..errors import CalibrationError
+from ..errors import CalibrationError, ConfigError
+from ..events import SensorSize
 from ..offline import OffEIConfig, estimate_log_offset, offei
 from ..recording import Frames, Recording
 from ..sim.effects import (
@@ -31,6 +32,7 @@ from ..sim.effects import (
     LogOffset,
     Refractory,
     ShotNoise,
+    ThresholdLight,
     ThresholdNoise,
     TimestampJitter,
     TimestampQuantisation,
@@ -67,6 +69,39 @@ class Model:
         eff = dict(self.effects)
         eff[effect.name] = effect
         return replace(self, effects=eff)
+
+
+@dataclass(frozen=True)
+class Band:
+    """A band of sensor rows that screening simulations run on: ``rows`` of the whole
+    sensor, and ``rec``, the recording cut to them (its events and frames; the statistics
+    of a screening are computed on it)."""
+
+    rows: slice
+    rec: Recording
+
+    @classmethod
+    def of(cls, rec: Recording, y0: int, y1: int) -> Band:
+        h, w = rec.sensor.shape
+        if not 0 <= y0 < y1 <= h:
+            raise ConfigError(f"band rows {y0}..{y1} are not inside the sensor's 0..{h}")
+        ev = rec.events[(rec.events["y"] >= y0) & (rec.events["y"] < y1)].copy()
+        ev["y"] -= y0
+        fr = rec.frames
+        frames = Frames(fr.t_us, fr.images[:, y0:y1], fr.exposure_us)
+        return cls(slice(y0, y1), Recording(SensorSize(y1 - y0, w), ev, frames,
+                                            dict(rec.metadata)))
+
+    def model(self, model: Model) -> Model:
+        """``model`` with the maps of the band's rows, and its effects' per-pixel maps of
+        the events' side (a threshold's light reference); those acting on the frames
+        (``aps_fpn``) act before the band is cut and keep the whole sensor's."""
+        effects = dict(model.effects)
+        tl = effects.get(ThresholdLight.name)
+        if isinstance(tl, ThresholdLight) and tl.pixel_ref_dn is not None:
+            effects[tl.name] = replace(tl, pixel_ref_dn=np.asarray(tl.pixel_ref_dn)[self.rows])
+        return replace(model, contrast=model.contrast[self.rows], bias=model.bias[self.rows],
+                       effects=effects)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -172,13 +207,17 @@ def _times(frames: Frames, internal_rate_hz: float) -> np.ndarray:
 
 
 def simulate_model(model: Model, rec: Recording, seed: int, settings: SimSettings,
-                   render: RenderCache | None = None) -> Recording:
+                   render: RenderCache | None = None, band: Band | None = None) -> Recording:
     """A re-simulation of ``rec`` (same frames, same time base) under ``model``.
 
     The latent intensity (the frames the model says the events saw, :func:`.frames.
     model_frames`, interpolated at the internal sample times) does not depend on the seed:
     with ``render`` it is rendered once and shared by every simulation of the run. The seed's
-    quantisation dither is added to it per pixel."""
+    quantisation dither is added to it per pixel.
+
+    ``band``: only its rows are simulated (``model``'s maps are the band's, see
+    :meth:`Band.model`), from the whole sensor's latent intensity; the result is a
+    recording of the band (``band.rec``'s sensor and frames)."""
     from .frames import model_frames  # noqa: PLC0415
 
     fr = rec.frames
@@ -190,6 +229,8 @@ def simulate_model(model: Model, rec: Recording, seed: int, settings: SimSetting
         # the quantisation error of a still pixel is the same in every frame: one offset per
         # pixel, not per frame (per-frame dither would make still scenes fire)
         add = rng.uniform(-0.5, 0.5, fr.images.shape[1:]).astype(np.float32)
+        if band is not None:
+            add = add[band.rows]
     times = _times(fr, settings.internal_rate_hz)
     t0 = int(fr.t_us[0])
     shape = rec.sensor.shape
@@ -206,14 +247,16 @@ def simulate_model(model: Model, rec: Recording, seed: int, settings: SimSetting
 
     cache = render if render is not None else RenderCache(max_bytes=0)
     key = frames_key(drive, settings.interpolation, times)
-    src = cache.source(key, times, shape, make_source, add)
+    src = cache.source(key, times, shape, make_source, add,
+                       rows=None if band is None else band.rows)
     dur = max(times[-1] * 1e-6, 1e-3)
-    h, w = shape
+    h, w = shape if band is None else band.rec.sensor.shape
     cfg = SimConfig(height=h, width=w, duration_s=dur, frame_rate_hz=1.0,
                     internal_rate_hz=max(settings.internal_rate_hz, 1.0),
                     log_offset=model.log_offset, seed=int(seed))
     res = simulate(cfg, model.effects, source=src, maps=(model.contrast, model.bias),
-                   frames=fr, times_us=times, t_origin_us=t0)
+                   frames=fr if band is None else band.rec.frames, times_us=times,
+                   t_origin_us=t0)
     return res.recording
 
 
@@ -236,8 +279,8 @@ def _bins(meas: Observation, ok: np.ndarray, n_bins: int) -> np.ndarray:
 def anchor(model: Model, rec: Recording, meas: Observation, seed: int,
            settings: SimSettings, *, n_bins: int = 6, max_iter: int = 3,
            tol: float = 0.01, render: RenderCache | None = None,
-           trusted: np.ndarray | None = None, anchored: bool = False
-           ) -> tuple[Model, Observation | None]:
+           trusted: np.ndarray | None = None, anchored: bool = False,
+           band: Band | None = None) -> tuple[Model, Observation | None]:
     """Correct ``c`` and ``b`` so a simulation of the model, fitted like the measurement, gives
     the measured fits.
 
@@ -268,7 +311,8 @@ def anchor(model: Model, rec: Recording, meas: Observation, seed: int,
     g = 1.0
     prev: tuple[float, float] | None = None  # (log model median c, log sim median c)
     for it in range(max_iter):
-        obs = observe(simulate_model(model, rec, seed, settings, render), trusted=trusted)
+        obs = observe(simulate_model(model, rec, seed, settings, render, band),
+                      trusted=trusted)
         fs = _fit(obs)
         both = fm["ok"] & fs["ok"]
         if both.sum() < 20:

@@ -8,8 +8,9 @@ sequence is rendered once into memory (:class:`RenderCache`) and every simulatio
 (:class:`CachedSource`). Per-seed randomness of the input (the quantisation dither) is added
 on the way out.
 
-Float32 while the sequence fits ``max_bytes`` at 4 bytes a value, float16 (a relative step of
-5e-4, a log-intensity step 200x below the smallest thresholds) while it fits at 2; beyond
+Float32 while the sequence fits a quarter of ``max_bytes`` at 4 bytes a value, float16 (a
+relative step of 5e-4, a log-intensity step 200x below the smallest thresholds) while it fits
+``max_bytes`` at 2; beyond
 that nothing is cached and each simulation renders again (the workflow keeps its working
 window small enough that this does not happen: ``GapConfig.max_pixel_steps``).
 """
@@ -25,8 +26,10 @@ import numpy as np
 from ..recording import Frames
 from ..sim.sources import FrameInterpolator
 
-# bytes of rendered intensity kept at most (float32 below half of it, float16 above)
-DEFAULT_MAX_BYTES = 2 << 30
+# bytes of rendered intensity kept at most (float32 up to a quarter of it per sequence,
+# float16 above: the workflow renders a sequence per frame-side candidate besides the one
+# every other simulation reads)
+DEFAULT_MAX_BYTES = 1 << 30
 
 
 def frames_key(frames: Frames, interpolation: str, times_us: np.ndarray) -> bytes:
@@ -87,9 +90,11 @@ class RenderCache:
     a key's frames when it must be rendered."""
 
     def __init__(self, max_bytes: int = DEFAULT_MAX_BYTES,
-                 on_use: Callable[[], None] | None = None):
+                 on_use: Callable[[float], None] | None = None):
         self.max_bytes = int(max_bytes)
-        self._on_use = on_use  # called once per source served (one per simulation)
+        # called once per source served (one per simulation), with the share of the
+        # sensor's rows it serves
+        self._on_use = on_use
         self._entries: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
         self.renders = 0  # sequences rendered (for the benchmark and the tests)
         self.hits = 0
@@ -99,29 +104,33 @@ class RenderCache:
         return sum(d.nbytes for d, _ in self._entries.values())
 
     def source(self, key: bytes, times_us: np.ndarray, shape: tuple[int, int],
-               make_source: Callable[[], FrameInterpolator], add: np.ndarray | None = None
-               ) -> CachedSource | _Offset:
+               make_source: Callable[[], FrameInterpolator], add: np.ndarray | None = None,
+               rows: slice | None = None) -> CachedSource | _Offset:
         """The cached sequence of ``key`` as a source, rendered now if it is new; when it
-        cannot be kept within ``max_bytes`` the interpolator itself (no cache)."""
+        cannot be kept within ``max_bytes`` the interpolator itself (no cache). ``rows``:
+        the source of those sensor rows only (``add`` is theirs), read from the whole
+        sequence's render."""
         with self._lock:  # simulations on several threads: one renders, the others wait
-            src = self._source(key, times_us, shape, make_source, add)
+            src = self._source(key, times_us, shape, make_source, add, rows)
         if self._on_use is not None:
-            self._on_use()
+            self._on_use(1.0 if rows is None else
+                         len(range(*rows.indices(shape[0]))) / shape[0])
         return src
 
     def _source(self, key: bytes, times_us: np.ndarray, shape: tuple[int, int],
-                make_source: Callable[[], FrameInterpolator], add: np.ndarray | None
-                ) -> CachedSource | _Offset:
+                make_source: Callable[[], FrameInterpolator], add: np.ndarray | None,
+                rows: slice | None) -> CachedSource | _Offset:
         times_s = np.asarray(times_us, np.int64) * 1e-6
+        band = slice(None) if rows is None else rows
         hit = self._entries.get(key)
         if hit is not None:
             self.hits += 1
             self._entries[key] = self._entries.pop(key)  # most recently used last
-            return CachedSource(hit[0], hit[1], add)
+            return CachedSource(hit[0][:, band], hit[1], add)
         n_values = times_s.size * shape[0] * shape[1]
         if 2 * n_values > self.max_bytes:
-            return _Offset(make_source(), add)
-        dtype = np.float32 if 4 * n_values <= self.max_bytes // 2 else np.float16
+            return _Offset(make_source(), add, rows)
+        dtype = np.float32 if 4 * n_values <= self.max_bytes // 4 else np.float16
         while self._entries and self.nbytes() + n_values * np.dtype(dtype).itemsize \
                 > self.max_bytes:
             self._entries.pop(next(iter(self._entries)))
@@ -135,19 +144,27 @@ class RenderCache:
             data[k:k + n] = rendered
         self.renders += 1
         self._entries[key] = (data, times_s)
-        return CachedSource(data, times_s, add)
+        return CachedSource(data[:, band], times_s, add)
 
 
 class _Offset:
     """An uncached source plus a per-pixel offset, floored at 0 (as :class:`CachedSource`)."""
 
-    def __init__(self, src: FrameInterpolator, add: np.ndarray | None):
+    def __init__(self, src: FrameInterpolator, add: np.ndarray | None,
+                 rows: slice | None = None):
         self._src = src
         self._add = None if add is None else np.asarray(add, np.float32)
+        self._rows = rows
 
     def render_block(self, t_s: np.ndarray | list[float], out: np.ndarray | None = None
                      ) -> np.ndarray:
-        res: np.ndarray = self._src.render_block(t_s, out=out)
+        if self._rows is None:
+            res: np.ndarray = self._src.render_block(t_s, out=out)
+        else:  # the whole frame rendered, its rows kept
+            full = self._src.render_block(t_s)[:, self._rows]
+            res = full.copy() if out is None else out
+            if out is not None:
+                np.copyto(out, full)
         if self._add is not None:
             res += self._add[None]
             np.maximum(res, 0.0, out=res)

@@ -209,15 +209,32 @@ def every_nth_row(obs: Observation, n: int) -> Observation:
     same for a measurement and its simulations)."""
     if n <= 1:
         return obs
+    return rows_of(obs, np.arange(0, obs.shape[0], n))
+
+
+def rows_of(obs: Observation, rows: np.ndarray | slice) -> Observation:
+    """``obs`` on the sensor rows ``rows`` (indices, or a slice: a band, whose per-pixel
+    arrays are views), as if recorded by a sensor of those rows."""
     h, w = obs.shape
-    rows = np.arange(0, h, n)
-    cols = (rows[:, None] * w + np.arange(w)[None, :]).ravel()
-    new_index = np.full(h * w, -1, np.int64)
-    new_index[cols] = np.arange(cols.size)
-    keep = new_index[obs.pix] >= 0
-    return Observation((rows.size, w), obs.frame_t_us, obs.on[:, cols], obs.off[:, cols],
+    if isinstance(rows, slice):
+        y0, y1, step = rows.indices(h)
+        if step != 1:
+            return rows_of(obs, np.arange(y0, y1, step))
+        cols: np.ndarray | slice = slice(y0 * w, y1 * w)
+        n_rows = y1 - y0
+        keep = (obs.pix >= y0 * w) & (obs.pix < y1 * w)
+        new_pix = obs.pix[keep] - y0 * w
+    else:
+        rows = np.asarray(rows, np.int64)
+        n_rows = rows.size
+        cols = (rows[:, None] * w + np.arange(w)[None, :]).ravel()
+        new_index = np.full(h * w, -1, np.int64)
+        new_index[cols] = np.arange(cols.size)
+        keep = new_index[obs.pix] >= 0
+        new_pix = new_index[obs.pix[keep]]
+    return Observation((n_rows, w), obs.frame_t_us, obs.on[:, cols], obs.off[:, cols],
                        obs.log_i[:, cols], obs.intensity[:, cols], obs.usable[:, cols],
-                       obs.t_us[keep], new_index[obs.pix[keep]], obs.p[keep],
+                       obs.t_us[keep], new_pix, obs.p[keep],
                        None if obs.trusted is None else obs.trusted[:, cols])
 
 
@@ -306,8 +323,10 @@ def _fit(obs: Observation) -> dict[str, Any]:
     if "fit" in obs.extra:
         cached: dict[str, Any] = obs.extra["fit"]
         return cached
-    P = (obs.on - obs.off).astype(np.float64)
-    E = (obs.on + obs.off).astype(np.float64)
+    # counts stay int32 and the residual float32: a few such arrays per observation are
+    # kept for as long as the observation is
+    P = obs.on - obs.off
+    E = obs.on + obs.off
     dL = _shared(obs, "dL", lambda: obs.log_i[1:] - obs.log_i[:-1])
     wgt = _shared(obs, "wgt", lambda: obs.usable.astype(np.float64))
     halves = window_sums(P, E, dL, wgt, split=obs.n_windows // 2)
@@ -315,7 +334,7 @@ def _fit(obs: Observation) -> dict[str, Any]:
     c1, b1, ok1 = fit_from_sums(*halves[0][:6])
     c2, b2, ok2 = fit_from_sums(*halves[1][:6])
     res = np.where(ok[None, :] & obs.usable, dL - np.nan_to_num(c) * P - np.nan_to_num(b) * E,
-                   np.nan)
+                   np.nan).astype(np.float32)
     out = {"P": P, "E": E, "dL": dL, "c": c, "b": b, "ok": ok, "res": res,
            "c1": c1, "c2": c2, "b1": b1, "b2": b2, "ok12": ok1 & ok2}
     obs.extra["fit"] = out

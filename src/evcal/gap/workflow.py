@@ -36,6 +36,7 @@ from ..recording import Recording
 from ..sim.effects import EFFECT_NAMES, Effect
 from .explain import unexplained
 from .model import (
+    Band,
     Model,
     SimSettings,
     anchor,
@@ -54,6 +55,7 @@ from .stats import (
     StatValue,
     discrepancy,
     observe,
+    rows_of,
     summarise,
 )
 
@@ -95,6 +97,11 @@ class GapConfig:
     max_pixel_steps: int = 700_000_000
     # threads that simulate at once (None: the usable cores)
     workers: int | None = None
+    # screening on a band of sensor rows: this share of the rows (the busiest contiguous
+    # ones), when the recording has more than ``screen_band_min`` pixel-steps; the spread of
+    # the statistics and the measurement's are then the band's too
+    screen_rows: float = 0.25
+    screen_band_min: int = 40_000_000
 
     def __post_init__(self) -> None:
         if self.max_effects < 0:
@@ -106,6 +113,8 @@ class GapConfig:
                              f"beam_width={self.beam_width} >= 0")
         if self.max_pixel_steps < 1_000_000:
             raise ValueError(f"max_pixel_steps={self.max_pixel_steps} must be >= 1e6")
+        if not 0.0 < self.screen_rows <= 1.0:
+            raise ValueError(f"screen_rows={self.screen_rows} must be in (0, 1]")
         if self.workers is not None and self.workers < 1:
             raise ValueError(f"workers={self.workers} must be >= 1")
         unknown = set(self.candidates) - set(EFFECT_NAMES)
@@ -119,6 +128,9 @@ class Evaluation:
     sims: list[Observation]  # during a run; empty in a GapResult (see run_gap)
     disc: Discrepancy
     summaries: list[dict[str, StatValue]] = field(default_factory=list)
+    # screened on the run's band of rows (GapConfig.screen_rows): its statistics and sims are
+    # the band's, ``model`` the whole sensor's (not anchored yet: confirm() evaluates it)
+    on_band: bool = False
 
     @property
     def gap(self) -> float:
@@ -199,7 +211,7 @@ def _list(a: np.ndarray) -> list[float | None]:
 class _Runner:
     DEBIAS_STEPS = 2  # bootstrap steps per named effect (an evaluation each)
 
-    def __init__(self, rec: Recording, cfg: GapConfig, tick: Callable[[str], None]):
+    def __init__(self, rec: Recording, cfg: GapConfig, tick: Callable[[float], None]):
         self.rec = rec
         self.cfg = cfg
         self.tick = tick
@@ -220,6 +232,7 @@ class _Runner:
         self.render = RenderCache(on_use=self._counted)
         self.workers = cfg.workers or usable_cores()
         self.simulations = 0
+        self.work = 0.0  # simulations done, in simulations of the whole sensor
         self._lock = threading.Lock()
         # the round's candidates as screened (the beam's pairs start from them), and those
         # confirmed on every seed, best first
@@ -227,12 +240,24 @@ class _Runner:
         self.confirmed: list[tuple[float, Effect, Evaluation]] = []
         # ids of models whose maps were refitted, not anchored (see evaluate)
         self._refitted: set[int] = set()
+        self.band = screening_band(rec, cfg)
+        if self.band is not None:
+            rows = self.band.rows
+            w = rec.sensor.width
+            self.trusted_band = None if self.trusted is None else \
+                self.trusted[:, rows.start * w:rows.stop * w]
+            self.meas_band = observe(self.band.rec, trusted=self.trusted_band)
+            self.meas_stats_band = summarise(self.meas_band)
+        # the band's discrepancy of an evaluation whose spread screenings borrow, by id
+        self._band_spread: dict[int, tuple[Evaluation, Discrepancy]] = {}
 
-    def _counted(self) -> None:
-        """One more simulation (the render cache serves each one once)."""
+    def _counted(self, share: float) -> None:
+        """One more simulation, of ``share`` of the sensor's rows (the render cache serves
+        each one once)."""
         with self._lock:
             self.simulations += 1
-        self.tick("simulation")
+            self.work += share
+        self.tick(share)
 
     def _simulate(self, model: Model, seed: int) -> Observation:
         return observe(simulate_model(model, self.rec, seed, self.settings, self.render),
@@ -246,6 +271,8 @@ class _Runner:
         :func:`.model.anchor`; by default, unless :meth:`candidate_model` refitted them)."""
         if anchored is None:
             anchored = id(model) not in self._refitted
+        if spread is not None and self.band is not None:
+            return self._screen_on_band(model, spread, anchored)
         model, first = anchor(model, self.rec, self.meas, self.seeds[0], self.settings,
                               render=self.render, trusted=self.trusted, anchored=anchored)
         sims = [first] if first is not None else []
@@ -273,8 +300,46 @@ class _Runner:
         return Evaluation(ev.model, sims, disc, summaries)
 
     def confirm(self, ev: Evaluation, what: str) -> Evaluation:
-        """A screened evaluation completed with every seed."""
+        """A screened evaluation completed with every seed (on the band: evaluated anew on
+        the whole sensor)."""
+        if ev.on_band:
+            return self.evaluate(ev.model, what)
         return self.extend(ev, len(self.seeds), what) if ev.screened else ev
+
+    def _screen_on_band(self, model: Model, spread: Evaluation, anchored: bool
+                        ) -> Evaluation:
+        """``model`` screened on the band's rows with the first seed: anchored there, its
+        statistics against the band's measurement, with the spread of ``spread``'s
+        simulations cut to the band."""
+        band = self.band
+        assert band is not None
+        m_band, first = anchor(band.model(model), self.rec, self.meas_band, self.seeds[0],
+                               self.settings, render=self.render, trusted=self.trusted_band,
+                               anchored=anchored, band=band)
+        if first is None:
+            first = observe(simulate_model(m_band, self.rec, self.seeds[0], self.settings,
+                                           self.render, band), trusted=self.trusted_band)
+        summaries = [summarise(first)]
+        first.extra.clear()
+        disc = discrepancy(self.meas_stats_band, summaries, spread=self.band_spread(spread))
+        return Evaluation(model, [first], disc, summaries, on_band=True)
+
+    def band_spread(self, ev: Evaluation) -> Discrepancy:
+        """``ev``'s discrepancy on the band (its simulations cut to the band's rows): the
+        spread that screenings on the band borrow."""
+        hit = self._band_spread.get(id(ev))
+        if hit is not None and hit[0] is ev:
+            return hit[1]
+        if len(ev.sims) < 2:
+            raise GapError("a screening on the band needs an evaluation with simulations on "
+                           "every seed for its spread")
+        assert self.band is not None
+        sums = [summarise(rows_of(o, self.band.rows)) for o in ev.sims]
+        disc = discrepancy(self.meas_stats_band, sums)
+        if len(self._band_spread) >= 4:  # the round's current and best are what is asked for
+            self._band_spread.pop(next(iter(self._band_spread)))
+        self._band_spread[id(ev)] = (ev, disc)
+        return disc
 
     def meas_disc(self, summaries: list[dict[str, StatValue]], spread: Evaluation | None
                   ) -> Discrepancy:
@@ -444,6 +509,8 @@ class _Runner:
         every core)."""
         if not self.cfg.screen:
             return [self.evaluate(m, f"candidate {e.name}") for e, m in models]
+        if self.band is not None:
+            self.band_spread(current)  # once, before the threads ask for it
         with ThreadPoolExecutor(max_workers=self.workers) as pool:
             return list(pool.map(lambda em: self.evaluate(em[1], f"screen {em[0].name}",
                                                           spread=current), models))
@@ -457,6 +524,10 @@ class _Runner:
         alone."""
         top = self.beam_top(tried)
         jobs: list[tuple[Effect, Evaluation, Effect, Model]] = []
+        for a in top:  # the pairs are fitted on the whole sensor's simulations
+            eff_a, ev_a = self.screened_pool[a]
+            if ev_a.on_band:
+                self.screened_pool[a] = (eff_a, self.confirm(ev_a, f"confirm {a}"))
         for i, a in enumerate(top):
             eff_a, ev_a = self.screened_pool[a]
             for b in top[i + 1:]:
@@ -567,23 +638,45 @@ def _cast(eff: Effect, key: str, value: float) -> Any:
 ANCHOR_SIMS = 2  # simulations an anchor takes, typically (one of them counted as a seed's)
 
 
-def n_simulations(cfg: GapConfig, rounds: int | None = None) -> int:
-    """Simulations the workflow plans (for the progress bar's estimate of the time left):
-    the base model on every seed, then per round every candidate screened (or evaluated),
-    the best confirmed, and the named one's bias correction and refinement; ``rounds``
-    (default: as many as ``max_effects`` allows, plus the round that names nothing)."""
+def n_simulations(cfg: GapConfig, rounds: int | None = None, band_share: float = 1.0
+                  ) -> float:
+    """Work the workflow plans, in simulations of the whole sensor (for the progress bar's
+    estimate of the time left): the base model on every seed, then per round every
+    candidate screened (on a band of ``band_share`` of the rows, see
+    :func:`screening_band`), the best confirmed, and the named one's bias correction and
+    refinement; ``rounds`` (default: as many as ``max_effects`` allows, plus the round that
+    names nothing)."""
     n_rounds = cfg.max_effects + 1 if rounds is None else rounds
     full = ANCHOR_SIMS - 1 + cfg.n_seeds
     k = len(cfg.candidates)
-    screen = ANCHOR_SIMS if cfg.screen else full
-    total = full
+    screen = ANCHOR_SIMS * band_share if cfg.screen else full
+    # a screening on the band is confirmed anew on the whole sensor, one on it is extended
+    confirm = (full if band_share < 1.0 else cfg.n_seeds - 1) if cfg.screen else 0
+    total: float = full
     for i in range(n_rounds):
         cands = max(k - i, 0)
-        total += cands * screen + (cfg.confirm_top * (cfg.n_seeds - 1) if cfg.screen else 0)
+        total += cands * screen + cfg.confirm_top * confirm
         if i < n_rounds - 1:
             # the named effect: bias correction (on every seed), refinement (screened)
             total += 2 * full + 2 * screen
     return total
+
+
+def screening_band(rec: Recording, cfg: GapConfig) -> Band | None:
+    """The band of rows screenings run on: ``cfg.screen_rows`` of the sensor's rows (at
+    least 16), the contiguous ones with the most measured events; ``None`` when screening
+    is off, the band would be the whole sensor, or the recording is small enough
+    (``cfg.screen_band_min`` pixel-steps) for screenings on all of it."""
+    h, w = rec.sensor.shape
+    fr = rec.frames
+    steps = (int(fr.t_us[-1]) - int(fr.t_us[0])) * 1e-6 * cfg.internal_rate_hz + len(fr)
+    n = max(16, int(round(cfg.screen_rows * h)))
+    if not cfg.screen or n >= h or h * w * steps <= cfg.screen_band_min:
+        return None
+    per_row = np.bincount(rec.events["y"], minlength=h).astype(np.int64)
+    in_band = np.convolve(per_row, np.ones(n, np.int64), mode="valid")  # rows y..y+n-1
+    y0 = int(np.argmax(in_band))
+    return Band.of(rec, y0, y0 + n)
 
 
 def working_window(rec: Recording, max_pixel_steps: int, internal_rate_hz: float
@@ -632,12 +725,14 @@ def _moved_on(old: Evaluation, new: Evaluation) -> Evaluation:
 
 
 def run_gap(rec: Recording, config: GapConfig | None = None, *,
-            progress: Callable[[str], None] | None = None,
-            plan: Callable[[int], None] | None = None) -> GapResult:
+            progress: Callable[[float], None] | None = None,
+            plan: Callable[[float], None] | None = None) -> GapResult:
     """Run the gap workflow on ``rec`` (measured or simulated; it needs frames).
 
-    ``progress(what)`` is called after every simulation; ``plan(n)`` whenever the number
-    of simulations the run plans changes (it names nothing more: the rounds left drop out).
+    ``progress(work)`` is called after every simulation with its share of a simulation of
+    the whole sensor (a screening on a band of rows is less); ``plan(total)`` with the work
+    the run plans (in the same unit), at the start and whenever it changes (it names nothing
+    more: the rounds left drop out).
 
     Raises
     ------
@@ -648,10 +743,14 @@ def run_gap(rec: Recording, config: GapConfig | None = None, *,
     if len(rec.frames) < 4:
         raise GapError("the gap workflow needs a recording with at least 4 frames (APS or "
                        "images.txt): simulations are driven by the measured frames")
-    tick = progress or (lambda _msg: None)
+    tick = progress or (lambda _work: None)
     full = rec
     rec, window = working_window(rec, cfg.max_pixel_steps, cfg.internal_rate_hz)
     run = _Runner(rec, cfg, tick)
+    share = 1.0 if run.band is None else \
+        (run.band.rows.stop - run.band.rows.start) / rec.sensor.height
+    if plan is not None:
+        plan(n_simulations(cfg, band_share=share))
     base = fit_base(rec)
     current = run.evaluate(base, "base model", anchored=False)
     initial = current
@@ -663,8 +762,8 @@ def run_gap(rec: Recording, config: GapConfig | None = None, *,
 
     while n_sensor() < cfg.max_effects:
         if plan is not None:
-            plan(run.simulations + n_simulations(cfg, cfg.max_effects - n_sensor() + 1)
-                 - n_simulations(cfg, 0))
+            plan(run.work + n_simulations(cfg, cfg.max_effects - n_sensor() + 1, share)
+                 - n_simulations(cfg, 0, share))
         tried: dict[str, dict[str, Any]] = {}
         # the timestamp scheme first: once the timestamps are seen to lie on a step grid,
         # every sensor candidate is fitted and simulated with the scheme (how a frame-driven
@@ -716,9 +815,11 @@ def run_gap(rec: Recording, config: GapConfig | None = None, *,
         steps.append(Step(eff, current, ev, tried))
         current = _moved_on(current, ev)
     if plan is not None:
-        plan(run.simulations)
+        plan(run.work)
     info = {"sensor": str(rec.sensor), "n_events": full.n_events,
             "n_frames": len(full.frames), "duration_s": full.duration_s, "window": window,
+            "screen_band_rows": None if run.band is None else
+            [run.band.rows.start, run.band.rows.stop],
             "simulations": run.simulations}
     settings = {"seed": cfg.seed, "n_seeds": cfg.n_seeds, "internal_rate_hz": cfg.internal_rate_hz,
                 "read_noise_dn": run.settings.read_noise_dn,
