@@ -212,6 +212,7 @@ def test_progress_without_a_terminal_prints_lines_with_the_time_left(capsys,
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 2
     assert lines[0].startswith("evcal gap: 0.2 of 10.0 simulations planned")
+    assert lines[0].endswith("about ? left")  # no rate from the first simulation alone
     assert "1.2 of 6.0 simulations planned" in lines[1] and "left" in lines[1]
     quiet = cli._Progress(10.0, quiet=True, tty=False)
     quiet.tick(1.0)

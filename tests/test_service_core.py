@@ -630,3 +630,49 @@ def test_gc_policy_freezes_and_measures_collections() -> None:
     gc.collect(0)
     assert pol.stats()["collections"][0] == n  # uninstalled: no longer called
     assert pol._callback not in gc.callbacks
+
+
+def _strict(text: bytes | str):
+    """json.loads that refuses NaN and infinities, as JavaScript, Go and jq do."""
+    def refuse(name: str):
+        raise AssertionError(f"not strict JSON: {name}")
+
+    return json.loads(text, parse_constant=refuse)
+
+
+def _leaves(doc):
+    if isinstance(doc, dict):
+        return [x for v in doc.values() for x in _leaves(v)]
+    if isinstance(doc, list):
+        return [x for v in doc for x in _leaves(v)]
+    return [doc]
+
+
+def test_every_document_the_service_emits_is_strict_json():
+    from evcal.jsonable import strict_dumps
+    from evcal.service.outputs import error_reply
+
+    pub = Collector()
+    svc = Service(ServiceConfig(onei=OnEIConfig(n_small=50, n_large=10_000, log_offset="auto"),
+                                error_rate_hz=1000), pub)
+    try:
+        # before it is estimated the online offset is unknown (NaN): null, still strict
+        feed(svc, "cam0", stream(n_frames=2))
+        settle(svc)
+        svc.tick(force=True)
+        assert "NaN" in json.dumps(svc.status(svc.cameras["cam0"]))  # what json.dumps makes
+        status = _strict(pub.on("evcal/cam0/status")[-1])
+        assert None in _leaves(status)
+        for _, payload, _ in svc.query_status("evcal/**/status"):
+            _strict(payload)
+        _strict(strict_dumps(svc.cameras_info()))
+        feed(svc, "cam0", [("events", b"\x00junk")])
+        settle(svc)
+        assert pub.on("evcal/cam0/errors")
+        for p in pub.on("evcal/cam0/errors"):
+            _strict(p)
+        _strict(error_reply(svc_error := __import__("evcal").EvcalError("bad")))
+        assert svc_error.reason.value == "malformed"
+    finally:
+        svc.close()
+    assert strict_dumps({"x": float("nan"), "y": [np.inf, 1.5]}) == '{"x": null, "y": [null, 1.5]}'

@@ -12,22 +12,26 @@ from typing import Any
 import numpy as np
 
 
-def to_jsonable(value: Any) -> Any:
+def to_jsonable(value: Any, *, nonfinite: str = "text") -> Any:
     """``value`` with numpy scalars and arrays, mappings, tuples, paths and enums turned into
-    plain Python that :func:`json.dumps` takes; non-finite floats become strings (JSON has no
-    NaN or infinity) and anything else unknown its ``str``."""
+    plain Python that :func:`json.dumps` takes; non-finite floats become strings
+    (``nonfinite="text"``: the files evcal writes read them back) or ``None``
+    (``"null"``: the documents other programs parse, see :func:`strict_dumps`); anything
+    else unknown its ``str``."""
     if isinstance(value, Mapping):
-        return {str(k): to_jsonable(v) for k, v in value.items()}
+        return {str(k): to_jsonable(v, nonfinite=nonfinite) for k, v in value.items()}
     if isinstance(value, (list, tuple, set, frozenset)):
-        return [to_jsonable(v) for v in value]
+        return [to_jsonable(v, nonfinite=nonfinite) for v in value]
     if isinstance(value, np.ndarray):
-        return to_jsonable(value.tolist())
+        return to_jsonable(value.tolist(), nonfinite=nonfinite)
     if isinstance(value, np.generic):
-        return to_jsonable(value.item())
+        return to_jsonable(value.item(), nonfinite=nonfinite)
     if isinstance(value, Enum):
-        return to_jsonable(value.value)
+        return to_jsonable(value.value, nonfinite=nonfinite)
     if isinstance(value, float):
-        return value if math.isfinite(value) else str(value)
+        if math.isfinite(value):
+            return value
+        return None if nonfinite == "null" else str(value)
     if value is None or isinstance(value, (bool, int, str)):
         return value
     if isinstance(value, Path):
@@ -39,3 +43,10 @@ def dumps(value: Any, **kwargs: Any) -> str:
     """``json.dumps(to_jsonable(value))`` with sorted keys (stable files and messages)."""
     kwargs.setdefault("sort_keys", True)
     return json.dumps(to_jsonable(value), **kwargs)
+
+
+def strict_dumps(value: Any, **kwargs: Any) -> str:
+    """Strict JSON of ``value`` (NaN and infinities as ``null``; ``json.dumps`` would write
+    ``NaN``, which JavaScript, Go and jq refuse): every document the service and the
+    clients emit (status, cameras, errors, replies)."""
+    return json.dumps(to_jsonable(value, nonfinite="null"), allow_nan=False, **kwargs)

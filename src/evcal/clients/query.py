@@ -22,6 +22,7 @@ from evcal.service import keys
 from evcal.service.signing import SignatureError, Verifier, read_attachment
 from evcal.service.transport import Reply, Transport, TransportError, options_from_args
 
+from ..jsonable import strict_dumps
 from .common import base_parser, camera_arg, fail
 
 
@@ -170,14 +171,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         with Transport(zopts) as t:
             if args.list:
                 for info in fetch_json(t, keys.cameras_key(args.prefix), timeout_s=args.timeout):
-                    print(json.dumps(info, indent=2))
+                    print(strict_dumps(info, indent=2))
             if args.camera and args.status:
                 key = keys.camera_key(args.prefix, args.camera, "status")
                 found = fetch_json(t, key, timeout_s=args.timeout)
                 if not found:
                     return fail(prog, f"no status on {key} within {args.timeout:g} s")
                 for st in found:
-                    print(json.dumps(st, indent=2))
+                    print(strict_dumps(st, indent=2))
             if args.camera and args.out:
                 payload, params = fetch_calibration_npz(t, args.camera, prefix=args.prefix,
                                                         timeout_s=args.timeout,

@@ -94,7 +94,7 @@ class GapConfig:
     # the workflow analyses at most this many pixel-steps of simulation (pixels x internal
     # samples): a longer recording is cut to its busiest contiguous frames that fit (the
     # statistics need events, not hours; the rendered frames stay in memory)
-    max_pixel_steps: int = 700_000_000
+    max_pixel_steps: int = 250_000_000
     # threads that simulate at once (None: the usable cores)
     workers: int | None = None
     # screening on a band of sensor rows: this share of the rows (the busiest contiguous

@@ -33,7 +33,6 @@ rejected with an error.
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 import threading
@@ -46,6 +45,7 @@ import numpy as np
 
 from ..calibration import Calibration
 from ..errors import ConfigError, ErrorReason, EvcalError
+from ..jsonable import strict_dumps
 from ..online import OnEIConfig
 from . import keys
 from .camera import LATENCY_PARTS, CalibrationUpdate, CameraState, Observed, Output, Rejected
@@ -417,7 +417,7 @@ class Service:
             return camera_status(cam)
 
     def query_status(self, query_key: str) -> list[tuple[str, bytes, str]]:
-        return [(self.key(cam.id, "status"), json.dumps(self.status(cam)).encode(),
+        return [(self.key(cam.id, "status"), strict_dumps(self.status(cam)).encode(),
                  keys.ENC_STATUS)
                 for cam in list(self.cameras.values())
                 if self._match(query_key, self.key(cam.id, "status"))]
@@ -473,7 +473,7 @@ class Service:
     def _publish_status(self) -> None:
         for cam in list(self.cameras.values()):
             try:
-                payload = json.dumps(self.status(cam)).encode()
+                payload = strict_dumps(self.status(cam)).encode()
             except Exception:
                 self.tick_errors += 1
                 log.exception("camera %s: status failed", cam.id)

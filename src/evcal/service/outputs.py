@@ -10,7 +10,6 @@ publication and never holding it.
 
 from __future__ import annotations
 
-import json
 import logging
 import threading
 import time
@@ -23,6 +22,7 @@ from ..calibration import check_map_names
 from ..errors import ErrorReason, EvcalError
 from ..io.calibfile import calibration_npz_bytes
 from ..io.wire import encode_calibration
+from ..jsonable import strict_dumps
 from . import keys
 from .camera import CameraState, Rejected, Rejection
 from .ingest import BoundedQueue, Camera
@@ -129,7 +129,7 @@ def calibration_reply(st: CameraState, fmt: str, fields: list[str] | None
 
 def error_reply(exc: EvcalError) -> str:
     """The JSON body of an error reply to a query."""
-    return json.dumps({"reason": str(exc.reason), "message": str(exc)})
+    return strict_dumps({"reason": str(exc.reason), "message": str(exc)})
 
 
 # ----------------------------------------------------------------------------- errors
@@ -160,7 +160,7 @@ def error_body(rec: Rejection, st: CameraState | None) -> bytes:
     if st is not None:
         body["errors_total"] = st.counters.errors_total
         body["suppressed"] = st.counters.errors_suppressed
-    return json.dumps(body).encode()
+    return strict_dumps(body).encode()
 
 
 # ----------------------------------------------------------------------------- the recorder

@@ -8,13 +8,13 @@ drains the camera queues, publishes a last status, writes the snapshots and fini
 
 from __future__ import annotations
 
-import json
 import logging
 import threading
 from collections.abc import Callable
 from pathlib import Path
 
-from ..errors import EvcalError
+from ..errors import ErrorReason, EvcalError
+from ..jsonable import strict_dumps
 from . import keys
 from .core import Service, ServiceConfig
 from .gcpolicy import GcPolicy
@@ -98,20 +98,21 @@ def run(
                     req.reply(key, payload, enc)
 
             def on_cameras(req: Request) -> None:
-                req.reply(keys.cameras_key(prefix), json.dumps(service.cameras_info()).encode(),
+                req.reply(keys.cameras_key(prefix), strict_dumps(service.cameras_info()).encode(),
                           keys.ENC_CAMERAS)
 
             def on_forget(req: Request) -> None:
                 parsed = keys.split_camera_key(prefix, req.key)
                 if parsed is None or parsed[1] != "forget":
-                    req.reply_err(json.dumps({"reason": "bad_query", "message":
-                                              "forget one camera: <prefix>/<camera>/forget"}))
+                    req.reply_err(strict_dumps(
+                        {"reason": str(ErrorReason.BAD_QUERY),
+                         "message": "forget one camera: <prefix>/<camera>/forget"}))
                     return
                 if not service.owns(parsed[0]):
                     return  # another shard's camera: its owner answers (and removes the file)
                 found = service.forget(parsed[0])
-                req.reply(req.key, json.dumps({"camera": parsed[0], "forgotten": found,
-                                               "instance": service.instance}).encode(),
+                req.reply(req.key, strict_dumps({"camera": parsed[0], "forgotten": found,
+                                                 "instance": service.instance}).encode(),
                           keys.ENC_STATUS)
 
             # a shard answers for some cameras of these keys only: not "complete", so that

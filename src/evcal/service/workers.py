@@ -48,7 +48,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import ctypes
-import json
 import logging
 import os
 import shutil
@@ -63,6 +62,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from ..jsonable import strict_dumps
 from ..online import usable_cores
 from ..signals import SignalRelay
 from . import keys
@@ -438,7 +438,7 @@ def _declare(t: Transport, sup: Supervisor, *, prefix: str, name: str, claims: s
     def on_cameras(req: Request) -> None:
         doc = {"instance": name, "prefix": prefix, "claims": claims, "supervisor": True,
                "pid": os.getpid(), **sup.info(), "cameras": []}
-        req.reply(keys.cameras_key(prefix), json.dumps(doc).encode(), keys.ENC_CAMERAS)
+        req.reply(keys.cameras_key(prefix), strict_dumps(doc).encode(), keys.ENC_CAMERAS)
 
     t.queryable(keys.cameras_key(prefix), on_cameras, complete=False)
     tokens = {keys.service_token_key(prefix, n.replace("/", "_")): n for n in names}
