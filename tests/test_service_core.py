@@ -676,3 +676,23 @@ def test_every_document_the_service_emits_is_strict_json():
     finally:
         svc.close()
     assert strict_dumps({"x": float("nan"), "y": [np.inf, 1.5]}) == '{"x": null, "y": [null, 1.5]}'
+
+
+def test_no_calibration_yet_says_why_and_what_to_do():
+    from evcal.service.outputs import no_calibration_message
+
+    pub = Collector()
+    svc = Service(ServiceConfig(error_rate_hz=1000), pub)  # default buffers: 1000 events
+    try:
+        feed(svc, "cam0", stream(n_frames=3))  # 600 events
+        settle(svc)
+        msg = no_calibration_message(svc.cameras["cam0"].state)
+        assert "3 frames, 600 events received" in msg
+        assert "small buffer of 1,000 events" in msg and "--n-small" in msg
+        with pytest.raises(Exception, match="small buffer of 1,000 events") as info:
+            svc.query_calibration("evcal/cam0/calibration", {})
+        from evcal.errors import ErrorReason
+
+        assert getattr(info.value, "reason", None) == ErrorReason.NO_CALIBRATION
+    finally:
+        svc.close()

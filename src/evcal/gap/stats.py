@@ -147,6 +147,7 @@ def observe(rec: Recording, *, saturation_dn: tuple[float, float] = (0.0, 255.0)
     pix = ev["y"].astype(np.int64) * w + ev["x"]
     win = np.clip(np.searchsorted(ft, ev["t_us"], side="right") - 1, 0, n_w - 1)
     key = win * npix + pix
+    pix = pix.astype(np.int32)  # kept for as long as the observation is
     on_m = ev["p"] > 0
     on = np.bincount(key[on_m], minlength=n_w * npix).reshape(n_w, npix).astype(np.int32)
     off = np.bincount(key[~on_m], minlength=n_w * npix).reshape(n_w, npix).astype(np.int32)

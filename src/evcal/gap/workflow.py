@@ -289,13 +289,12 @@ class _Runner:
             with ThreadPoolExecutor(max_workers=min(self.workers, len(todo))) as pool:
                 sims += list(pool.map(lambda s: self._simulate(ev.model, s), todo))
         summaries = list(ev.summaries) + [summarise(o) for o in sims[len(ev.summaries):]]
-        if spread is not None:
-            # a screened candidate's observation: its derived arrays (per-window fits,
-            # intervals, about half its memory) are dropped once summarised; the few that
-            # are confirmed or fitted on recompute them when asked (Observation.extra is a
-            # cache), the many others would hold them for the rest of the round
-            for o in sims:
-                o.extra.clear()
+        # the derived arrays (per-window fits, intervals, per-event windows: half an
+        # observation's memory, more with many events) are dropped once summarised; the
+        # fitters recompute them on the few simulations they read (Observation.extra is a
+        # cache), the others would hold them as long as their evaluation lives
+        for o in sims:
+            o.extra.clear()
         disc = self.meas_disc(summaries, spread if len(sims) < 2 else None)
         return Evaluation(ev.model, sims, disc, summaries)
 

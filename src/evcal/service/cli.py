@@ -27,6 +27,10 @@ def build_parser(prog: str = "evcal serve") -> argparse.ArgumentParser:
                     "and frames on <prefix>/<camera>/events|frames, keeps an online (OnEI) "
                     "calibration per camera, publishes <prefix>/<camera>/calibration|status|"
                     "errors and answers queries on them.",
+        epilog="Keeping deployments apart: zenoh peers find each other by multicast "
+               "scouting by default, so two services on one host or network ingest each "
+               "other's cameras. Give every process of a deployment --no-multicast-scouting "
+               "and explicit --listen/--connect endpoints, or a --prefix of its own.",
     )
     add_zenoh_arguments(p)
     p.add_argument("--prefix", default="evcal", help="key prefix (default: evcal)")

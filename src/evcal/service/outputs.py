@@ -105,6 +105,21 @@ def parse_query(params: Mapping[str, str]) -> tuple[str, list[str] | None]:
     return fmt, fields
 
 
+def no_calibration_message(st: CameraState) -> str:
+    """Why a camera has no calibration yet, and what would give it one."""
+    head = (f"camera {st.id!r} has no calibration yet ({st.counters.frames:,} frames, "
+            f"{st.counters.events:,} events received)")
+    cal = st.calibrator
+    if cal is None:
+        return f"{head}: it needs frames and events"
+    if st.counters.frames < 2:
+        return f"{head}: OnEI needs at least two frames"
+    return (f"{head}: OnEI's first update needs a small buffer of {cal.n_small:,} events "
+            f"between frames ({cal.n_small / max(cal.sensor.n_pixels, 1):.1f} per pixel, "
+            "the paper's 200 k at 240x180 scaled to the sensor); send more, or start the "
+            "service with a smaller --n-small (and --n-large)")
+
+
 def calibration_reply(st: CameraState, fmt: str, fields: list[str] | None
                       ) -> tuple[bytes, str]:
     """The camera's current calibration as ``(payload, encoding)`` (call with its lock held).
@@ -113,8 +128,7 @@ def calibration_reply(st: CameraState, fmt: str, fields: list[str] | None
     """
     msg = st.calibration_msg
     if msg is None:
-        raise Rejected(f"camera {st.id!r} has no calibration yet ({st.counters.frames} frames, "
-                       f"{st.counters.events} events received)", ErrorReason.NO_CALIBRATION)
+        raise Rejected(no_calibration_message(st), ErrorReason.NO_CALIBRATION)
     if fmt == "msgpack" and fields is None:
         return msg, keys.ENC_CALIBRATION
     cal = st.current_calibration()
