@@ -198,3 +198,21 @@ def test_every_command_takes_q_and_v():
         assert exc.value.code == 0, name
         text = out.getvalue()
         assert "-q, --quiet" in text and "-v, --verbose" in text, name
+
+
+def test_a_low_valid_share_is_explained() -> None:
+    import numpy as np
+
+    from evcal.calibration import Calibration, Reason
+    from evcal.cli import invalid_reasons
+
+    cal = Calibration.uniform((10, 10))
+    reason = np.full((10, 10), Reason.NO_EVENTS, np.uint8)
+    reason[0, :5] = Reason.VALID
+    reason[1] = Reason.TOO_FEW_EVENTS
+    valid = reason == Reason.VALID
+    low = cal.replace(valid=valid, reason=reason)
+    text = invalid_reasons(low)
+    assert text.startswith("no events 85.0 %, too few events 10.0 %")
+    assert "too few events (a still camera" in text
+    assert invalid_reasons(cal) == ""  # all valid: nothing to explain

@@ -12,12 +12,15 @@ import logging
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from .estimators import ESTIMATORS
 from .events import SensorSize
+
+if TYPE_CHECKING:
+    from .calibration import Calibration
 
 DESCRIPTION = """\
 evcal: per-pixel calibration of event cameras.
@@ -186,6 +189,9 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     print(f"log_offset    {cal.log_offset:.3f}"
           + (" (estimated)" if args.log_offset == "auto" and args.method != "offe" else ""))
     print(f"valid pixels  {s['valid_fraction'] * 100:.1f} %")
+    why = invalid_reasons(cal)
+    if why:
+        print(f"invalid       {why}")
     if "contrast_median" in s:
         print(f"contrast      median {s['contrast_median']:.4f}  "
               f"[p5 {s['contrast_p05']:.4f}, p95 {s['contrast_p95']:.4f}]")
@@ -241,6 +247,29 @@ def _calibrate_stream(args: argparse.Namespace) -> int:
     print(f"valid pixels  {s['valid_fraction'] * 100:.1f} %")
     print(f"wrote         {args.out}")
     return 0
+
+
+def invalid_reasons(cal: Calibration, below: float = 0.5) -> str:
+    """Why the pixels of a calibration whose valid share is below ``below`` are invalid:
+    each reason's share of the sensor, largest first, with what to do about the commonest
+    ones; "" when enough pixels are valid."""
+    from .calibration import Reason  # noqa: PLC0415
+
+    if float(cal.valid.mean()) >= below:
+        return ""
+    n = cal.reason.size
+    counts = np.bincount(cal.reason.ravel(), minlength=len(Reason))
+    parts = [f"{Reason(k).name.lower().replace('_', ' ')} {100 * counts[k] / n:.1f} %"
+             for k in np.argsort(-counts) if k != Reason.VALID and counts[k] > 0]
+    hint = ""
+    quiet = counts[Reason.NO_EVENTS] + counts[Reason.TOO_FEW_EVENTS]
+    if quiet >= 0.5 * n:
+        hint = ("; most pixels saw too few events (a still camera, a short recording or a "
+                "dark scene): a longer recording with motion calibrates more of them, and "
+                "the invalid ones keep c = 0.1, b = 0")
+    elif counts[Reason.CONSTANT] >= 0.5 * n:
+        hint = "; most pixels' frames never change: the camera or the scene must move"
+    return ", ".join(parts) + hint
 
 
 # -- evaluate ---------------------------------------------------------------------------------
