@@ -201,19 +201,25 @@ def test_observations_of_the_same_frames_share_their_frame_arrays() -> None:
 
 def test_progress_without_a_terminal_prints_lines_with_the_time_left(capsys,
                                                                    monkeypatch) -> None:
-    from evcal.gap import cli
+    from evcal.progress import Progress
 
-    monkeypatch.setattr(cli._Progress, "EVERY_S", 0.0)
-    p = cli._Progress(10.0, quiet=False, tty=False)
-    p.tick(0.25)  # a screening on a quarter of the rows
+    monkeypatch.setattr(Progress, "EVERY_S", 0.0)
+    # as `evcal gap` makes it
+    p = Progress(10.0, "gap", unit="simulations planned", tty=False, decimals=1,
+                 skip_first=True)
+    p.update(0.25)  # a screening on a quarter of the rows
     p.plan(6.0)  # a round fewer than planned
-    p.tick(1.0)
+    p.update(1.0)
     p.close()
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 2
     assert lines[0].startswith("evcal gap: 0.2 of 10.0 simulations planned")
     assert lines[0].endswith("about ? left")  # no rate from the first simulation alone
     assert "1.2 of 6.0 simulations planned" in lines[1] and "left" in lines[1]
-    quiet = cli._Progress(10.0, quiet=True, tty=False)
-    quiet.tick(1.0)
+    quiet = Progress(10.0, "gap", unit="simulations planned", quiet=True, tty=False)
+    quiet.update(1.0)
     assert capsys.readouterr().err == ""
+    # an unknown total: what is done and the time, no estimate
+    with Progress(None, "calibrate", unit="messages read", tty=False) as q:
+        q.set(4096)
+    assert capsys.readouterr().err.strip().startswith("evcal calibrate: 4096 messages read, 0:00")

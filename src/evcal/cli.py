@@ -21,6 +21,7 @@ from .events import SensorSize
 
 if TYPE_CHECKING:
     from .calibration import Calibration
+    from .progress import Progress
 
 DESCRIPTION = """\
 evcal: per-pixel calibration of event cameras.
@@ -59,11 +60,10 @@ class CliError(Exception):
     """A user error: printed without a traceback, exit code 2."""
 
 
-def _progress(total: int | None, desc: str, quiet: bool):
-    from tqdm import tqdm  # noqa: PLC0415
+def _progress(total: int | None, desc: str, quiet: bool, unit: str) -> Progress:
+    from .progress import Progress  # noqa: PLC0415
 
-    return tqdm(total=total, desc=desc, disable=quiet or not sys.stderr.isatty(), file=sys.stderr,
-                unit="it", leave=False)
+    return Progress(total, desc, unit=unit, quiet=quiet)
 
 
 def _sensor_arg(text: str | None) -> SensorSize | None:
@@ -224,11 +224,9 @@ def _calibrate_stream(args: argparse.Namespace) -> int:
     okw: dict[str, Any] = {"log_offset": args.log_offset}
     if args.window_frames is not None:
         okw["window_frames"] = args.window_frames
-    with _progress(None, "offei", args.quiet) as bar:
+    with _progress(None, "calibrate", args.quiet, "messages read") as bar:
         def tick(done: int, total: int) -> None:
-            bar.total = total or None
-            bar.n = done
-            bar.refresh()
+            bar.set(done, total or None)
 
         cal = offei_file(args.recording, OffEIConfig(**okw), prefix_frames=args.prefix_frames,
                          progress=tick)
@@ -324,7 +322,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         seed=args.seed,
     )
     n_steps = int(cfg.duration_s * cfg.internal_rate_hz)
-    with _progress(n_steps, "simulate", args.quiet) as bar:
+    with _progress(n_steps, "simulate", args.quiet, "steps") as bar:
         res = simulate_ideal(cfg, progress=lambda k: bar.update(1))
     out = Path(args.out)
     write_recording(res.recording, out)

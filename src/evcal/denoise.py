@@ -35,6 +35,7 @@ import numpy as np
 
 from .events import SensorSize
 from .recording import Frames
+from .stream import event_windows
 
 __all__ = ["background_activity_filter", "still_interval_mask"]
 
@@ -106,7 +107,7 @@ def still_interval_mask(events: np.ndarray, frames: Frames, sensor: SensorSize,
         return np.ones(events.size, bool)
     log_i = np.log(frames.images.reshape(n_f, -1).astype(np.float64) + float(log_offset))
     still = np.abs(np.diff(log_i, axis=0)) < max_dl
-    win = np.searchsorted(frames.t_us, events["t_us"], side="right") - 1
+    win = event_windows(events["t_us"], frames.t_us)
     pix = events["y"].astype(np.int64) * sensor.width + events["x"]
     inside = (win >= 0) & (win < n_f - 1)
     keep = np.ones(events.size, bool)

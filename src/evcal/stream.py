@@ -51,6 +51,20 @@ def frame_cuts(event_t_us: np.ndarray, frame_t_us: np.ndarray) -> np.ndarray:
                            side="left").astype(np.int64)
 
 
+def event_windows(event_t_us: np.ndarray, frame_t_us: np.ndarray) -> np.ndarray:
+    """The frame interval of each event: ``k`` with ``t_k <= t < t_{k+1}`` (int64; -1
+    before the first frame, the last frame's index at or after it), the per-event view of
+    :func:`frame_cuts`.
+
+    Examples
+    --------
+    >>> event_windows(np.array([0, 5, 10, 10, 12]), np.array([5, 10, 20])).tolist()
+    [-1, 0, 1, 1, 1]
+    """
+    return np.searchsorted(np.asarray(frame_t_us, np.int64), np.asarray(event_t_us),
+                           side="right").astype(np.int64) - 1
+
+
 def frame_intervals(events: np.ndarray, frame_t_us: np.ndarray
                     ) -> Iterator[tuple[int, np.ndarray]]:
     """``(k, events of [t_{k-1}, t_k))`` for every frame ``k`` (views, no copy).

@@ -93,9 +93,14 @@ def run(args: argparse.Namespace) -> int:
     except RecordingError as exc:
         print(f"evcal gap: {exc}", file=sys.stderr)
         return 1
-    progress = _Progress(n_simulations(cfg), quiet=args.quiet, tty=sys.stderr.isatty())
+    from ..progress import Progress  # noqa: PLC0415
+
+    # the first simulation also renders the latent intensity and follows the measurement's
+    # analysis: the rate is taken from the ones after it
+    progress = Progress(n_simulations(cfg), "gap", unit="simulations planned",
+                        quiet=args.quiet, decimals=1, skip_first=True)
     try:
-        result = run_gap(rec, cfg, progress=progress.tick, plan=progress.plan)
+        result = run_gap(rec, cfg, progress=progress.update, plan=progress.plan)
     except GapError as exc:
         print(f"evcal gap: {args.recording}: {exc}", file=sys.stderr)
         return 1
@@ -112,72 +117,6 @@ def run(args: argparse.Namespace) -> int:
     for line in summary(result.final.disc):
         print(f"  {line}")
     return 0
-
-
-class _Progress:
-    """The work done against the work planned (in simulations of the whole sensor; the plan
-    is an upper bound, every round that may name an effect, lowered as rounds end): a
-    tqdm bar on a terminal, else a line every :attr:`EVERY_S` seconds (logs and CI see
-    progress too). The time left is the planned work left at the rate so far."""
-
-    EVERY_S = 10.0
-
-    def __init__(self, total: float, *, quiet: bool, tty: bool) -> None:
-        import time  # noqa: PLC0415
-
-        self._now = time.monotonic
-        self._t0 = self._last = self._now()
-        self.total = float(total)
-        self.done = 0.0
-        self._first: tuple[float, float] | None = None  # (time, work) of the first tick
-        self._bar = None
-        self._quiet = quiet
-        if not quiet and tty:
-            from tqdm import tqdm  # noqa: PLC0415
-
-            self._bar = tqdm(total=round(self.total, 1), desc="gap (simulations planned)",
-                             unit="sim", file=sys.stderr, leave=False,
-                             bar_format="{l_bar}{bar}| {n:.1f}/{total:.1f} "
-                                        "[{elapsed}<{remaining}]")
-
-    def tick(self, work: float) -> None:
-        if self._first is None:
-            # the first simulation also renders the latent intensity and follows the
-            # measurement's analysis: the rate is taken from the ones after it
-            self._first = (self._now(), self.done + work)
-        self.done += work
-        if self._bar is not None:
-            self._bar.update(work)
-        elif not self._quiet and self._now() - self._last >= self.EVERY_S:
-            self._last = self._now()
-            print(f"evcal gap: {self.line()}", file=sys.stderr, flush=True)
-
-    def plan(self, total: float) -> None:
-        self.total = max(float(total), self.done)
-        if self._bar is not None:
-            self._bar.total = round(self.total, 1)
-            self._bar.refresh()
-
-    def line(self) -> str:
-        now = self._now()
-        el = now - self._t0
-        left = float("nan")
-        if self._first is not None and self.done > self._first[1]:
-            left = (self.total - self.done) * (now - self._first[0]) / (
-                self.done - self._first[1])
-        return (f"{self.done:.1f} of {self.total:.1f} simulations planned, "
-                f"{_clock(el)} elapsed, about {_clock(left)} left")
-
-    def close(self) -> None:
-        if self._bar is not None:
-            self._bar.close()
-
-
-def _clock(seconds: float) -> str:
-    if not seconds == seconds:  # NaN: no rate yet
-        return "?"
-    m, sec = divmod(int(round(seconds)), 60)
-    return f"{m // 60}:{m % 60:02d}:{sec:02d}" if m >= 60 else f"{m}:{sec:02d}"
 
 
 def _missing_modules(*, flow: bool, plots: bool, rrd: bool) -> list[str]:

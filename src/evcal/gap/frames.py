@@ -75,29 +75,22 @@ def corrected_recording(model: Model, rec: Recording) -> Recording:
 # ------------------------------------------------------------------------------ aps_fpn
 
 
-def offset_residuals(obs: Observation, grid_dn: np.ndarray, log_offset: float) -> np.ndarray:
-    """Per dark offset ``o`` of ``grid_dn`` and pixel: the unexplained fraction of the
-    pixel's fit ``dL = c P + b E`` with ``L = log(F - o + log_offset)`` of the frames ``F``
-    (``[n_grid, n_pixels]``; inf where ``o`` exceeds the pixel's darkest frame, NaN where the
-    pixel has no fit).
+def offset_residuals(observations: list[Observation], grid_dn: np.ndarray,
+                     log_offset: float) -> list[np.ndarray]:
+    """Per observation, per dark offset ``o`` of ``grid_dn`` and pixel: the unexplained
+    fraction of the pixel's fit ``dL = c P + b E`` with ``L = log(F - o + log_offset)`` of
+    the frames ``F`` (``[n_grid, n_pixels]``; inf where ``o`` exceeds the pixel's darkest
+    frame, NaN where the pixel has no fit).
 
     A pixel's dark offset compresses (or stretches) its frames' log changes more in the dark
     than in the light, which a constant ``c`` cannot follow: the fraction is least at the
     offset the frames actually carry. It is scale-free (``SSR / TSS``), so shrinking all
-    ``dL`` by a larger offset does not win by itself."""
-    result: np.ndarray = _offset_residuals_of([obs], grid_dn, log_offset)[0]
-    return result
-
-
-def _offset_residuals_of(observations: list[Observation], grid_dn: np.ndarray,
-                         log_offset: float) -> list[np.ndarray]:
-    """:func:`offset_residuals` of observations of the same frames (a measurement and its
-    simulations): the frames' log changes at each offset are computed once for all."""
+    ``dL`` by a larger offset does not win by itself. Observations of the same frames (a
+    measurement and its simulations) share the frames' log changes at each offset."""
     obs0 = observations[0]
     if any(o.intensity is not obs0.intensity or o.usable is not obs0.usable
            for o in observations[1:]):
-        return [r for o in observations for r in _offset_residuals_of([o], grid_dn,
-                                                                       log_offset)]
+        return [r for o in observations for r in offset_residuals([o], grid_dn, log_offset)]
     F = obs0.intensity.astype(np.float64)
     w = obs0.usable.astype(np.float64)
     f_min = np.where(obs0.usable.any(0), F.min(0), 0.0)
@@ -117,23 +110,16 @@ def _offset_residuals_of(observations: list[Observation], grid_dn: np.ndarray,
     return out
 
 
-def offset_estimates(obs: Observation, log_offset: float,
-                     grid_dn: np.ndarray = FPN_GRID_DN) -> np.ndarray:
-    """Per pixel, the dark offset (DN) of the least :func:`offset_residuals` on the grid,
-    refined by a parabola through its neighbours (NaN where the pixel has no fit). Kept in
-    ``obs.extra``: the workflow refits on the same simulations many times."""
-    result: np.ndarray = offset_estimates_of([obs], log_offset, grid_dn)[0]
-    return result
-
-
-def offset_estimates_of(observations: list[Observation], log_offset: float,
-                        grid_dn: np.ndarray = FPN_GRID_DN) -> list[np.ndarray]:
-    """:func:`offset_estimates` of several observations, those not yet known computed
-    together (:func:`_offset_residuals_of`)."""
+def offset_estimates(observations: list[Observation], log_offset: float,
+                     grid_dn: np.ndarray = FPN_GRID_DN) -> list[np.ndarray]:
+    """Per observation and pixel, the dark offset (DN) of the least
+    :func:`offset_residuals` on the grid, refined by a parabola through its neighbours
+    (NaN where the pixel has no fit). Kept in each ``obs.extra`` (the workflow refits on
+    the same simulations many times); those not yet known are computed together."""
     key = f"aps_fpn_offsets/{float(log_offset)!r}/{grid_dn.tobytes().hex()}"
     todo = [o for o in observations if not isinstance(o.extra.get(key), np.ndarray)]
     if todo:
-        for o, r in zip(todo, _offset_residuals_of(todo, grid_dn, log_offset), strict=True):
+        for o, r in zip(todo, offset_residuals(todo, grid_dn, log_offset), strict=True):
             o.extra[key] = _grid_argmin(r, grid_dn)
     return [o.extra[key] for o in observations]
 
@@ -179,7 +165,7 @@ def fit_aps_fpn(meas: Observation, sims: list[Observation], model: Model,
     if len(sims) < 2:
         return None
     lo = float(model.log_offset)
-    om, *est = offset_estimates_of([meas, *sims], lo)
+    om, *est = offset_estimates([meas, *sims], lo)
     os_ = np.stack(est)
     ok = np.isfinite(om) & np.isfinite(os_).all(0)
     if ok.sum() < 50:

@@ -32,7 +32,6 @@ from ..sim.effects import (
     LogOffset,
     Refractory,
     ShotNoise,
-    ThresholdLight,
     ThresholdNoise,
     TimestampJitter,
     TimestampQuantisation,
@@ -40,6 +39,7 @@ from ..sim.effects import (
 from ..sim.ideal import SimConfig
 from ..sim.nonideal import simulate
 from ..sim.sources import FrameInterpolator
+from ..stream import event_windows
 from . import fitters_events as _events
 from . import frames as _frames
 from .render import RenderCache, frames_key
@@ -64,6 +64,9 @@ class Model:
     bias: np.ndarray
     log_offset: float
     effects: dict[str, Effect] = field(default_factory=dict)
+    # the maps were corrected by :func:`anchor` (an effect added to such a model, or a
+    # parameter changed, keeps them: anchoring it again may take one simulation, not two)
+    anchored: bool = False
 
     def with_effect(self, effect: Effect) -> Model:
         eff = dict(self.effects)
@@ -79,6 +82,12 @@ class Band:
 
     rows: slice
     rec: Recording
+    sensor_height: int  # rows of the whole sensor
+
+    @property
+    def share(self) -> float:
+        """The band's share of the sensor's rows."""
+        return float(self.rows.stop - self.rows.start) / self.sensor_height
 
     @classmethod
     def of(cls, rec: Recording, y0: int, y1: int) -> Band:
@@ -90,18 +99,13 @@ class Band:
         fr = rec.frames
         frames = Frames(fr.t_us, fr.images[:, y0:y1], fr.exposure_us)
         return cls(slice(y0, y1), Recording(SensorSize(y1 - y0, w), ev, frames,
-                                            dict(rec.metadata)))
+                                            dict(rec.metadata)), h)
 
     def model(self, model: Model) -> Model:
-        """``model`` with the maps of the band's rows, and its effects' per-pixel maps of
-        the events' side (a threshold's light reference); those acting on the frames
-        (``aps_fpn``) act before the band is cut and keep the whole sensor's."""
-        effects = dict(model.effects)
-        tl = effects.get(ThresholdLight.name)
-        if isinstance(tl, ThresholdLight) and tl.pixel_ref_dn is not None:
-            effects[tl.name] = replace(tl, pixel_ref_dn=np.asarray(tl.pixel_ref_dn)[self.rows])
+        """``model`` with the maps of the band's rows, and its effects on them
+        (:meth:`~evcal.sim.effects.Effect.on_rows`)."""
         return replace(model, contrast=model.contrast[self.rows], bias=model.bias[self.rows],
-                       effects=effects)
+                       effects={k: e.on_rows(self.rows) for k, e in model.effects.items()})
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -279,8 +283,8 @@ def _bins(meas: Observation, ok: np.ndarray, n_bins: int) -> np.ndarray:
 def anchor(model: Model, rec: Recording, meas: Observation, seed: int,
            settings: SimSettings, *, n_bins: int = 6, max_iter: int = 3,
            tol: float = 0.01, render: RenderCache | None = None,
-           trusted: np.ndarray | None = None, anchored: bool = False,
-           band: Band | None = None) -> tuple[Model, Observation | None]:
+           trusted: np.ndarray | None = None, band: Band | None = None
+           ) -> tuple[Model, Observation | None]:
     """Correct ``c`` and ``b`` so a simulation of the model, fitted like the measurement, gives
     the measured fits.
 
@@ -294,12 +298,13 @@ def anchor(model: Model, rec: Recording, meas: Observation, seed: int,
     pixels does not enter the maps. Up to ``max_iter`` simulations, until the population
     median agrees within ``tol`` after at least one correction.
 
-    ``anchored``: the maps were anchored before (an effect added to an anchored model, or a
-    parameter changed): the first simulation is accepted without a correction when it
-    agrees within ``2 tol`` in every activity bin, not only in the median (an effect that
-    does not move the fit costs one simulation, not two).
+    A model whose maps were anchored before (``model.anchored``: an effect added to an
+    anchored model, or a parameter changed) is accepted after its first simulation without
+    a correction when that agrees within ``2 tol`` in every activity bin, not only in the
+    median (an effect that does not move the fit costs one simulation, not two).
 
-    Returns the anchored model and, when the loop ended on a simulation of that very model
+    Returns the anchored model (``anchored`` set once a simulation agreed or the maps were
+    corrected) and, when the loop ended on a simulation of that very model
     (it agreed), that simulation's observation (with ``trusted``): the workflow counts it as
     the seed's simulation instead of running it again.
     """
@@ -324,7 +329,7 @@ def anchor(model: Model, rec: Recording, meas: Observation, seed: int,
             g = float(np.clip((cur[1] - prev[1]) / (cur[0] - prev[0]), 0.2, 1.5))
         prev = cur
         if abs(med_s / med_m - 1.0) < tol and (it > 0 or nb == 1):
-            return model, obs
+            return replace(model, anchored=True), obs
         lr = np.zeros(nb)
         db = np.zeros(nb)
         lr_all = float(np.median(np.log(fm["c"][both] / fs["c"][both])))
@@ -337,12 +342,12 @@ def anchor(model: Model, rec: Recording, meas: Observation, seed: int,
         for j in range(nb):
             m = both & (bins == j)
             db[j] = np.median(fm["b"][m] - b_pred[m]) if m.sum() >= 10 else d_all
-        if it == 0 and anchored and abs(med_s / med_m - 1.0) < tol and \
+        if it == 0 and model.anchored and abs(med_s / med_m - 1.0) < tol and \
                 np.all(np.abs(lr) < 2 * tol) and np.all(np.abs(db) < 2 * tol * med_m):
             return model, obs
         c = np.maximum(model.contrast * k_pix, 1e-3)
         b = np.clip(model.bias * k_pix + db[bins].reshape(model.bias.shape), -0.8 * c, 0.8 * c)
-        model = replace(model, contrast=c, bias=b)
+        model = replace(model, contrast=c, bias=b, anchored=True)
     return model, None
 
 
@@ -626,7 +631,7 @@ class _SpillResidual:
         self.n_cells = n_w * npix
         self.pix = obs.pix.astype(np.int64)
         self.pol = obs.p.astype(np.float64)
-        win = np.searchsorted(self.ft, obs.t_us, side="right") - 1
+        win = event_windows(obs.t_us, self.ft)
         # events outside the frames go to a spare last cell
         self.key0 = np.where((win >= 0) & (win < n_w), win * npix + self.pix, self.n_cells)
         self.P = f["P"].ravel()
@@ -653,7 +658,7 @@ class _SpillResidual:
         sums = self.sums
         if t_us is not None:
             n_w = self.ft.size - 1
-            win = np.searchsorted(self.ft, t_us, side="right") - 1
+            win = event_windows(t_us, self.ft)
             key = np.where((win >= 0) & (win < n_w), win * self.npix + self.pix, self.n_cells)
             moved = np.flatnonzero(key != self.key0)
             if moved.size:

@@ -163,7 +163,7 @@ class _Offset:
         else:  # the whole frame rendered, its rows kept
             full = self._src.render_block(t_s)[:, self._rows]
             res = full.copy() if out is None else out
-            if out is not None:
+            if res is out:
                 np.copyto(out, full)
         if self._add is not None:
             res += self._add[None]

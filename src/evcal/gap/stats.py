@@ -55,6 +55,7 @@ from ..accumulate import order_by_key
 from ..errors import EvcalError
 from ..recording import Recording
 from ..solver import NormalEquations, SolveLimits, solve_pixels
+from ..stream import event_windows as event_windows_of
 
 NOMINAL_LOG_OFFSET_DN = 1.0
 STATIC_DL = 0.05  # |dL| below this in a window and its neighbours: static
@@ -145,7 +146,7 @@ def observe(rec: Recording, *, saturation_dn: tuple[float, float] = (0.0, 255.0)
         raise GapError("no events between the first and the last frame")
     n_w = len(fr) - 1
     pix = ev["y"].astype(np.int64) * w + ev["x"]
-    win = np.clip(np.searchsorted(ft, ev["t_us"], side="right") - 1, 0, n_w - 1)
+    win = np.clip(event_windows_of(ev["t_us"], ft), 0, n_w - 1)
     key = win * npix + pix
     pix = pix.astype(np.int32)  # kept for as long as the observation is
     on_m = ev["p"] > 0
@@ -242,8 +243,8 @@ def rows_of(obs: Observation, rows: np.ndarray | slice) -> Observation:
 def event_windows(obs: Observation) -> np.ndarray:
     """The window of each event of ``obs`` (int32)."""
     if "win" not in obs.extra:
-        obs.extra["win"] = np.clip(np.searchsorted(obs.frame_t_us, obs.t_us, side="right") - 1,
-                                   0, obs.n_windows - 1).astype(np.int32)
+        obs.extra["win"] = np.clip(event_windows_of(obs.t_us, obs.frame_t_us), 0,
+                                   obs.n_windows - 1).astype(np.int32)
     result: np.ndarray = obs.extra["win"]
     return result
 
@@ -328,7 +329,7 @@ def _fit(obs: Observation) -> dict[str, Any]:
     # kept for as long as the observation is
     P = obs.on - obs.off
     E = obs.on + obs.off
-    dL = _shared(obs, "dL", lambda: obs.log_i[1:] - obs.log_i[:-1])
+    dL = _dl(obs)
     wgt = _shared(obs, "wgt", lambda: obs.usable.astype(np.float64))
     halves = window_sums(P, E, dL, wgt, split=obs.n_windows // 2)
     c, b, ok = fit_from_sums(*(halves[0] + halves[1])[:6])
@@ -350,6 +351,11 @@ def _shared(obs: Observation, key: str, make: Any) -> np.ndarray:
         obs.shared[key] = a
     result: np.ndarray = obs.shared[key]
     return result
+
+
+def _dl(obs: Observation) -> np.ndarray:
+    """Each window's change of the frames' log intensity (nominal offset)."""
+    return _shared(obs, "dL", lambda: obs.log_i[1:] - obs.log_i[:-1])
 
 
 def _i_mid(obs: Observation) -> np.ndarray:
@@ -439,7 +445,7 @@ def _static(obs: Observation) -> np.ndarray:
     if "static" in obs.shared:
         result: np.ndarray = obs.shared["static"]
         return result
-    dl = np.abs(obs.log_i[1:] - obs.log_i[:-1]) < STATIC_DL
+    dl = np.abs(_dl(obs)) < STATIC_DL
     st = dl.copy()
     for k in range(1, STATIC_HALF_WIDTH + 1):
         st[k:] &= dl[:-k]

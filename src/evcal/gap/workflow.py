@@ -238,8 +238,6 @@ class _Runner:
         # confirmed on every seed, best first
         self.screened_pool: dict[str, tuple[Effect, Evaluation]] = {}
         self.confirmed: list[tuple[float, Effect, Evaluation]] = []
-        # ids of models whose maps were refitted, not anchored (see evaluate)
-        self._refitted: set[int] = set()
         self.band = screening_band(rec, cfg)
         if self.band is not None:
             rows = self.band.rows
@@ -263,18 +261,15 @@ class _Runner:
         return observe(simulate_model(model, self.rec, seed, self.settings, self.render),
                        trusted=self.trusted)
 
-    def evaluate(self, model: Model, what: str, *, spread: Evaluation | None = None,
-                 anchored: bool | None = None) -> Evaluation:
+    def evaluate(self, model: Model, what: str, *, spread: Evaluation | None = None
+                 ) -> Evaluation:
         """Anchor ``model`` and simulate it with every seed (in parallel), or, with
         ``spread``, with the first seed only (a screening; the seed-to-seed spread is
-        ``spread``'s). ``anchored``: its maps are those of an anchored model (see
-        :func:`.model.anchor`; by default, unless :meth:`candidate_model` refitted them)."""
-        if anchored is None:
-            anchored = id(model) not in self._refitted
+        ``spread``'s)."""
         if spread is not None and self.band is not None:
-            return self._screen_on_band(model, spread, anchored)
+            return self._screen_on_band(model, spread)
         model, first = anchor(model, self.rec, self.meas, self.seeds[0], self.settings,
-                              render=self.render, trusted=self.trusted, anchored=anchored)
+                              render=self.render, trusted=self.trusted)
         sims = [first] if first is not None else []
         n = 1 if spread is not None else len(self.seeds)
         ev = Evaluation(model, sims, self.meas_disc([], None), [summarise(o) for o in sims])
@@ -305,8 +300,7 @@ class _Runner:
             return self.evaluate(ev.model, what)
         return self.extend(ev, len(self.seeds), what) if ev.screened else ev
 
-    def _screen_on_band(self, model: Model, spread: Evaluation, anchored: bool
-                        ) -> Evaluation:
+    def _screen_on_band(self, model: Model, spread: Evaluation) -> Evaluation:
         """``model`` screened on the band's rows with the first seed: anchored there, its
         statistics against the band's measurement, with the spread of ``spread``'s
         simulations cut to the band."""
@@ -314,7 +308,7 @@ class _Runner:
         assert band is not None
         m_band, first = anchor(band.model(model), self.rec, self.meas_band, self.seeds[0],
                                self.settings, render=self.render, trusted=self.trusted_band,
-                               anchored=anchored, band=band)
+                               band=band)
         if first is None:
             first = observe(simulate_model(m_band, self.rec, self.seeds[0], self.settings,
                                            self.render, band), trusted=self.trusted_band)
@@ -351,10 +345,7 @@ class _Runner:
         if eff.name == "log_offset":
             base = fit_base(self.rec, log_offset=float(eff.parameters()["dark_dn"]))
             m = Model(base.contrast, base.bias, base.log_offset, dict(current.effects))
-            m = m.with_effect(eff)
-            # (a reused id can only cost an anchor one more simulation)
-            self._refitted.add(id(m))
-            return m
+            return m.with_effect(eff)  # refitted maps: not anchored
         return current.with_effect(eff)
 
     def debias(self, current: Evaluation, best: Evaluation, eff: Effect
@@ -746,12 +737,11 @@ def run_gap(rec: Recording, config: GapConfig | None = None, *,
     full = rec
     rec, window = working_window(rec, cfg.max_pixel_steps, cfg.internal_rate_hz)
     run = _Runner(rec, cfg, tick)
-    share = 1.0 if run.band is None else \
-        (run.band.rows.stop - run.band.rows.start) / rec.sensor.height
+    share = 1.0 if run.band is None else run.band.share
     if plan is not None:
         plan(n_simulations(cfg, band_share=share))
     base = fit_base(rec)
-    current = run.evaluate(base, "base model", anchored=False)
+    current = run.evaluate(base, "base model")
     initial = current
     steps: list[Step] = []
     rejected: dict[str, dict[str, Any]] = {}

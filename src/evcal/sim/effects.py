@@ -96,6 +96,12 @@ class Effect:
         values.update(changes)
         return type(self)(**values)
 
+    def on_rows(self, rows: slice) -> Effect:
+        """The effect on the sensor rows ``rows`` only (a band simulated on its own): its
+        per-pixel maps of the events' side cut to them. Effects without one, and those
+        acting on the frames before they are cut, are the same on any rows."""
+        return self
+
 
 @dataclass(frozen=True, kw_only=True)
 class Refractory(Effect):
@@ -306,6 +312,11 @@ class ThresholdLight(Effect):
         values: dict[str, Any] = {**self.parameters(), "pixel_ref_dn": self.pixel_ref_dn,
                                   **changes}
         return type(self)(**values)
+
+    def on_rows(self, rows: slice) -> Effect:
+        if self.pixel_ref_dn is None:
+            return self
+        return replace(self, pixel_ref_dn=np.asarray(self.pixel_ref_dn)[rows])
 
     def references(self, shape: tuple[int, int]) -> np.ndarray:
         """Per-pixel reference (``[H, W]`` float64, units of ``I + dark``)."""

@@ -79,7 +79,6 @@ def _grow(buf: np.ndarray, n: int) -> Any:  # pragma: no cover - compiled
 # the rounding of exp, log and float32 (1e-7), so a pixel it lets through cannot have fired
 _MARGIN = 1e-6
 _F32_TINY = 1.1754943508222875e-38  # smallest normal float32
-# the same for the shot-noise test (float64 products: a few 1e-16)
 # events in one bucket of the per-step sort above which insertion would cost more than merging
 _MAX_BUCKET = 256
 # buckets of the per-step sort (a microsecond each, up to steps of this length)
