@@ -67,14 +67,16 @@ def test_compose_commands_parse(compose):
     cmd = compose["services"]["evcal"]["command"]
     assert cmd[0] == "serve"
     args = serve_parser().parse_args(cmd[1:])
-    assert args.state_dir == "/state" and args.rrd
+    assert args.state_dir == "/state"
+    assert args.rrd
     pytest.importorskip("zenoh")
     from evcal.clients.replay import build_parser as replay_parser
 
     cmd = compose["services"]["replay"]["command"]
     assert cmd[0] == "replay"
     args = replay_parser().parse_args(cmd[1:])
-    assert args.camera == "lab/rig1/cam0" and args.loop
+    assert args.camera == "lab/rig1/cam0"
+    assert args.loop
 
 
 def test_zenoh_configs_load():
@@ -94,3 +96,40 @@ def test_dockerfile_copies_existing_paths():
         for src in sources:
             assert (ROOT / src).exists(), src
     assert "'.[service]'" in text
+
+
+def test_each_rig_certificate_feeds_only_its_own_cameras():
+    """docker/zenoh/secure/router.json5: inputs are put only under a rig's own cameras
+    (CN evcal-rig-NAME: evcal/lab/NAME/**), every subject names certificates (a subject
+    without any matches everyone), and the secure compose file's replay feeds a camera of
+    the rig whose certificate it mounts. (Before the fix one CN, evcal-rig, put anywhere.)"""
+    zenoh = pytest.importorskip("zenoh")
+    yaml = pytest.importorskip("yaml")
+    conf = zenoh.Config.from_file(str(DOCKER / "zenoh" / "secure" / "router.json5"))
+    acl = json.loads(conf.get_json("access_control"))
+    rules = {r["id"]: r for r in acl["rules"]}
+    subjects = {s["id"]: s for s in acl["subjects"]}
+    assert all(s.get("cert_common_names") for s in subjects.values()), subjects
+    rigs = set()
+    for policy in acl["policies"]:
+        cns = {cn for sid in policy["subjects"] for cn in subjects[sid]["cert_common_names"]}
+        for rid in policy["rules"]:
+            rule = rules[rid]
+            feeds = [k for k in rule["key_exprs"] if k.endswith(("/events", "/frames"))]
+            if not (feeds and "put" in rule["messages"] and "ingress" in rule["flows"]):
+                continue
+            assert len(cns) == 1, f"rule {rid!r} lets {sorted(cns)} put inputs"
+            (cn,) = cns
+            assert cn.startswith("evcal-rig-"), f"{cn} may put inputs"
+            name = cn.removeprefix("evcal-rig-")
+            assert all(k.startswith(f"evcal/lab/{name}/") for k in feeds), (cn, feeds)
+            assert rule["permission"] == "allow"
+            rigs.add(name)
+    assert rigs == {"rig1"}
+    compose = yaml.safe_load((DOCKER / "compose.secure.yaml").read_text())
+    replay = compose["services"]["replay"]
+    cert = next(v.split(":")[0] for v in replay["volumes"] if v.endswith(":/certs/me.pem:ro"))
+    name = Path(cert).stem.removeprefix("rig-")
+    camera = replay["command"][replay["command"].index("--camera") + 1]
+    assert name in rigs, cert
+    assert camera.startswith(f"lab/{name}/"), (cert, camera)

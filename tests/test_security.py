@@ -61,6 +61,26 @@ def test_signatures_bind_bytes_key_and_instance(tmp_path):
     assert (tmp_path / "svc.key").stat().st_mode & 0o077 == 0
 
 
+def test_pinned_keys_round_trip_and_a_damaged_file_says_so(tmp_path, monkeypatch):
+    from evcal.service.signing import KnownServices, default_known_services
+
+    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path / "xdg"))
+    assert default_known_services() == tmp_path / "xdg" / "evcal" / "known_services"
+    _, pub = generate_keys(tmp_path / "svc")
+    known = KnownServices()
+    assert known.get("evcal") is None  # no file yet
+    known.pin("evcal", Verifier(pub), "good")
+    assert known.get("evcal").key_id == Verifier(pub).key_id
+    assert known.get("other") is None
+    assert (tmp_path / "xdg" / "evcal").stat().st_mode & 0o077 == 0
+    known.path.write_text("{")
+    with pytest.raises(SignatureError, match="not JSON .*fix or delete it"):
+        known.get("evcal")
+    known.path.write_text(json.dumps({"evcal": {"key": "!!"}}))
+    with pytest.raises(SignatureError, match="no valid key"):
+        known.get("evcal")
+
+
 @pytest.fixture
 def signed_service(tmp_path):
     """A service (in this process) with a signing key, fed one short simulated camera."""
@@ -87,50 +107,92 @@ def signed_service(tmp_path):
         th.join(60)
 
 
-def _rogue(t: Transport, shape: tuple[int, int]) -> None:
-    """A queryable answering like a service, with c = 0.999 and a far newer t_us."""
+def _rogue(t: Transport, shape: tuple[int, int], *, instance: str = "good",
+           key: Path | None = None) -> None:
+    """A queryable answering like a service, with c = 0.999 and a far newer t_us; it names
+    the genuine instance ("good") unless told otherwise, signed with ``key`` if given."""
     fake = Calibration.uniform(shape, 0.999, 0.0, method="onei", log_offset=30.0)
     payload = calibration_npz_bytes(fake, extra={"t_us": 2**62})
+    signer = Signer.from_file(instance, key)
 
     def answer(req):
         req.reply("evcal/cam0/calibration", payload, keys.ENC_CALIBRATION_NPZ,
-                  attachment=Signer("rogue").attachment("evcal/cam0/calibration", payload))
+                  attachment=signer.attachment("evcal/cam0/calibration", payload))
 
     t.queryable("evcal/cam0/calibration", answer)
 
 
-def test_a_rogue_answer_does_not_win_the_query(signed_service):
-    # the rogue is a peer of its own on the same network: the client reaches both
-    ep, out = signed_service["ep"], signed_service["tmp"] / "cal.npz"
+def _genuine(out: Path) -> bool:
+    with np.load(out) as z:
+        return (float(z["contrast"].max()) < 0.9  # not the rogue's 0.999
+                and json.loads(str(z["params_json"]))["t_us"] < 2**62)
+
+
+def test_a_rogue_answer_does_not_win_the_query(signed_service, monkeypatch):
+    """The reported case: a rogue queryable naming the genuine instance with a newer t_us
+    won `evcal query` without --verify (exit 0, the rogue's maps). Now query trusts the
+    service's key on first use and nothing unsigned or signed by another key after."""
+    tmp = signed_service["tmp"]
+    monkeypatch.setenv("XDG_STATE_HOME", str(tmp / "xdg"))  # the children's default pin file
+    known = tmp / "xdg" / "evcal" / "known_services"
+    ep, out = signed_service["ep"], tmp / "cal.npz"
     ep_rogue = endpoint(free_port())
+    # the rogue is a peer of its own on the same network: the client reaches both
     zargs = ["--no-multicast-scouting", "--connect", ep, "--connect", ep_rogue, "--camera",
              "cam0", "--out", str(out)]
     with Transport(ZenohOptions.loopback(listen=[ep_rogue])) as rogue:
-        _rogue(rogue, (24, 32))
-        # two instances disagree: refused, and the message says how to choose
+        _rogue(rogue, (24, 32))  # unsigned, as instance "good"
+        # first use: the signed answer wins (the unsigned one is ignored), its key is pinned
         res = run_client("query", zargs)
+        assert res.returncode == 0, res.stderr
+        assert _genuine(out), res.stderr
+        assert "pinned for 'evcal' on first use" in res.stderr
+        assert known.is_file()
+        assert json.loads(known.read_text())["evcal"]["key_id"] == \
+            Verifier(signed_service["pub"]).key_id
+        out.unlink()
+        res = run_client("query", zargs)
+        assert res.returncode == 0, res.stderr
+        assert _genuine(out)
+        assert "signed with the key pinned for 'evcal'" in res.stderr
+        out.unlink()
+        # --insecure takes unsigned answers, but two naming one instance disagree: refused
+        res = run_client("query", [*zargs, "--insecure"])
         assert res.returncode == 1, res.stderr
-        assert "different calibrations" in res.stderr and "--instance" in res.stderr
+        assert "two answers claim instance 'good'" in res.stderr
         assert not out.exists()
-        # --verify keeps only the answer signed with the service's key
+        # --verify keeps only the answer signed with the service's key, as before
         res = run_client("query", [*zargs, "--verify", str(signed_service["pub"])])
         assert res.returncode == 0, res.stderr
-        assert "signature verified" in res.stderr and "instance good" in res.stderr
-        with np.load(out) as z:
-            assert float(z["contrast"].max()) < 0.9  # not the rogue's 0.999
-            assert json.loads(str(z["params_json"]))["t_us"] < 2**62
-        # naming an instance works too (without cryptographic proof)
+        assert _genuine(out)
+        assert "signature verified" in res.stderr
+        assert "instance good" in res.stderr
         out.unlink()
-        res = run_client("query", [*zargs, "--instance", "good"])
-        assert res.returncode == 0, res.stderr
-    # the rogue's answer alone, with --verify: refused, saying why
+    # a rogue signing with a key of its own, in the genuine instance's name: the pinned key
+    # differs, and the query fails saying so (whatever the genuine answer)
+    rogue_key, _ = generate_keys(tmp / "rogue")
+    with Transport(ZenohOptions.loopback(listen=[ep_rogue])) as rogue:
+        _rogue(rogue, (24, 32), key=rogue_key)
+        res = run_client("query", zargs)
+        assert res.returncode == 1, res.stderr
+        assert "is pinned for prefix 'evcal'" in res.stderr
+        assert str(known) in res.stderr
+        assert not out.exists()
+        # another pin file knows nothing: two keys and no pin, refused too
+        res = run_client("query", [*zargs, "--known-keys", str(tmp / "other")])
+        assert res.returncode == 1, res.stderr
+        assert "2 different keys" in res.stderr
+    # the rogue's answer alone: unsigned, and the service's key is pinned: refused
     with Transport(ZenohOptions.loopback(listen=[ep_rogue])) as rogue, \
             Transport(ZenohOptions.loopback(connect=[ep_rogue])) as client:
         _rogue(rogue, (24, 32))
         from evcal.clients.query import QueryError, fetch_calibration_npz
+        from evcal.service.signing import KnownServices
 
         wait_for(lambda: any(r.ok for r in client.get("evcal/cam0/calibration")),
                  timeout_s=10, what="the rogue's answer")
+        with pytest.raises(QueryError, match="not signed"):
+            fetch_calibration_npz(client, "cam0", known=KnownServices(known))
         with pytest.raises(QueryError, match="not signed"):
             fetch_calibration_npz(client, "cam0", verifier=Verifier(signed_service["pub"]))
 
@@ -240,14 +302,15 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_the_shipped_access_control_lets_each_role_do_only_its_job(tmp_path):
-    """docker/zenoh/secure/router.json5 in a Python router (mutual TLS, its ACL): rigs put
-    inputs, only the service publishes and answers calibrations, clients read."""
+    """docker/zenoh/secure/router.json5 in a Python router (mutual TLS, its ACL): a rig puts
+    its own cameras' inputs, only the service publishes and answers calibrations, clients
+    read."""
     import zenoh
 
     conf_path = ROOT / "docker" / "zenoh" / "secure" / "router.json5"
     if not conf_path.is_file():
         pytest.skip("not running from a source checkout")
-    c = _ca_and_certs(tmp_path, ("router", "rig", "service", "client"))
+    c = _ca_and_certs(tmp_path, ("router", "rig-rig1", "service", "client"))
     port = free_port()
     conf = zenoh.Config.from_file(str(conf_path))
     conf.insert_json5("listen/endpoints", json.dumps([f"tls/127.0.0.1:{port}"]))
@@ -264,34 +327,38 @@ def test_the_shipped_access_control_lets_each_role_do_only_its_job(tmp_path):
                             extra=opts.extra)
 
     got: dict[str, list[bytes]] = {"service": [], "client": []}
+    cal = "evcal/lab/rig1/cam0/calibration"
     with zenoh.open(conf), Transport(client("service")) as svc, \
-            Transport(client("rig")) as rig, Transport(client("client")) as cli:
+            Transport(client("rig-rig1")) as rig, Transport(client("client")) as cli:
         svc.subscribe("evcal/**/events", lambda k, p, e: got["service"].append(p))
-        svc.queryable("evcal/cam0/calibration", lambda req: req.reply(
-            "evcal/cam0/calibration", b"genuine", keys.ENC_CALIBRATION))
+        svc.queryable(cal, lambda req: req.reply(cal, b"genuine", keys.ENC_CALIBRATION))
         cli.subscribe("evcal/**/calibration", lambda k, p, e: got["client"].append(p))
         wait_for(lambda: any(r.ok and r.payload == b"genuine"
-                             for r in cli.get("evcal/cam0/calibration", timeout_s=2.0)),
+                             for r in cli.get(cal, timeout_s=2.0)),
                  timeout_s=30, what="the client's query answered by the service")
-
-        def sent(t: Transport, key: str, payload: bytes) -> None:
-            t.put(key, payload, keys.ENC_EVENTS)
-
-        wait_for(lambda: sent(rig, "evcal/cam0/events", b"ev") or got["service"],
-                 timeout_s=20, what="a rig's events reaching the service")
-        svc.put("evcal/cam0/calibration", b"from-service", keys.ENC_CALIBRATION)
+        # the rig sees the service's subscriber (a publisher that sees none sends nothing)
+        own = rig.publisher("evcal/lab/rig1/cam0/events", keys.ENC_EVENTS)
+        wait_for(lambda: own.has_subscribers, timeout_s=20,
+                 what="the service's subscriber, seen by the rig")
+        wait_for(lambda: own.put(b"ev") or got["service"], timeout_s=20,
+                 what="a rig's events reaching the service")
+        svc.put(cal, b"from-service", keys.ENC_CALIBRATION)
         wait_for(lambda: got["client"], timeout_s=10, what="the service's calibration")
-        # what each role may not do
-        rig.put("evcal/cam0/calibration", b"spoof", keys.ENC_CALIBRATION)
-        cli.put("evcal/cam0/events", b"client-events", keys.ENC_EVENTS)
-        rig.queryable("evcal/cam1/calibration", lambda req: req.reply(
-            "evcal/cam1/calibration", b"rogue", keys.ENC_CALIBRATION))
+        # what each role may not do: a rig feeding another rig's camera, a rig publishing
+        # or answering calibrations, a client putting events
+        rig.put("evcal/lab/rig2/cam0/events", b"other-rig", keys.ENC_EVENTS)
+        rig.put(cal, b"spoof", keys.ENC_CALIBRATION)
+        cli.put("evcal/lab/rig1/cam0/events", b"client-events", keys.ENC_EVENTS)
+        rig.queryable("evcal/lab/rig1/cam1/calibration", lambda req: req.reply(
+            "evcal/lab/rig1/cam1/calibration", b"rogue", keys.ENC_CALIBRATION))
         import time
 
         time.sleep(1.0)
         assert b"spoof" not in got["client"], got["client"]
         assert b"client-events" not in got["service"]
-        assert not [r for r in cli.get("evcal/cam1/calibration", timeout_s=2.0) if r.ok]
+        assert b"other-rig" not in got["service"]
+        assert not [r for r in cli.get("evcal/lab/rig1/cam1/calibration", timeout_s=2.0)
+                    if r.ok]
 
 
 def test_the_secure_compose_setup_is_consistent(tmp_path):
@@ -312,7 +379,8 @@ def test_the_secure_compose_setup_is_consistent(tmp_path):
 
     serve = compose["services"]["evcal"]["command"]
     args = serve_parser().parse_args(serve[1:])
-    assert args.sign_key and args.config.endswith("zenoh-client.json5")
+    assert args.sign_key
+    assert args.config.endswith("zenoh-client.json5")
     for svc in compose["services"].values():
         for vol in svc.get("volumes", []):
             src = vol.split(":")[0]
@@ -323,9 +391,10 @@ def test_the_secure_compose_setup_is_consistent(tmp_path):
     for conf in (router, client):
         assert json.loads(conf.get_json("transport/link/tls/enable_mtls")) is True
     acl = json.loads(router.get_json("access_control"))
-    assert acl["enabled"] and acl["default_permission"] == "deny"
+    assert acl["enabled"]
+    assert acl["default_permission"] == "deny"
     cns = {cn for s in acl["subjects"] for cn in s.get("cert_common_names", [])}
-    assert cns == {"evcal-rig", "evcal-service", "evcal-client", "evcal-operator"}
+    assert cns == {"evcal-rig-rig1", "evcal-service", "evcal-client", "evcal-operator"}
     if shutil.which("openssl") is None:
         pytest.skip("no openssl to run docker/make-certs.sh")
     out = tmp_path / "certs"
@@ -335,7 +404,7 @@ def test_the_secure_compose_setup_is_consistent(tmp_path):
     from cryptography import x509
 
     made = {x509.load_pem_x509_certificate((out / f"{r}.pem").read_bytes()).subject
-            .rfc4514_string() for r in ("rig", "service", "client", "operator")}
+            .rfc4514_string() for r in ("rig-rig1", "service", "client", "operator")}
     assert made == {f"CN={cn}" for cn in cns}
     port = free_port()
     server = _tls(out / "ca.pem", out / "router.pem", out / "router.key",
@@ -343,7 +412,83 @@ def test_the_secure_compose_setup_is_consistent(tmp_path):
     with Transport(server) as t:
         t.queryable("evcal/probe", lambda req: req.reply("evcal/probe", b"ok",
                                                          keys.ENC_STATUS))
-        rig = _tls(out / "ca.pem", out / "rig.pem", out / "rig.key",
+        rig = _tls(out / "ca.pem", out / "rig-rig1.pem", out / "rig-rig1.key",
                    connect=f"tls/localhost:{port}")
         wait_for(lambda: _reaches(rig, "evcal/probe"), timeout_s=30,
                  what="a rig with make-certs.sh's certificate")
+
+
+def test_a_rig_replays_to_its_own_cameras_through_the_shipped_router(tmp_path):
+    """The secure set-up as deployed, on loopback: docker/make-certs.sh's certificates, a
+    router with docker/zenoh/secure/router.json5, the service and `evcal replay` with
+    docker/zenoh/secure/client.json5. Before the fix the rig saw no subscriber (replay exit
+    3, "nobody subscribes") and a rig certificate could feed any camera."""
+    import shutil
+    import subprocess
+
+    import zenoh
+
+    from evcal.clients.replay import replay
+    from evcal.io import write_recording
+
+    if shutil.which("openssl") is None:
+        pytest.skip("no openssl to run docker/make-certs.sh")
+    docker = ROOT / "docker"
+    if not (docker / "make-certs.sh").is_file():
+        pytest.skip("not running from a source checkout")
+    certs = tmp_path / "certs"
+    res = subprocess.run(["bash", str(docker / "make-certs.sh"), str(certs)],
+                         capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    port = free_port()
+    conf = zenoh.Config.from_file(str(docker / "zenoh" / "secure" / "router.json5"))
+    conf.insert_json5("listen/endpoints", json.dumps([f"tls/127.0.0.1:{port}"]))
+    for k, v in (("root_ca_certificate", "ca.pem"), ("listen_certificate", "router.pem"),
+                 ("listen_private_key", "router.key")):
+        conf.insert_json5(f"transport/link/tls/{k}", json.dumps(str(certs / v)))
+    client_conf = str(docker / "zenoh" / "secure" / "client.json5")
+
+    def tls(role: str) -> tuple[tuple[str, str], ...]:
+        """client.json5's settings for this machine: the router's port, the role's files."""
+        return (("connect/endpoints", json.dumps([f"tls/localhost:{port}"])),
+                ("transport/link/tls/root_ca_certificate", json.dumps(str(certs / "ca.pem"))),
+                ("transport/link/tls/connect_certificate",
+                 json.dumps(str(certs / f"{role}.pem"))),
+                ("transport/link/tls/connect_private_key",
+                 json.dumps(str(certs / f"{role}.key"))))
+
+    def as_client(role: str) -> ZenohOptions:
+        return ZenohOptions(config_file=client_conf, extra=tls(role))
+
+    rec = simulate_ideal(SimConfig(height=24, width=32, duration_s=1.0, seed=3)).recording
+    path = write_recording(rec, tmp_path / "sim.npz")
+    stop, ready = threading.Event(), threading.Event()
+    with zenoh.open(conf):
+        th = threading.Thread(target=run, args=(
+            as_client("service"),
+            ServiceConfig(instance="good", onei=OnEIConfig(n_small=3000, n_large=10**6))),
+            kwargs={"stop": stop, "ready": lambda s: ready.set()})
+        th.start()
+        try:
+            assert ready.wait(30)
+            cli = ["--config", client_conf]
+            for k, v in tls("rig-rig1"):
+                cli += ["--cfg", f"{k}:{v}"]
+            res = run_client("replay", [str(path), "--camera", "lab/rig1/cam0", "--max-rate",
+                                        "--wait-subscriber", "10", *cli])
+            assert res.returncode == 0, res.stderr
+            assert "the service processed 100 event messages" in res.stderr, res.stderr
+            # another rig's camera: the router drops the puts, the status stays hidden
+            with Transport(as_client("rig-rig1")) as t:
+                stats = replay(t, rec, "lab/rig2/cam0", speed=None, wait_subscriber_s=10)
+            assert stats.subscribed
+            assert stats.delivered is None
+            # a client certificate feeds nothing and sees no input subscriber
+            with Transport(as_client("client")) as t:
+                stats = replay(t, rec, "lab/rig1/cam1", speed=None, wait_subscriber_s=1)
+                assert not stats.subscribed
+                cams = json.loads(t.get("evcal/cameras", timeout_s=5.0)[0].payload)
+            assert [c["id"] for c in cams["cameras"]] == ["lab/rig1/cam0"]
+        finally:
+            stop.set()
+            th.join(60)

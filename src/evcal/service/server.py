@@ -56,7 +56,7 @@ def run(
     With ``ros2`` the service is also a ROS 2 node over rmw_zenoh (:mod:`.ros2`): it takes
     EventPacket and Image topics as camera input and publishes each update as Images.
     """
-    store = StateStore(state_dir) if state_dir else None
+    store = StateStore(state_dir, max_pixels=config.max_pixels) if state_dir else None
     observer = None
     if rrd:
         from .recording import RrdLogger  # rerun only when asked for

@@ -7,12 +7,16 @@ private key produced exactly these bytes. Every calibration the service publishe
 reply to a query carries a small attachment (the payload itself is unchanged, so readers of
 older versions are unaffected)::
 
-    {"v": 1, "instance": "<service instance>", "key_id": "<16 hex>", "sig": <64 bytes>}
+    {"v": 1, "instance": "<service instance>", "key_id": "<16 hex>", "sig": <64 bytes>,
+     "pub": <32 bytes>}
 
 (msgpack). ``sig`` is the Ed25519 signature of ``b"evcal-calibration-v1\\0" + instance + b"\\0"
 + key + b"\\0" + SHA-256(payload)``: it binds the bytes to the key expression they answer and
-to the instance name. Without a key (``--sign-key`` not given) the attachment carries the
-instance only, unsigned, so clients can still tell instances apart.
+to the instance name. ``pub`` is the raw public key: it proves nothing by itself (anyone can
+sign with a key of their own), but lets a client that has no copy of the key pin it on first
+use (:class:`KnownServices`, ``evcal query``'s default) and refuse any other key afterwards.
+Without a key (``--sign-key`` not given) the attachment carries the instance only, unsigned,
+so clients can still tell instances apart.
 
 Keys are PEM files (PKCS#8 private, SubjectPublicKeyInfo public), made by ``evcal keygen``.
 ``cryptography`` (the maintained binding to OpenSSL) does the cryptography.
@@ -20,8 +24,12 @@ Keys are PEM files (PKCS#8 private, SubjectPublicKeyInfo public), made by ``evca
 
 from __future__ import annotations
 
+import base64
+import datetime
 import hashlib
+import json
 import os
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -82,6 +90,7 @@ class Signer:
     instance: str
     private: Any = None  # an Ed25519PrivateKey, or None: unsigned attachments
     key_id: str = ""
+    public_raw: bytes = b""
 
     @classmethod
     def from_file(cls, instance: str, path: str | os.PathLike[str] | None) -> Signer:
@@ -96,13 +105,14 @@ class Signer:
             raise SignatureError(f"{path}: not an Ed25519 key (make one with `evcal keygen`)")
         raw = priv.public_key().public_bytes(serialization.Encoding.Raw,
                                              serialization.PublicFormat.Raw)
-        return cls(instance, priv, key_id(raw))
+        return cls(instance, priv, key_id(raw), raw)
 
     def attachment(self, key: str, payload: bytes) -> bytes:
         body: dict[str, Any] = {"v": 1, "instance": self.instance}
         if self.private is not None:
             body["key_id"] = self.key_id
             body["sig"] = self.private.sign(_message(self.instance, key, payload))
+            body["pub"] = self.public_raw
         return msgpack.packb(body, use_bin_type=True)
 
 
@@ -118,7 +128,8 @@ def read_attachment(attachment: bytes | None) -> dict[str, Any]:
 
 
 class Verifier:
-    """Checks calibration attachments against one public key."""
+    """Checks calibration attachments against one public key (a PEM file's, or raw bytes
+    with :meth:`from_raw`)."""
 
     def __init__(self, path: str | os.PathLike[str]) -> None:
         serialization, ed25519 = _crypto()
@@ -128,9 +139,26 @@ class Verifier:
             raise SignatureError(f"{path}: not a readable PEM public key ({exc})") from None
         if not isinstance(pub, ed25519.Ed25519PublicKey):
             raise SignatureError(f"{path}: not an Ed25519 public key")
+        self._use(pub)
+
+    @classmethod
+    def from_raw(cls, raw: bytes) -> Verifier:
+        """A verifier of the raw 32-byte Ed25519 public key ``raw``."""
+        _, ed25519 = _crypto()
+        try:
+            pub = ed25519.Ed25519PublicKey.from_public_bytes(raw)
+        except (ValueError, TypeError) as exc:
+            raise SignatureError(f"not a raw Ed25519 public key ({exc})") from None
+        self = cls.__new__(cls)
+        self._use(pub)
+        return self
+
+    def _use(self, pub: Any) -> None:
+        serialization, _ = _crypto()
         self._pub = pub
-        self.key_id = key_id(pub.public_bytes(serialization.Encoding.Raw,
-                                              serialization.PublicFormat.Raw))
+        self.public_raw: bytes = pub.public_bytes(serialization.Encoding.Raw,
+                                                  serialization.PublicFormat.Raw)
+        self.key_id = key_id(self.public_raw)
 
     def verify(self, key: str, payload: bytes, attachment: bytes | None) -> str:
         """The signing instance's name, or :class:`SignatureError` saying why not."""
@@ -149,3 +177,72 @@ class Verifier:
             raise SignatureError(f"the signature of the answer on {key} (instance "
                                  f"{instance!r}) does not match its bytes") from None
         return instance
+
+
+def default_known_services() -> Path:
+    """Where ``evcal query`` pins service keys: ``$XDG_STATE_HOME/evcal/known_services``
+    (``~/.local/state/evcal/known_services`` when the variable is unset)."""
+    base = os.environ.get("XDG_STATE_HOME") or os.path.join(Path.home(), ".local", "state")
+    return Path(base) / "evcal" / "known_services"
+
+
+class KnownServices:
+    """The service keys a client has pinned, one per key prefix (trust on first use).
+
+    A JSON file ``{"<prefix>": {"key": "<base64 raw Ed25519 key>", "key_id": ..., "instance":
+    ..., "first_seen": ...}}``. Pinned per prefix, not per instance: an instance's name is
+    whatever the answer says (a zenoh id by default, new at each start), while the key is the
+    service's (``serve --sign-key``, shared by its workers). Delete an entry to accept a new
+    key after replacing the service's on purpose.
+    """
+
+    def __init__(self, path: str | os.PathLike[str] | None = None) -> None:
+        self.path = Path(path) if path is not None else default_known_services()
+
+    def _read(self) -> dict[str, Any]:
+        try:
+            text = self.path.read_text()
+        except FileNotFoundError:
+            return {}
+        except OSError as exc:
+            raise SignatureError(f"{self.path}: cannot read the pinned service keys ({exc})"
+                                 ) from None
+        try:
+            doc = json.loads(text)
+        except ValueError as exc:
+            raise SignatureError(f"{self.path}: not JSON ({exc}); fix or delete it") from None
+        if not isinstance(doc, dict):
+            raise SignatureError(f"{self.path}: a JSON {type(doc).__name__}, expected an "
+                                 "object of pinned keys; fix or delete it")
+        return doc
+
+    def get(self, prefix: str) -> Verifier | None:
+        """A verifier of the key pinned for ``prefix``, or None."""
+        entry = self._read().get(prefix)
+        if entry is None:
+            return None
+        try:
+            raw = base64.b64decode(entry["key"], validate=True)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise SignatureError(f"{self.path}: the entry for prefix {prefix!r} has no valid "
+                                 f"key ({exc}); fix or delete it") from None
+        return Verifier.from_raw(raw)
+
+    def pin(self, prefix: str, verifier: Verifier, instance: str) -> None:
+        """Record ``verifier``'s key for ``prefix`` (atomically; the folder private)."""
+        doc = self._read()
+        doc[prefix] = {
+            "key": base64.b64encode(verifier.public_raw).decode(), "key_id": verifier.key_id,
+            "instance": instance,
+            "first_seen": datetime.datetime.now(datetime.timezone.utc).isoformat(
+                timespec="seconds"),
+        }
+        self.path.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
+        fd, tmp = tempfile.mkstemp(prefix=self.path.name + ".", dir=self.path.parent)
+        try:
+            with os.fdopen(fd, "w") as f:
+                f.write(json.dumps(doc, indent=2) + "\n")
+            os.replace(tmp, self.path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise

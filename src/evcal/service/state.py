@@ -12,24 +12,47 @@ and the directory is ``fsync``-ed. A reader therefore sees the previous snapshot
 one, never a half-written file, whatever moment the process dies at (``kill -9``, power
 loss). Temporary files left by a killed writer are ignored and, once older than
 ``TMP_MAX_AGE_S``, removed by :meth:`StateStore.load_all`.
+
+Validation (:func:`read_snapshot`): a snapshot is checked completely before anything of it is
+restored, and its sizes before its data is read. First the archive's directory and every
+member's ``.npy`` header (dtype, shape, and that the header's size is the member's size);
+then the few small text fields, which give the sensor: above the service's ``max_pixels``
+the file is refused having read a few kilobytes (a 2000x2000 snapshot, 800 MB once loaded,
+took `evcal serve`'s start-up to 831 MiB before it was refused; 117 MiB, as with no snapshot,
+when refused from its headers). Then every field's dtype and shape
+against the calibrator's own state layout for that sensor and configuration, and only then
+the data; the stored calibration message must decode as a calibration of that sensor (one
+of another dtype once restored and served bytes no client could decode). A refused file is
+moved aside like a damaged one.
 """
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import itertools
+import json
 import logging
+import math
 import os
 import time
+import zipfile
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import IO, Any
 from urllib.parse import quote, unquote
 
 import numpy as np
 
-from ..errors import StateError
+from ..calibration import CALIBRATION_MAPS
+from ..errors import ErrorReason, StateError
+from ..events import SensorSize
 from ..io._util import load_npz_arrays
+from ..io.wire import FRAME_DTYPES, MAX_SIZE, WireError, decode_calibration
+from ..online import STATE_FORMAT as ONEI_FORMAT
+from ..online import OnEIConfig, OnlineCalibrator
+from .camera import STATE_FORMAT as CAMERA_FORMAT
 
 log = logging.getLogger("evcal.service.state")
 
@@ -38,6 +61,19 @@ TMP_MAX_AGE_S = 30.0
 MAX_STEM = 100  # characters of a snapshot's file name before ".npz" (file systems allow 255)
 ID_KEY = "_camera_id"
 _counter = itertools.count()
+
+MSG_KEY = "calibration_msg"
+META_KEY = "service_json"
+EST = "est__"  # the calibrator's state (OnlineCalibrator.state_dict) under this prefix
+# text read before the sensor is known, so bounded on its own: real ones are a few kB
+TEXT_KEYS = (ID_KEY, META_KEY, f"{EST}format", f"{EST}scalars")
+MAX_TEXT_BYTES = 1 << 20
+# the stored calibration message: its maps' wire bytes per pixel, plus header and params
+MSG_BYTES_PER_PIXEL = sum(m.wire.itemsize for m in CALIBRATION_MAPS)
+# calibrator fields whose dtype follows the input (frames are uint8 or float32 on the wire)
+EST_DTYPES = {"fr_images": frozenset(FRAME_DTYPES.values())}
+# calibrator fields a snapshot may lack (OnlineCalibrator.from_state does without them)
+EST_OPTIONAL = frozenset({"hist_m", "hist_counts"})
 
 
 def _fsync_dir(path: Path) -> None:
@@ -71,7 +107,201 @@ def atomic_savez(path: Path, arrays: dict[str, np.ndarray]) -> Path:
 
 
 def load_npz(path: Path) -> dict[str, np.ndarray]:
+    """Every array of an ``.npz`` file, unchecked (tests and tools; the service reads
+    snapshots with :func:`read_snapshot`)."""
     return load_npz_arrays(path, StateError, "the snapshot")
+
+
+@dataclass(frozen=True)
+class _Member:
+    """One array of the archive as its ``.npy`` header declares it (nothing read yet)."""
+
+    info: zipfile.ZipInfo
+    dtype: np.dtype[Any]
+    shape: tuple[int, ...]
+
+    @property
+    def nbytes(self) -> int:
+        return math.prod(self.shape) * self.dtype.itemsize
+
+
+_HEADER_READERS = {(1, 0): np.lib.format.read_array_header_1_0,
+                   (2, 0): np.lib.format.read_array_header_2_0}
+
+
+def _members(zf: zipfile.ZipFile) -> dict[str, _Member]:
+    """Every member's declared dtype and shape, from its header alone."""
+    out: dict[str, _Member] = {}
+    for info in zf.infolist():
+        name = info.filename
+        if not name.endswith(".npy") or name[:-4] in out:
+            raise StateError(f"member {name!r} is not a distinct .npy array")
+        with zf.open(info) as m:
+            try:
+                version = np.lib.format.read_magic(m)
+                reader = _HEADER_READERS.get(version)
+                if reader is None:
+                    raise StateError(f"{name}: .npy format {version}, expected 1.0 or 2.0")
+                shape, _, dtype = reader(m)
+            except ValueError as exc:  # numpy's words for a damaged header
+                if isinstance(exc, StateError):
+                    raise
+                raise StateError(f"{name}: not a .npy header ({exc})") from None
+            header_bytes = m.tell()
+        if dtype.hasobject:
+            raise StateError(f"{name}: dtype {dtype} holds Python objects")
+        mem = _Member(info, dtype, tuple(int(d) for d in shape))
+        # numpy allocates what the header declares before reading: a header claiming more
+        # than the member holds would allocate it, then fail
+        if header_bytes + mem.nbytes != info.file_size:
+            raise StateError(f"{name}: its header declares {mem.dtype} {mem.shape} "
+                             f"({mem.nbytes} bytes), the archive holds "
+                             f"{info.file_size - header_bytes} bytes", ErrorReason.TRUNCATED)
+        out[name[:-4]] = mem
+    return out
+
+
+def _read(zf: zipfile.ZipFile, mem: _Member) -> np.ndarray:
+    with zf.open(mem.info) as m:
+        return np.lib.format.read_array(m, allow_pickle=False)
+
+
+@functools.lru_cache(maxsize=16)
+def _est_layout(config_json: str) -> dict[str, tuple[frozenset[np.dtype[Any]],
+                                                     tuple[tuple[int, int] | None, ...]]]:
+    """The calibrator's state fields for this configuration: their dtypes and dimensions,
+    each ``(a, b)`` for ``a * n_pixels + b`` or None for a buffer's length (frames kept,
+    events pending). Taken from two tiny calibrators, so that it follows
+    :meth:`OnlineCalibrator.state_dict` without a second description of it."""
+    config = OnEIConfig.from_json(config_json)
+    n1, n2 = 7, 11
+    s1 = OnlineCalibrator(SensorSize(1, n1), config).state_dict()
+    s2 = OnlineCalibrator(SensorSize(1, n2), config).state_dict()
+    layout = {}
+    for k, a1 in s1.items():
+        if a1.dtype.kind == "U":
+            continue  # the text fields (format, scalars), checked on their own
+        dims: list[tuple[int, int] | None] = []
+        for d1, d2 in zip(a1.shape, s2[k].shape, strict=True):
+            slope = (d2 - d1) // (n2 - n1)  # every per-pixel length is linear in n
+            dims.append(None if d1 == d2 == 0 else (slope, d1 - slope * n1))
+        layout[k] = (EST_DTYPES.get(k, frozenset({a1.dtype})), tuple(dims))
+    return layout
+
+
+def _sensor(scalars: str, max_pixels: int | None) -> tuple[SensorSize, str]:
+    """The sensor and calibrator configuration (JSON) a snapshot declares, within limits."""
+    try:
+        s = json.loads(scalars)
+        h, w = s["height"], s["width"]
+        config = s["config"]
+        OnEIConfig.from_json(config)
+    except (ValueError, KeyError, TypeError) as exc:
+        raise StateError(f"{EST}scalars: {type(exc).__name__}: {exc}") from None
+    if not all(isinstance(v, int) and not isinstance(v, bool) for v in (h, w)) or not (
+            0 < h <= MAX_SIZE and 0 < w <= MAX_SIZE):
+        raise StateError(f"the snapshot's sensor is {w!r}x{h!r}, expected sizes in "
+                         f"1..{MAX_SIZE}", ErrorReason.OUT_OF_RANGE)
+    if max_pixels is not None and h * w > max_pixels:
+        raise StateError(f"the snapshot's {w}x{h} sensor has {h * w} pixels, above this "
+                         f"service's limit of {max_pixels} (--max-pixels); its data was not "
+                         "read", ErrorReason.SENSOR_TOO_LARGE)
+    return SensorSize(h, w), config
+
+
+def _check_layout(members: dict[str, _Member], sensor: SensorSize, config: str,
+                  file_bytes: int) -> None:
+    """Every field's dtype and shape for ``sensor``; buffers no larger than the file."""
+    n = sensor.n_pixels
+    layout = _est_layout(config)
+    known = {*TEXT_KEYS, MSG_KEY, *(EST + k for k in layout)}
+    unknown = sorted(set(members) - known)
+    if unknown:
+        raise StateError(f"unknown field(s) {unknown}: not a snapshot of this version")
+    missing = sorted(set(layout) - {k[len(EST):] for k in members} - EST_OPTIONAL)
+    if missing:
+        raise StateError(f"the snapshot lacks {[EST + k for k in missing]}")
+    buffered = 0
+    for k, (dtypes, dims) in layout.items():
+        mem = members.get(EST + k)
+        if mem is None:
+            continue
+        if mem.dtype not in dtypes:
+            raise StateError(f"{EST}{k} has dtype {mem.dtype}, expected "
+                             f"{' or '.join(sorted(str(d) for d in dtypes))}")
+        want = tuple(None if d is None else d[0] * n + d[1] for d in dims)
+        if len(mem.shape) != len(want) or any(e is not None and s != e
+                                              for s, e in zip(mem.shape, want, strict=False)):
+            shown = ", ".join("any" if e is None else str(e) for e in want)
+            shown = f"({shown},)" if len(want) == 1 else f"({shown})"
+            raise StateError(f"{EST}{k} has shape {mem.shape}, expected {shown} for a "
+                             f"{sensor} sensor")
+        if None in want:
+            buffered += mem.nbytes
+    # the per-pixel fields are bounded by the sensor; the buffers' lengths by nothing but
+    # the file: written uncompressed, they cannot declare more than it holds
+    if buffered > file_bytes:
+        raise StateError(f"the snapshot's buffers declare {buffered} bytes, more than its "
+                         f"{file_bytes}-byte file holds", ErrorReason.TOO_LARGE)
+    for k in TEXT_KEYS:
+        if k != ID_KEY and k not in members:
+            raise StateError(f"the snapshot lacks {k!r}")
+    msg = members.get(MSG_KEY)
+    if msg is None:
+        raise StateError(f"the snapshot lacks {MSG_KEY!r}")
+    limit = n * MSG_BYTES_PER_PIXEL + MAX_TEXT_BYTES
+    if msg.dtype != np.dtype(np.uint8) or len(msg.shape) != 1:
+        raise StateError(f"{MSG_KEY} is {msg.dtype} {msg.shape}, expected uint8 bytes (n,)")
+    if msg.nbytes > limit:
+        raise StateError(f"{MSG_KEY} has {msg.nbytes} bytes, more than a {sensor} "
+                         f"calibration's {limit}", ErrorReason.TOO_LARGE)
+
+
+def read_snapshot(f: IO[bytes], *, max_pixels: int | None = None) -> dict[str, np.ndarray]:
+    """The arrays of the snapshot open as ``f``, checked completely (:class:`StateError`
+    saying what is wrong): headers and text first, then dtypes and shapes against the
+    declared sensor (refused above ``max_pixels``), then the data, then the calibration
+    message. Nothing large is read before its size is known to be right."""
+    file_bytes = os.fstat(f.fileno()).st_size
+    with zipfile.ZipFile(f) as zf:
+        members = _members(zf)
+        arrays: dict[str, np.ndarray] = {}
+        for k in TEXT_KEYS:
+            mem = members.get(k)
+            if mem is None:
+                continue  # missing fields are named below, the id may be (older files)
+            if mem.dtype.kind != "U" or mem.shape != () or mem.nbytes > MAX_TEXT_BYTES:
+                raise StateError(f"{k} is {mem.dtype} {mem.shape}, expected a string of at "
+                                 f"most {MAX_TEXT_BYTES // 4} characters")
+            arrays[k] = _read(zf, mem)
+        if f"{EST}scalars" not in arrays or f"{EST}format" not in arrays:
+            raise StateError(f"the snapshot lacks {EST}scalars or {EST}format")
+        if str(arrays[f"{EST}format"]) != ONEI_FORMAT:
+            raise StateError(f"calibrator state format {str(arrays[f'{EST}format'])!r}, "
+                             f"this version reads {ONEI_FORMAT!r}", ErrorReason.VERSION)
+        sensor, config = _sensor(str(arrays[f"{EST}scalars"]), max_pixels)
+        _check_layout(members, sensor, config, file_bytes)
+        try:
+            meta = json.loads(str(arrays[META_KEY]))
+        except ValueError as exc:
+            raise StateError(f"{META_KEY} is not JSON ({exc})") from None
+        if not isinstance(meta, dict) or meta.get("format") != CAMERA_FORMAT:
+            raise StateError(f"{META_KEY} is not a camera state of format {CAMERA_FORMAT!r}",
+                             ErrorReason.VERSION)
+        for k, mem in members.items():
+            if k not in arrays:
+                arrays[k] = _read(zf, mem)
+    msg = arrays[MSG_KEY]
+    if msg.size:
+        try:
+            cal, _ = decode_calibration(memoryview(msg))
+        except WireError as exc:
+            raise StateError(f"{MSG_KEY} is not a calibration message: {exc}",
+                             exc.reason) from None
+        if cal.shape != sensor.shape:
+            raise StateError(f"{MSG_KEY} is a {cal.shape[1]}x{cal.shape[0]} calibration, "
+                             f"the snapshot's sensor is {sensor}")
+    return arrays
 
 
 def snapshot_name(camera: str) -> str:
@@ -96,12 +326,15 @@ class StateStore:
     """The snapshots of one service instance (or of several, behind a shared volume).
 
     Every failure to read one snapshot moves that file aside (``.bad``) with the reason
-    logged and counted in ``bad``: a damaged file never stops a start.
+    logged and counted in ``bad``: a damaged file never stops a start. Snapshots of sensors
+    above ``max_pixels`` (the service's ``--max-pixels``; None: only the wire's 65535x65535)
+    are refused before their data is read (:func:`read_snapshot`).
     """
 
-    def __init__(self, directory: str | os.PathLike[str]):
+    def __init__(self, directory: str | os.PathLike[str], *, max_pixels: int | None = None):
         self.dir = Path(directory)
         self.dir.mkdir(parents=True, exist_ok=True)
+        self.max_pixels = max_pixels
         self.bad = 0
 
     def path(self, camera: str) -> Path:
@@ -138,7 +371,10 @@ class StateStore:
 
     def _read(self, p: Path) -> Snapshot | None:
         try:
-            arrays = load_npz(p)
+            # one open file for the checks and the data: a writer sharing the directory
+            # may replace the file meanwhile, and the data read must be what was checked
+            with open(p, "rb") as f:
+                arrays = read_snapshot(f, max_pixels=self.max_pixels)
             ident = arrays.pop(ID_KEY, None)
             if ident is None:  # written before ids were stored inside
                 camera = unquote(p.name[: -len(SUFFIX)])
