@@ -696,3 +696,137 @@ def test_no_calibration_yet_says_why_and_what_to_do():
         assert getattr(info.value, "reason", None) == ErrorReason.NO_CALIBRATION
     finally:
         svc.close()
+
+
+# ----------------------------------------------------------------------------- counters
+
+
+def _with_seq(payload: bytes, seq: int) -> bytes:
+    obj = msgpack.unpackb(payload)
+    obj["seq"] = seq
+    return msgpack.packb(obj)
+
+
+def _two_chunks_per_frame(n_frames: int = 16, h: int = 6, w: int = 8, seed: int = 0):
+    """Like :func:`stream`, each frame interval's events in two chunks (seq 2k, 2k + 1)."""
+    out = []
+    for kind, payload in stream(h, w, n_frames, seed):
+        if kind == "frames":
+            out.append((kind, payload))
+            continue
+        ev, hd = decode_events(payload)
+        half = ev.size // 2
+        for j, part in enumerate((ev[:half], ev[half:])):
+            out.append(("events", encode_events(part, height=h, width=w,
+                                                seq=2 * hd["seq"] + j)))
+    return out
+
+
+def _counts(svc: Service, camera: str) -> dict:
+    st = svc.status(svc.cameras[camera])
+    return {k: st.get(k) for k in ("errors", "lost_messages", "restarts", "frames",
+                                   "event_messages")}
+
+
+def test_a_refused_glitch_is_not_also_counted_lost():
+    # one t_us = 2**62 chunk with its own sequence number, the stream going on after it:
+    # refused as time_jump, and that is all (it arrived, so it is not lost)
+    svc, _ = make_service()
+    try:
+        msgs = stream(n_frames=20)
+        glitch = encode_events(make_events([2**62], [1], [1], [1]), height=6, width=8, seq=10)
+        later = [(k, _with_seq(p, msgpack.unpackb(p)["seq"] + 1) if k == "events" else p)
+                 for k, p in msgs[21:]]
+        feed(svc, "cam0", [*msgs[:21], ("events", glitch), *later])
+        settle(svc)
+        c = _counts(svc, "cam0")
+        assert c["errors"] == {"time_jump": 1}
+        assert c["lost_messages"] == {"events": 0, "frames": 0}, c
+        assert c["restarts"] == {"events": 0, "frames": 0}
+        assert c["frames"] == 20
+        assert c["event_messages"] == 20
+    finally:
+        svc.close()
+
+
+def test_refused_unreadable_messages_are_not_counted_lost():
+    # a message refused before its sequence number could be read (not msgpack, too large)
+    # arrived: it is an error of its reason, not a gap of upstream loss
+    svc, _ = make_service(max_message_bytes=4000, queue_bytes=1 << 20)
+    try:
+        msgs = stream(n_frames=12)
+        msgs[9] = ("events", b"\x00junk")  # events seq 4
+        msgs[13] = ("events", b"\x00" * 5000)  # events seq 6, over the size limit
+        feed(svc, "cam0", msgs)
+        settle(svc)
+        c = _counts(svc, "cam0")
+        assert c["errors"] == {"not_msgpack": 1, "too_large": 1}
+        assert c["lost_messages"] == {"events": 0, "frames": 0}, c
+    finally:
+        svc.close()
+
+
+def test_a_swapped_pair_of_event_chunks_is_refused_not_a_new_session():
+    svc, _ = make_service()
+    try:
+        msgs = _two_chunks_per_frame()
+        i = next(j for j, (k, p) in enumerate(msgs)
+                 if k == "events" and msgpack.unpackb(p)["seq"] == 10)
+        msgs[i], msgs[i + 1] = msgs[i + 1], msgs[i]  # chunk 11 before chunk 10
+        feed(svc, "cam0", msgs)
+        settle(svc)
+        cam = svc.cameras["cam0"]
+        c = _counts(svc, "cam0")
+        assert c["lost_messages"] == {"events": 0, "frames": 0}, c
+        assert c["restarts"] == {"events": 0, "frames": 0}, c
+        assert c["errors"] == {"time_backwards": 1}, c  # chunk 10 cannot go after chunk 11
+        assert cam.state.calibrator.status()["sessions"] == 0  # the buffers were kept
+        assert c["event_messages"] == 31
+        assert c["frames"] == 16
+    finally:
+        svc.close()
+
+
+def test_a_late_message_whose_time_still_fits_is_accepted():
+    # a swapped pair whose second message has the time of the first (events may share a
+    # t_us): it is placed, neither refused nor lost
+    from evcal.stream import StreamGuard
+
+    g = StreamGuard()
+    size = (6, 8)
+    assert g.accept("events", t_first_us=0, t_last_us=10, what="m0", seq=0, size=size).lost == 0
+    assert g.accept("events", t_first_us=10, t_last_us=10, what="m2", seq=2,
+                    size=size).lost == 1
+    chk = g.accept("events", t_first_us=10, t_last_us=10, what="m1", seq=1, size=size)
+    assert chk.recovered == 1
+    assert not chk.restart
+    assert not chk.new_session
+    assert g.accept("events", t_first_us=11, t_last_us=12, what="m3", seq=3,
+                    size=size).lost == 0
+    assert g.sessions == 0
+
+
+def test_an_exact_duplicate_is_dropped_and_counted_not_a_restart():
+    svc, pub = make_service()
+    try:
+        msgs = stream(n_frames=20)
+        dup = [*msgs[:13], msgs[12], *msgs[13:16], msgs[15], *msgs[16:]]  # frame 6, events 7
+        feed(svc, "cam0", dup)
+        settle(svc)
+        cam = svc.cameras["cam0"]
+        c = _counts(svc, "cam0")
+        assert c["errors"] == {"duplicate": 2}, c  # a copy is dropped and counted as such
+        assert c["restarts"] == {"events": 0, "frames": 0}, c
+        assert {json.loads(p)["stream"] for p in pub.on("evcal/cam0/errors")} == {
+            "events", "frames"}
+        assert c["lost_messages"] == {"events": 0, "frames": 0}
+        assert c["frames"] == 20
+        assert c["event_messages"] == 20
+        assert cam.counters.events == 20 * 200
+        assert cam.state.calibrator.status()["sessions"] == 0
+        # a publisher that restarts sends its first messages again: still a new session
+        feed(svc, "cam0", msgs)
+        settle(svc)
+        assert _counts(svc, "cam0")["restarts"]["frames"] == 1
+    finally:
+        svc.close()

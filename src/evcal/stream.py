@@ -16,6 +16,7 @@ Two rules hold everywhere in evcal:
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
@@ -30,6 +31,28 @@ STREAM_KINDS = ("events", "frames")
 
 class StreamError(EventError):
     """A message that breaks its stream's contract (sensor, time order); ``reason`` says how."""
+
+
+class DuplicateMessage(StreamError):
+    """An exact copy of a message the stream already accepted (same sequence number, same
+    times): the consumer drops it and counts it as a duplicate, not as an error of the
+    stream and not as a publisher restart."""
+
+    default_reason = ErrorReason.REJECTED
+
+
+class LateMessage(StreamError):
+    """A message whose sequence number had been counted lost, arriving after a later one
+    (a reordered pair) that cannot be placed: its time is before the stream's. It is
+    refused with ``reason`` and is no longer lost: ``recovered`` messages (1) come off the
+    consumer's loss count."""
+
+    default_reason = ErrorReason.TIME_BACKWARDS
+
+    def __init__(self, message: str, reason: ErrorReason | None = None, *,
+                 recovered: int = 1) -> None:
+        super().__init__(message, reason)
+        self.recovered = recovered
 
 
 # ----------------------------------------------------------------------------------------
@@ -115,14 +138,18 @@ class StreamPolicy:
 
 @dataclass(frozen=True)
 class SeqCheck:
-    """What a message says about its stream: ``lost`` messages before it (a sequence gap),
-    a sequence ``restart`` (a number below the expected one), and whether it starts a
-    ``new_session`` (the stream's time base changed; ``new_sensor``: with another size)."""
+    """What a message says about its stream: ``lost`` messages before it (a sequence gap,
+    less the messages of the gap that arrived and were refused), a sequence ``restart`` (a
+    number below the expected one that is neither a duplicate nor a late message), whether
+    it starts a ``new_session`` (the stream's time base changed; ``new_sensor``: with another
+    size), and ``recovered``: this message had been counted lost (it arrived late, after a
+    later one, and its time still fits the stream)."""
 
     lost: int = 0
     restart: bool = False
     new_session: bool = False
     new_sensor: bool = False
+    recovered: int = 0
 
     @property
     def gap(self) -> bool:
@@ -135,10 +162,24 @@ class StreamGuard:
 
     Single-threaded: one guard per camera, used by the thread that consumes that camera.
     :meth:`accept` either raises :class:`StreamError` (the message is refused and the guard
-    unchanged, but for a pending time-base candidate) or accepts the message and advances the
-    stream's state. The sensor is fixed by the first message; it may change only with a new
-    session (:class:`StreamPolicy`).
+    unchanged, but for a pending time-base candidate and the note that its sequence number
+    arrived) or accepts the message and advances the stream's state. The sensor is fixed by
+    the first message; it may change only with a new session (:class:`StreamPolicy`).
+
+    Sequence numbers say what happened to each message, and each is counted once:
+
+    - a gap is ``lost`` messages, less those of the gap that arrived and were refused (a
+      refused message is not lost: one ``t_us = 2**62`` glitch is one ``time_jump``);
+    - a number of the last ``RECENT_MESSAGES`` accepted, with the same times, is a
+      :class:`DuplicateMessage` (dropped, counted by the consumer; not a restart);
+    - a number counted lost in the last ``MISSING_WINDOW`` that arrives after all is late
+      (a swapped pair): accepted when its time still fits the stream (``recovered``), else a
+      :class:`LateMessage` (refused, no longer lost) — never a new session;
+    - any other number below the expected one is a publisher restart.
     """
+
+    RECENT_MESSAGES = 64  # accepted (seq, t_first, t_last) kept per stream for duplicates
+    MISSING_WINDOW = 1024  # how far back a late message may fill a sequence gap
 
     def __init__(self, sensor: SensorSize | None = None, *, max_pixels: int | None = None,
                  policy: StreamPolicy | None = None) -> None:
@@ -151,6 +192,24 @@ class StreamGuard:
         self.sessions = 0  # new sessions started after the first
         # per stream: (last t_us, messages) of a time base that differs from the accepted one
         self._candidate: dict[str, tuple[int, int] | None] = {k: None for k in STREAM_KINDS}
+        n = self.RECENT_MESSAGES
+        # per stream: the last accepted messages (seq, t_first_us, t_last_us), for duplicates
+        self._recent: dict[str, deque[tuple[int, int | None, int | None]]] = {
+            k: deque(maxlen=n) for k in STREAM_KINDS}
+        # numbers counted lost (a set for lookups, a deque in increasing order for pruning)
+        self._missing: dict[str, set[int]] = {k: set() for k in STREAM_KINDS}
+        self._missing_order: dict[str, deque[int]] = {k: deque() for k in STREAM_KINDS}
+        # numbers at or after the expected one that arrived and were refused, increasing
+        self._refused: dict[str, deque[int]] = {k: deque() for k in STREAM_KINDS}
+
+    def _reset_windows(self, kinds: tuple[str, ...] = STREAM_KINDS) -> None:
+        """Forget the sequence windows of ``kinds`` (at a restart or a new session: numbers
+        of the old session say nothing about the new one)."""
+        for k in kinds:
+            self._recent[k].clear()
+            self._missing[k].clear()
+            self._missing_order[k].clear()
+            self._refused[k].clear()
 
     def _last(self, kind: str) -> int | None:
         return self.last_event_t_us if kind == "events" else self.last_frame_t_us
@@ -223,18 +282,86 @@ class StreamGuard:
     def check_seq(self, kind: str, seq: int) -> SeqCheck:
         """Advance the ``kind`` stream's sequence number; what it says about loss."""
         expected = self.next_seq[kind]
-        self.next_seq[kind] = int(seq) + 1
+        seq = int(seq)
+        self.next_seq[kind] = seq + 1
+        refused = self._refused[kind]
+        n_refused = 0  # numbers of the gap that arrived (and were refused): not lost
+        while refused and refused[0] < seq:
+            n_refused += refused.popleft() >= (expected if expected is not None else seq)
+        if refused and refused[0] == seq:  # refused once, accepted now (sent again)
+            refused.popleft()
         if expected is None or seq == expected:
             return SeqCheck()
         if seq > expected:
-            return SeqCheck(lost=int(seq) - expected)
+            self._note_missing(kind, expected, seq)
+            return SeqCheck(lost=seq - expected - n_refused)
+        self._reset_windows((kind,))  # a restart: the old numbers mean nothing any more
         return SeqCheck(restart=True)
+
+    def _note_missing(self, kind: str, expected: int, seq: int) -> None:
+        """Remember the numbers of a gap (the last ``MISSING_WINDOW``) that were not refused,
+        so that a late one is recognised; forget those too old to come."""
+        missing, order = self._missing[kind], self._missing_order[kind]
+        floor = seq - self.MISSING_WINDOW
+        while order and order[0] < floor:
+            missing.discard(order.popleft())
+        for s in range(max(expected, floor), seq):
+            missing.add(s)
+            order.append(s)
+
+    def _note_refused(self, kind: str, seq: int | None) -> None:
+        """A refused message at or after the expected number arrived: not lost."""
+        expected = self.next_seq[kind]
+        if seq is None or expected is None or seq < expected:
+            return
+        refused = self._refused[kind]
+        if not refused or refused[-1] < seq:  # numbers increase; a repeat is noted once
+            refused.append(int(seq))
+            if len(refused) > self.MISSING_WINDOW:
+                refused.popleft()
+
+    def _earlier(self, kind: str, seq: int, t_first: int | None, t_last: int | None
+                 ) -> str | None:
+        """What a number below the expected one is: ``"duplicate"``, ``"late"`` or None
+        (a restart). A duplicate of number 0 that is not the latest message is taken for a
+        restart: a publisher that restarts sends the same first messages again."""
+        if seq in self._missing[kind]:
+            return "late"
+        recent = self._recent[kind]
+        if (seq, t_first, t_last) in recent and (seq > 0 or recent[-1][0] == seq):
+            return "duplicate"
+        return None
+
+    def _accept_late(self, kind: str, seq: int, t_first: int | None, t_last: int | None,
+                     size: tuple[int, int] | None, what: str) -> SeqCheck:
+        """A message counted lost that arrived after a later one: accepted when its time
+        fits after the stream's (the sequence goes on from where it was), else refused as a
+        :class:`LateMessage`; either way it is no longer lost."""
+        self._missing[kind].discard(seq)
+        last = self._last(kind)
+        latest = (self.next_seq[kind] or 1) - 1
+        try:
+            if size is not None:
+                self._check_size(size[0], size[1], what, new_session=False)
+            if t_first is not None and last is not None and (
+                    t_first < last or (kind == "frames" and t_first == last)):
+                raise StreamError(
+                    f"{what}: arrived after seq {latest} (out of order) and its "
+                    f"t_us={t_first} is before the stream's t_us={last}: refused (not "
+                    "counted lost)", ErrorReason.TIME_BACKWARDS)
+        except StreamError as exc:
+            raise LateMessage(str(exc), exc.reason, recovered=1) from None
+        if t_last is not None:
+            self._set_last(kind, int(t_last))
+        self._recent[kind].append((seq, t_first, t_last))
+        return SeqCheck(recovered=1)
 
     def new_session(self) -> None:
         """Forget both streams' time and sequence state (a new time base starts)."""
         self.next_seq = {k: None for k in STREAM_KINDS}
         self.last_event_t_us = self.last_frame_t_us = None
         self._candidate = {k: None for k in STREAM_KINDS}
+        self._reset_windows()
         self.sessions += 1
 
     # -- whole messages ----------------------------------------------------------------------
@@ -247,25 +374,43 @@ class StreamGuard:
         ``t_first_us``/``t_last_us`` are its first and last times (None for an empty events
         message: only sensor and sequence are checked), ``seq`` its sequence number, ``size``
         the ``(height, width)`` it declares. Returns what the message says about the stream;
-        a ``new_session`` has already reset the guard's time and sequence state.
+        a ``new_session`` has already reset the guard's time and sequence state. Raises
+        :class:`DuplicateMessage` for a copy of a recent message, :class:`LateMessage` for a
+        late one that cannot be placed, :class:`StreamError` for any other refusal.
         """
+        t_first = None if t_first_us is None else int(t_first_us)
+        t_last = None if t_last_us is None else int(t_last_us)
         expected = self.next_seq[kind] if seq is not None else None
         restart = expected is not None and seq is not None and seq < expected
+        if restart:
+            assert seq is not None  # restart implies it
+            earlier = self._earlier(kind, int(seq), t_first, t_last)
+            if earlier == "duplicate":
+                raise DuplicateMessage(f"{what}: a copy of the message accepted with this "
+                                       "sequence number (same times): dropped")
+            if earlier == "late":
+                return self._accept_late(kind, int(seq), t_first, t_last, size, what)
         new = False
-        if t_first_us is not None and t_last_us is not None:
-            new = self._time(kind, int(t_first_us), int(t_last_us), restart, what)
-        new_sensor = False
-        if size is not None:
-            new_sensor = self._check_size(size[0], size[1], what,
-                                          new_session=new or (restart and seq == 0))
-            new = new or new_sensor
+        try:
+            if t_first is not None and t_last is not None:
+                new = self._time(kind, t_first, t_last, restart, what)
+            new_sensor = False
+            if size is not None:
+                new_sensor = self._check_size(size[0], size[1], what,
+                                              new_session=new or (restart and seq == 0))
+                new = new or new_sensor
+        except StreamError:
+            self._note_refused(kind, seq)  # it arrived: a later gap does not count it lost
+            raise
         if new:
             self.new_session()
         if size is not None and (self.sensor is None or new_sensor):
             self.sensor = SensorSize(int(size[0]), int(size[1]))
         check = self.check_seq(kind, seq) if seq is not None else SeqCheck()
-        if t_last_us is not None:
-            self._set_last(kind, int(t_last_us))
+        if t_last is not None:
+            self._set_last(kind, t_last)
+        if seq is not None:
+            self._recent[kind].append((int(seq), t_first, t_last))
         if new:
             return SeqCheck(restart=restart, new_session=True, new_sensor=new_sensor)
         return check

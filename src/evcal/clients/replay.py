@@ -8,24 +8,49 @@ fast as the link and the subscribers allow (publishers use congestion control BL
 ``--loop`` replays again with times shifted past the end, so time and sequence numbers keep
 increasing.
 
-Delivery is checked, not assumed: nothing is sent while no subscriber matches (exit code 3
-after ``--wait-subscriber``); at the end the service's status says what it processed,
-dropped and rejected of this run, and messages it never saw are reported (exit code 4, also
-when the service dropped or rejected some, or when messages went out with nobody
-subscribed). Publishers use congestion control BLOCK with ``--block-timeout`` (default 1 h)
-instead of zenoh's 5 s before a stalled link is closed, so a ``--on-full block`` service is
-lossless end to end across long stalls.
+Delivery is checked, not assumed. Nothing is sent while no subscriber matches. At the end
+the camera's status is asked of the service until its account of this run is complete
+(every message processed, dropped or refused, or nothing left in flight at the service) or
+``--confirm-timeout`` (60 s) has passed: a busy service answers late, a camera new to it
+appears once its first message is taken off the queue. A camera the service has no slot for
+is answered with the refusal. Publishers use congestion control BLOCK with
+``--block-timeout`` (default 1 h) instead of zenoh's 5 s before a stalled link is closed, so
+a ``--on-full block`` service is lossless end to end across long stalls; the puts run on a
+thread of their own, so SIGINT or SIGTERM stops the replay within a second or two even while
+a put waits for a stalled service (a second signal skips the confirmation).
+
+Exit codes, judged in this order (the first that applies names the cause; 0 when none does):
+
+=====  ============  ==================================================================
+code   outcome       meaning
+=====  ============  ==================================================================
+1      error         the zenoh session failed (or a put raised)
+2      usage         bad arguments or an unreadable recording
+3      nobody there  no subscriber after ``--wait-subscriber``: nothing was sent
+5      refused       the service refused the camera (no slot: ``--max-cameras``, or its
+                     probation slot given to another camera) or rejected messages
+6      dropped       the service's queue dropped messages (``--on-full drop``)
+4      lost          messages never reached the service: sent while nobody subscribed,
+                     the service gone during the run, or missing from its account
+7      unconfirmed   no service confirmed delivery within ``--confirm-timeout`` (only a
+                     recorder listens, the service is too busy, or the replay was stopped
+                     with a put still blocked)
+0      all taken     the service confirmed it processed every message sent
+=====  ============  ==================================================================
 """
 
 from __future__ import annotations
 
+import argparse
 import json
+import queue
 import sys
+import textwrap
 import threading
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -34,10 +59,46 @@ from evcal.io.wire import encode_events, encode_frame
 from evcal.recording import Recording
 from evcal.service import keys
 from evcal.service.cli import add_ros2_arguments, ros_domain
-from evcal.service.transport import Transport, TransportError, options_from_args
+from evcal.service.transport import Publisher, Transport, TransportError, options_from_args
 from evcal.stream import frame_cuts
 
 from .common import base_parser, camera_arg, fail
+
+T = TypeVar("T")
+
+EXIT_OK = 0
+EXIT_ERROR = 1
+EXIT_USAGE = 2
+EXIT_NOBODY = 3
+EXIT_LOST = 4
+EXIT_REFUSED = 5
+EXIT_DROPPED = 6
+EXIT_UNCONFIRMED = 7
+# (code, outcome, meaning), in the order they are judged; --help prints it
+EXIT_CODES = (
+    (EXIT_OK, "all taken", "the service confirmed it processed every message sent"),
+    (EXIT_ERROR, "error", "the zenoh session failed (or a put raised)"),
+    (EXIT_USAGE, "usage", "bad arguments or an unreadable recording"),
+    (EXIT_NOBODY, "nobody there", "no subscriber after --wait-subscriber: nothing was sent"),
+    (EXIT_REFUSED, "refused", "the service refused the camera (no slot: --max-cameras, or "
+                              "its probation slot given to another camera) or rejected "
+                              "messages"),
+    (EXIT_DROPPED, "dropped", "the service's queue dropped messages (--on-full drop)"),
+    (EXIT_LOST, "lost", "messages never reached the service: sent while nobody "
+                        "subscribed, the service gone during the run, or missing from its "
+                        "account"),
+    (EXIT_UNCONFIRMED, "unconfirmed", "no service confirmed delivery within "
+                                      "--confirm-timeout (only a recorder listens, the "
+                                      "service is too busy, or the replay was stopped with a "
+                                      "put still blocked)"),
+)
+
+# sessions left open at a stop with a put still blocked (see main)
+_LEFT_OPEN: list[Transport] = []
+
+CONFIRM_TIMEOUT_S = 60.0  # how long the status is asked for after the run
+STOPPED_CONFIRM_S = 1.0  # the same after SIGINT/SIGTERM: the user wants out
+STATUS_QUERY_S = 2.0  # one status query
 
 
 @dataclass
@@ -54,6 +115,15 @@ class ReplayStats:
     service_gone: bool = False  # the service answered before the run and not after
     # the service's account of this run (status differences), None when no service answered
     delivered: dict[str, int] | None = None
+    # the account is complete: every message sent is in it, or the service had nothing of
+    # this camera in flight when it last answered (the rest is not coming)
+    confirmed: bool = False
+    refusal: dict[str, Any] | None = None  # the service's refusal of the camera, if any
+    displaced: int = 0  # times during the run the camera lost its slot to another camera
+    stopped: bool = False  # SIGINT/SIGTERM (``stop``) ended the run early
+    stuck_put: bool = False  # stopped while a put still waited for a stalled receiver
+    send_error: str | None = None  # a put raised (the session failed)
+    why_unconfirmed: str = ""
 
     @property
     def messages(self) -> int:
@@ -61,7 +131,7 @@ class ReplayStats:
 
     @property
     def missing_messages(self) -> int | None:
-        """Messages the service never saw (neither processed, dropped nor rejected)."""
+        """Messages the service never saw (neither processed, dropped nor refused)."""
         if self.delivered is None:
             return None
         return self.messages - self.delivered["accounted_messages"]
@@ -69,6 +139,26 @@ class ReplayStats:
     @property
     def events_per_s(self) -> float:
         return self.events / self.seconds if self.seconds > 0 else 0.0
+
+
+def exit_code(stats: ReplayStats) -> int:
+    """The exit code of a run (:data:`EXIT_CODES`, judged in that order)."""
+    if stats.send_error is not None:
+        return EXIT_ERROR
+    if not stats.subscribed:
+        return EXIT_NOBODY
+    d = stats.delivered
+    if stats.displaced or (d is not None and (d["refused_messages"]
+                                              or d["rejected_messages"])):
+        return EXIT_REFUSED
+    if d is not None and d["dropped_messages"]:
+        return EXIT_DROPPED
+    if stats.unmatched_messages or stats.service_gone or (
+            stats.confirmed and (stats.missing_messages or 0) > 0):
+        return EXIT_LOST
+    if not stats.confirmed:
+        return EXIT_UNCONFIRMED
+    return EXIT_OK
 
 
 def schedule(rec: Recording, *, chunk_events: int = 50_000, chunk_us: int = 10_000
@@ -96,26 +186,110 @@ def schedule(rec: Recording, *, chunk_events: int = 50_000, chunk_us: int = 10_0
             i = j
 
 
+class _Sender:
+    """Puts messages on a thread of its own.
+
+    With congestion control BLOCK a put waits, up to ``--block-timeout``, while a stalled
+    receiver holds the link, and zenoh 1.10 cannot cancel it: the main thread would neither
+    see SIGINT (its handler runs only between bytecodes) nor could it undeclare the
+    publisher or close the session (that times out after 10 s, the put still blocked). Here
+    the main thread only hands messages over (at most ``depth`` ahead, which also lets it
+    encode the next while this thread puts) and keeps answering ``stop``; what was handed
+    over but not yet put when ``stop`` is set is never sent. ``stats`` counts messages once
+    their put returned.
+    """
+
+    def __init__(self, stats: ReplayStats, stop: threading.Event, depth: int = 4) -> None:
+        self.stats = stats
+        self.stop = stop
+        self.busy = False  # a put in progress
+        self._queue: queue.Queue[tuple[Publisher, bytes, int] | None] = queue.Queue(depth)
+        self.thread = threading.Thread(target=self._run, name="evcal-replay-put", daemon=True)
+        self.thread.start()
+
+    def send(self, pub: Publisher, msg: bytes, n_events: int) -> bool:
+        """Hand one message over (``n_events`` -1 for a frame); False once stopped or
+        failed."""
+        while not (self.stop.is_set() or self.stats.send_error is not None):
+            try:
+                self._queue.put((pub, msg, n_events), timeout=0.1)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def _run(self) -> None:
+        st = self.stats
+        while (item := self._queue.get()) is not None:
+            if self.stop.is_set() or st.send_error is not None:
+                continue  # stopped: what is still queued is not sent
+            pub, msg, n_events = item
+            self.busy = True
+            try:
+                pub.put(msg)
+            except Exception as exc:  # a closed or failed session: reported, not raised
+                st.send_error = f"{type(exc).__name__}: {exc}"
+                continue
+            finally:
+                self.busy = False
+            if n_events < 0:
+                st.frames += 1
+            else:
+                st.events += n_events
+                st.event_messages += 1
+            st.bytes += len(msg)
+            st.unmatched_messages += not pub.has_subscribers
+
+    def finish(self) -> bool:
+        """Wait until every message handed over was put; False when ``stop`` came first
+        with a put still blocked (the thread is left to the process's exit)."""
+        while True:
+            try:
+                self._queue.put(None, timeout=0.1)
+                break
+            except queue.Full:
+                if self.stop.is_set() and self._drain():
+                    continue
+        while self.thread.is_alive():
+            self.thread.join(0.1)
+            if self.stop.is_set() and self.busy:
+                self.thread.join(0.2)  # a put about to return
+                return not self.thread.is_alive()
+        return True
+
+    def _drain(self) -> bool:
+        try:
+            while True:
+                self._queue.get_nowait()
+        except queue.Empty:
+            return True
+
+
 def replay(t: Transport, rec: Recording, camera: str, *, prefix: str = "evcal",
            speed: float | None = 1.0, loop: bool = False, stop: threading.Event | None = None,
            chunk_events: int = 50_000, chunk_us: int = 10_000,
-           wait_subscriber_s: float = 5.0, max_loops: int | None = None) -> ReplayStats:
-    """Publish ``rec`` (``speed=None``: as fast as possible). Returns what was sent."""
+           wait_subscriber_s: float = 5.0, max_loops: int | None = None,
+           confirm_timeout_s: float = CONFIRM_TIMEOUT_S,
+           stop_now: threading.Event | None = None) -> ReplayStats:
+    """Publish ``rec`` (``speed=None``: as fast as possible), then ask the service for its
+    account of the run (up to ``confirm_timeout_s``; 1 s once ``stop`` is set, none once
+    ``stop_now`` is). Returns what was sent and delivered (:func:`exit_code` judges it)."""
     h, w = rec.sensor.shape
     pub_ev = t.publisher(keys.camera_key(prefix, camera, "events"), keys.ENC_EVENTS, block=True)
     pub_fr = t.publisher(keys.camera_key(prefix, camera, "frames"), keys.ENC_FRAME, block=True)
     stop = stop or threading.Event()
+    stop_now = stop_now or threading.Event()
     deadline = time.monotonic() + wait_subscriber_s
     while not (pub_ev.has_subscribers and pub_fr.has_subscribers):
         if time.monotonic() > deadline or stop.is_set():
             break
         time.sleep(0.02)
-    status_key = keys.camera_key(prefix, camera, "status")
-    before = _status(t, status_key)
     stats = ReplayStats()
     if not (pub_ev.has_subscribers or pub_fr.has_subscribers):
         stats.subscribed = False
         return stats  # nobody listens: nothing is sent (the caller says so)
+    status_key = keys.camera_key(prefix, camera, "status")
+    before = _probe_status(t, status_key, STATUS_QUERY_S)
     images = rec.frames.images
     if images.dtype.kind == "f" and images.dtype != np.float32:
         images = images.astype(np.float32)
@@ -123,6 +297,7 @@ def replay(t: Transport, rec: Recording, camera: str, *, prefix: str = "evcal",
     period = int(np.median(np.diff(rec.frames.t_us))) if len(rec.frames) > 1 else 1
     span = t1 - t0 + max(period, 1)
     plan = list(schedule(rec, chunk_events=chunk_events, chunk_us=chunk_us))
+    sender = _Sender(stats, stop)
     seq_ev = seq_fr = 0
     wall0 = time.monotonic()
     loop_i = 0
@@ -139,87 +314,244 @@ def replay(t: Transport, rec: Recording, camera: str, *, prefix: str = "evcal",
             if kind == "frame":
                 msg = encode_frame(int(rec.frames.t_us[i0]) + shift, images[i0],
                                    exposure_us=int(rec.frames.exposure_us[i0]), seq=seq_fr)
-                pub_fr.put(msg)
-                stats.unmatched_messages += not pub_fr.has_subscribers
+                ok = sender.send(pub_fr, msg, -1)
                 seq_fr += 1
-                stats.frames += 1
             else:
                 ev = rec.events[i0:i1]
                 if shift:
                     ev = ev.copy()
                     ev["t_us"] += shift
                 msg = encode_events(ev, height=h, width=w, seq=seq_ev)
-                pub_ev.put(msg)
-                stats.unmatched_messages += not pub_ev.has_subscribers
+                ok = sender.send(pub_ev, msg, i1 - i0)
                 seq_ev += 1
-                stats.events += i1 - i0
-                stats.event_messages += 1
-            stats.bytes += len(msg)
+            if not ok:
+                break
         loop_i += 1
-        if not loop or (max_loops is not None and loop_i >= max_loops):
+        if stats.send_error is not None or not loop or (
+                max_loops is not None and loop_i >= max_loops):
             break
-    # confirm delivery through the service's status queryable before the session closes
-    # (a busy service answers late: keep asking for up to 30 s; closing the session earlier
-    # would drop what is still queued for sending)
-    for _ in range(6 if before is not None else 1):  # no service: nobody to ask twice
-        if t.flush(status_key, timeout_s=5.0, linger_s=0.0):
-            break
-    else:
-        time.sleep(0.5)
+    stats.stuck_put = not sender.finish()
+    stats.stopped = stop.is_set()
     stats.seconds = time.monotonic() - wall0
-    after = _status(t, status_key)
-    if after is not None:
-        stats.delivered = _delivered(t, status_key, before or {}, stats.messages)
-    elif before is not None:
-        stats.service_gone = True  # it answered before the run, not after: link lost?
+    if stats.send_error is not None:
+        return stats
+    if stats.stuck_put:
+        # the link is held by a stalled receiver: a query would wait behind the blocked put
+        stats.why_unconfirmed = ("stopped while a put waited for the service (stalled?): "
+                                 "delivery of what was sent is unknown")
+        return stats
+    wait_s = STOPPED_CONFIRM_S if stats.stopped else confirm_timeout_s
+    _confirm(t, stats, status_key, before, prefix=prefix, since_s=wall0 - STATUS_QUERY_S,
+             deadline=time.monotonic() + wait_s, stop_now=stop_now)
     return stats
+
+
+# ----------------------------------------------------------------------------- the account
+
+
+@dataclass
+class StatusProbe:
+    """One status query: whether it finished in time, and the document (None: no reply)."""
+
+    answered: bool
+    doc: dict[str, Any] | None = None
+
+
+def _bounded(fn: Callable[[], T], timeout_s: float) -> tuple[bool, T | None]:
+    """``fn()`` on a daemon thread, waited for at most ``timeout_s``: ``(finished, value)``.
+
+    A zenoh query is sent with congestion control BLOCK and waits behind a put that a
+    stalled receiver holds, whatever its own timeout (zenoh 1.10): the caller must not.
+    """
+    box: dict[str, Any] = {}
+
+    def call() -> None:
+        try:
+            box["value"] = fn()
+        except Exception:  # noqa: BLE001 - a query that fails answers nothing
+            box["value"] = None
+
+    th = threading.Thread(target=call, name="evcal-replay-query", daemon=True)
+    th.start()
+    th.join(timeout_s)
+    return ("value" in box), box.get("value")
+
+
+def _probe_status(t: Transport, key: str, timeout_s: float = STATUS_QUERY_S) -> StatusProbe:
+    """Ask the service for ``key`` once. ``answered`` False: the query did not finish in
+    time (a busy or stalled service), so no reply says nothing about the camera."""
+    t_start = time.monotonic()
+    done, replies = _bounded(lambda: t.get(key, timeout_s=timeout_s), timeout_s + 0.5)
+    ok = [r for r in (replies or []) if r.ok]
+    # zenoh's own timeout ends a query with the replies so far: not an answer either
+    answered = done and (bool(ok) or time.monotonic() - t_start < 0.95 * timeout_s)
+    doc = None
+    if ok:
+        try:
+            doc = json.loads(ok[0].payload)
+        except ValueError:
+            doc = None
+    return StatusProbe(answered, doc if isinstance(doc, dict) else None)
 
 
 def _status(t: Transport, key: str) -> dict[str, Any] | None:
     """The camera's status from the service (None: no service answered)."""
-    try:
-        replies = [r for r in t.get(key, timeout_s=2.0) if r.ok]
-        return json.loads(replies[0].payload) if replies else None
-    except Exception:  # noqa: BLE001 - a diagnosis only
-        return None
+    return _probe_status(t, key).doc
+
+
+def _service_alive(t: Transport, prefix: str) -> bool:
+    """Whether an evcal service's liveliness token is up (asked once, at most 1.5 s)."""
+    _, alive = _bounded(lambda: t.alive(keys.service_token_key(prefix), timeout_s=1.0), 1.5)
+    return bool(alive)
+
+
+def _refusal_counts(doc: dict[str, Any] | None) -> tuple[int, int]:
+    ref = (doc or {}).get("refused") or {}
+    return int(ref.get("messages", 0)), int(ref.get("displaced", 0))
 
 
 def _account(st: dict[str, Any], before: dict[str, Any]) -> dict[str, int]:
+    """This run's share of the camera's counters: ``st`` less ``before``."""
     def diff(name: str) -> int:
         v, b = st.get(name, 0), before.get(name, 0)
         if isinstance(v, dict):
             return int(sum(v.values()) - sum((b or {}).values()))
-        return int(v - (b or 0))
+        return int((v or 0) - (b or 0))
 
+    refused_now, _ = _refusal_counts(st)
+    refused_before, _ = _refusal_counts(before)
     out = {"event_messages": diff("event_messages"), "events": diff("events"),
            "frames": diff("frames"), "dropped_messages": diff("dropped_messages"),
-           "rejected_messages": diff("errors")}
+           "rejected_messages": diff("errors"),
+           "refused_messages": refused_now - refused_before}
     out["accounted_messages"] = (out["event_messages"] + out["frames"]
-                                 + out["dropped_messages"] + out["rejected_messages"])
+                                 + out["dropped_messages"] + out["rejected_messages"]
+                                 + out["refused_messages"])
     return out
 
 
-def _delivered(t: Transport, key: str, before: dict[str, Any], sent: int, *,
-               timeout_s: float = 15.0) -> dict[str, int]:
-    """What the service received of this run, once every sent message is accounted for (or
-    its counters stop moving): processed, dropped by its queue, rejected."""
-    deadline = time.monotonic() + timeout_s
-    last: dict[str, int] = {"accounted_messages": -1}
+def _baseline(before: StatusProbe, after: dict[str, Any], since_s: float | None
+              ) -> dict[str, Any] | None:
+    """The counters this run's account starts from (None: unknown).
+
+    A camera that came into the service's memory during the run (``serving_s`` shorter than
+    the run, which began at ``since_s``, monotonic) started from zero, whatever was asked
+    before: it is new, or it lost its slot and came back. Otherwise the status read before
+    the run, if that query was answered.
+    """
+    serving_s = after.get("serving_s")
+    refusal_only = {"refused": before.doc.get("refused")} if before.doc else {}
+    if (since_s is not None and isinstance(serving_s, int | float)
+            and serving_s < time.monotonic() - since_s):
+        return refusal_only  # its counters began during the run
+    if before.doc is not None:
+        return before.doc
+    return {} if before.answered else None
+
+
+def _confirm(t: Transport, stats: ReplayStats, key: str, before: StatusProbe, *,
+             prefix: str, since_s: float | None, deadline: float,
+             stop_now: threading.Event) -> None:
+    """Ask the camera's status until the service's account of the run is complete or
+    ``deadline`` (monotonic) passes; fills ``stats.delivered``, ``confirmed``, ``refusal``.
+
+    A reply comes after every message put before the query (they share the link), so once
+    one says nothing of this camera is in flight at the service, twice in a row with the
+    same counts, the rest is not coming. A service that never answered for the camera is
+    asked until the deadline only while its liveliness token is up and its queries do not
+    finish empty: a service takes a camera (or refuses it) as its first message arrives,
+    before the query behind it, so a busy one answers late, while one that answers nothing
+    in time, twice, does not serve the camera (another instance's claim or shard, or access
+    control hides it); with no token up, nobody will answer.
+    """
+    sent = stats.messages
+    _, displaced_before = _refusal_counts(before.doc)
+    alive: bool | None = None
+    last: dict[str, int] | None = None
     stable = 0
-    while True:
-        st = _status(t, key)
-        acc = _account(st, before) if st is not None else last
-        if acc["accounted_messages"] >= sent or time.monotonic() > deadline:
-            return acc
-        stable = stable + 1 if acc == last else 0
-        if stable >= 10:  # 2 s without a change: the rest is not coming
-            return acc
-        last = acc
-        time.sleep(0.2)
+    answered_once = False
+    empty_answers = 0
+    while not stop_now.is_set():
+        remaining = deadline - time.monotonic()
+        if remaining <= 0:
+            break
+        probe = _probe_status(t, key, min(STATUS_QUERY_S, max(remaining, 0.2)))
+        doc = probe.doc
+        if doc is not None:
+            answered_once = True
+            if doc.get("refused"):
+                stats.refusal = doc["refused"]
+                stats.displaced = _refusal_counts(doc)[1] - displaced_before
+            base = _baseline(before, doc, since_s)
+            if base is None:
+                stats.why_unconfirmed = ("the service did not answer for the camera before "
+                                         "the run and the camera is older than the run: "
+                                         "its counters cannot be split")
+                break
+            acc = _account(doc, base)
+            stats.delivered = acc
+            if acc["accounted_messages"] >= sent:
+                stats.confirmed = True
+                break
+            # a refused camera's messages are counted as they arrive: none in flight;
+            # a service before in_flight_messages: its queue, and 2 s without a change
+            exact = "in_flight_messages" in doc or doc.get("state") == "refused"
+            in_flight = (doc.get("in_flight_messages", 0) if exact
+                         else doc.get("queue_messages"))
+            stable = stable + 1 if acc == last and in_flight == 0 else 0
+            if stable >= (1 if exact else 10):
+                stats.confirmed = True  # nothing of it in flight: the rest never arrived
+                break
+            last = acc
+        elif not answered_once:
+            if alive is None:
+                alive = _service_alive(t, prefix)
+            if not alive:
+                time.sleep(0.5)  # what was put leaves before the session closes
+                stats.why_unconfirmed = "no evcal service is up (its liveliness token)"
+                break
+            empty_answers = empty_answers + 1 if probe.answered else 0
+            if empty_answers >= 2:
+                stats.why_unconfirmed = ("the service answers nothing for the camera: it "
+                                         "does not serve it (another instance's --cameras "
+                                         "claim or shard?) or access control hides it")
+                break
+        stop_now.wait(0.2)
+    if stats.delivered is None and before.doc is not None and not stop_now.is_set() \
+            and not _service_alive(t, prefix):
+        stats.service_gone = True  # it answered before the run, not after: link lost?
+    if not stats.confirmed and not stats.why_unconfirmed:
+        stats.why_unconfirmed = ("the service's account was not complete within the wait"
+                                 if stats.delivered is not None else
+                                 "no evcal service answered for the camera within the wait")
+
+
+def _delivered(t: Transport, key: str, before: dict[str, Any], sent: int, *,
+               timeout_s: float = 15.0, prefix: str = "evcal") -> dict[str, int]:
+    """What the service received of a run of ``sent`` messages: processed, dropped by its
+    queue, rejected (:func:`_confirm`'s account; ``evcal replay --ros2`` uses it)."""
+    stats = ReplayStats(event_messages=sent)
+    probe = StatusProbe(True, before or None)
+    _confirm(t, stats, key, probe, prefix=prefix, since_s=None,
+             deadline=time.monotonic() + timeout_s, stop_now=threading.Event())
+    if stats.delivered is None:
+        return {"event_messages": 0, "events": 0, "frames": 0, "dropped_messages": 0,
+                "rejected_messages": 0, "refused_messages": 0, "accounted_messages": 0}
+    return stats.delivered
+
+
+def exit_code_table() -> str:
+    """The exit codes as text (``--help``)."""
+    rows = [textwrap.fill(meaning, 79, initial_indent=f"  {code}  {outcome:<14}",
+                          subsequent_indent=" " * 19)
+            for code, outcome, meaning in (*EXIT_CODES[1:], EXIT_CODES[0])]
+    return "exit codes (judged in this order; 0 when none applies):\n" + "\n".join(rows)
 
 
 def build_parser():
     p = base_parser("evcal replay", "Publish a recording onto zenoh in evcal's wire format.")
+    p.epilog = exit_code_table()
+    p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.add_argument("recording", help="any recording evcal reads (.aedat4, .mcap, .npz, ECD "
                                      "folder)")
     p.add_argument("--camera", type=camera_arg,
@@ -237,6 +569,10 @@ def build_parser():
     p.add_argument("--wait-subscriber", type=float, default=5.0, metavar="S",
                    help="wait up to S seconds for a subscriber before sending (default 5); "
                         "with none, nothing is sent and the exit code is 3")
+    p.add_argument("--confirm-timeout", type=float, default=CONFIRM_TIMEOUT_S, metavar="S",
+                   help="after the run, ask the service for its account of it for up to S "
+                        f"seconds (default {CONFIRM_TIMEOUT_S:g}; 1 after Ctrl-C, none "
+                        "after a second Ctrl-C); unconfirmed delivery is exit code 7")
     p.add_argument("--block-timeout", type=float, default=3600.0, metavar="S",
                    help="how long a message may wait for a stalled receiver before zenoh "
                         "closes the link (default 3600; zenoh's own default is 5)")
@@ -292,6 +628,43 @@ def _main_ros2(args: Any, prog: str) -> int:
     return report(prog, stats, args.wait_subscriber, domain)
 
 
+def report(prog: str, stats: ReplayStats, target: str) -> int:
+    """Print what was sent and what the service says of it; returns :func:`exit_code`."""
+    code = exit_code(stats)
+    if stats.send_error is not None:
+        print(f"{prog}: sending failed: {stats.send_error}", file=sys.stderr)
+    print(f"{prog}: sent {stats.events} events in {stats.event_messages} messages and "
+          f"{stats.frames} frames, {stats.bytes / 1e6:.1f} MB in {stats.seconds:.2f} s "
+          f"({stats.events_per_s / 1e6:.2f} M events/s) to {target}"
+          + (" (stopped)" if stats.stopped else ""), file=sys.stderr)
+    if stats.unmatched_messages:
+        print(f"{prog}: {stats.unmatched_messages} messages were sent while nobody subscribed "
+              "(lost)", file=sys.stderr)
+    if stats.service_gone:
+        print(f"{prog}: the service answered on {target}/status before the run but not "
+              "after it, and is gone: the link was lost (a stall longer than "
+              "--block-timeout?) and messages may be lost", file=sys.stderr)
+    if stats.refusal is not None and (stats.displaced or (stats.delivered or {}).get(
+            "refused_messages")):
+        print(f"{prog}: the service refused the camera: {stats.refusal.get('reason')}: "
+              f"{stats.refusal.get('message')}", file=sys.stderr)
+    d = stats.delivered
+    if d is not None:
+        print(f"{prog}: the service processed {d['event_messages']} event messages "
+              f"({d['events']} events) and {d['frames']} frames, dropped "
+              f"{d['dropped_messages']}, rejected {d['rejected_messages']} and refused "
+              f"{d['refused_messages']} messages", file=sys.stderr)
+        missing = stats.missing_messages or 0
+        if stats.confirmed and missing > 0:
+            print(f"{prog}: {missing} of {stats.messages} messages never reached the service",
+                  file=sys.stderr)
+    if not stats.confirmed and stats.send_error is None:
+        print(f"{prog}: delivery not confirmed: {stats.why_unconfirmed}", file=sys.stderr)
+    outcome = {c: o for c, o, _ in EXIT_CODES}[code]
+    print(f"{prog}: {outcome} (exit code {code})", file=sys.stderr)
+    return code
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     from evcal.events import SensorSize
     from evcal.recording import RecordingError
@@ -300,68 +673,57 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     prog = "evcal replay"
     if args.speed is not None and not args.speed > 0:
-        return fail(prog, f"--speed {args.speed} must be > 0", 2)
+        return fail(prog, f"--speed {args.speed} must be > 0", EXIT_USAGE)
+    if not args.confirm_timeout >= 0:
+        return fail(prog, f"--confirm-timeout {args.confirm_timeout} must be >= 0", EXIT_USAGE)
     if args.ros2:
         return _main_ros2(args, prog)
     if args.camera is None:
-        return fail(prog, "--camera is required (or --ros2 for a ROS bag)", 2)
+        return fail(prog, "--camera is required (or --ros2 for a ROS bag)", EXIT_USAGE)
     if args.ros_domain is not None or args.topic:
-        return fail(prog, "--ros-domain and --topic go with --ros2", 2)
+        return fail(prog, "--ros-domain and --topic go with --ros2", EXIT_USAGE)
     try:
         zopts = _replay_options(args)
         sensor = SensorSize.parse(args.sensor) if args.sensor else None
         rec = open_recording(args.recording, sensor=sensor)
     except (ValueError, RecordingError) as exc:
-        return fail(prog, str(exc), 2)
-    stop = threading.Event()
-    relay = SignalRelay(STOP_SIGNALS, lambda _s: stop.set())
+        return fail(prog, str(exc), EXIT_USAGE)
+    stop, stop_now = threading.Event(), threading.Event()
+
+    def on_signal(_signum: int) -> None:
+        # the first stops sending (and shortens the confirmation), the second skips it
+        (stop_now if stop.is_set() else stop).set()
+
+    relay = SignalRelay(STOP_SIGNALS, on_signal)
+    t = Transport(zopts)
+    stats: ReplayStats | None = None
     try:
-        with Transport(zopts) as t:
-            stats = replay(t, rec, args.camera, prefix=args.prefix,
-                           speed=None if args.max_rate else args.speed, loop=args.loop,
-                           stop=stop, chunk_events=args.chunk_events,
-                           chunk_us=int(args.chunk_ms * 1000),
-                           wait_subscriber_s=args.wait_subscriber)
+        t.open()
+        stats = replay(t, rec, args.camera, prefix=args.prefix,
+                       speed=None if args.max_rate else args.speed, loop=args.loop,
+                       stop=stop, chunk_events=args.chunk_events,
+                       chunk_us=int(args.chunk_ms * 1000),
+                       wait_subscriber_s=args.wait_subscriber,
+                       confirm_timeout_s=args.confirm_timeout, stop_now=stop_now)
     except TransportError as exc:
-        return fail(prog, str(exc))
+        return fail(prog, str(exc), EXIT_ERROR)
     finally:
         relay.close()
+        # a put still blocked by a stalled receiver cannot be cancelled, and closing the
+        # session would time out after 10 s with it still blocked (zenoh 1.10), as would
+        # dropping the last reference to it: the session is kept open for the process's
+        # exit, which ends it at once
+        if stats is None or not stats.stuck_put:
+            t.close()
+        else:
+            _LEFT_OPEN.append(t)
     target = f"{args.prefix}/{args.camera}"
     if not stats.subscribed:
         return fail(prog, f"nobody subscribes to {target}/events|frames after "
                           f"{args.wait_subscriber:g} s (is `evcal serve` or `evcal record` "
                           "running and reachable with these --connect/--mode settings?); "
-                          "nothing was sent", 3)
-    print(f"{prog}: sent {stats.events} events in {stats.event_messages} messages and "
-          f"{stats.frames} frames, {stats.bytes / 1e6:.1f} MB in {stats.seconds:.2f} s "
-          f"({stats.events_per_s / 1e6:.2f} M events/s) to {target}", file=sys.stderr)
-    code = 0
-    if stats.unmatched_messages:
-        print(f"{prog}: {stats.unmatched_messages} messages were sent while nobody subscribed "
-              "(lost)", file=sys.stderr)
-        code = 4
-    d = stats.delivered
-    if stats.service_gone:
-        print(f"{prog}: the service answered on {target}/status before the run but not "
-              "after it: the link was lost (a stall longer than --block-timeout?) and "
-              "messages may be lost", file=sys.stderr)
-        code = 4
-    elif d is None:
-        print(f"{prog}: delivery not confirmed (no evcal service answered on "
-              f"{target}/status)", file=sys.stderr)
-    else:
-        print(f"{prog}: the service processed {d['event_messages']} event messages "
-              f"({d['events']} events) and {d['frames']} frames, dropped "
-              f"{d['dropped_messages']} and rejected {d['rejected_messages']} messages",
-              file=sys.stderr)
-        missing = stats.missing_messages or 0
-        if missing > 0:
-            print(f"{prog}: {missing} of {stats.messages} messages never reached the service",
-                  file=sys.stderr)
-            code = 4
-        elif d["dropped_messages"] or d["rejected_messages"]:
-            code = 4
-    return code
+                          "nothing was sent", EXIT_NOBODY)
+    return report(prog, stats, target)
 
 
 if __name__ == "__main__":

@@ -27,7 +27,7 @@ from ..errors import ErrorReason, EvcalError, StateError
 from ..events import SensorSize
 from ..io.wire import encode_calibration
 from ..online import OnEIConfig, OnlineCalibrator
-from ..stream import StreamGuard
+from ..stream import DuplicateMessage, LateMessage, StreamGuard
 
 log = logging.getLogger("evcal.service")
 
@@ -39,10 +39,21 @@ DecodedEvents = tuple[np.ndarray, dict[str, Any]]
 DecodedFrame = tuple[int, int, np.ndarray, dict[str, Any]]
 
 
+# the reason a duplicate is counted and published under (a message of the stream arrived
+# twice: dropped; neither a new session nor loss)
+DUPLICATE = "duplicate"
+
+
 class Rejected(EvcalError):
-    """An input message refused with a reason code (counted, published on ``errors``)."""
+    """An input message refused with a reason code (counted, published on ``errors``);
+    ``counted_as`` is the reason's name in the counters (``str(reason)`` unless given)."""
 
     default_reason = ErrorReason.REJECTED
+
+    def __init__(self, message: str, reason: ErrorReason | None = None, *,
+                 counted_as: str | None = None) -> None:
+        super().__init__(message, reason)
+        self.counted_as = counted_as or str(self.reason)
 
 
 # ----------------------------------------------------------------------------- output records
@@ -120,7 +131,9 @@ class Counters:
     """Everything counted per camera (published in ``status``, kept in snapshots).
 
     ``events`` counts events and ``event_messages`` messages; ``dropped`` counts messages the
-    service's own queue refused, ``lost`` messages missing in the publisher's sequence numbers.
+    service's own queue refused, ``lost`` messages missing in the publisher's sequence numbers
+    that never arrived (a refused message arrived: it is in ``errors``, not here; so is an
+    exact copy of an accepted message, under ``duplicate``).
     """
 
     events: int = 0
@@ -166,10 +179,22 @@ class CameraState:
         self.dirty = False  # changed since the last snapshot
         self.observe = observe  # emit Observed records for a recorder
         self.frame_dtype: np.dtype[Any] | None = None  # fixed by the first frame
+        # per stream, since its last accepted message: messages this service dropped or
+        # refused before reading their sequence number; a gap of that many is not upstream
+        # loss
+        self._not_lost = {"events": 0, "frames": 0}
 
     @property
     def sensor(self) -> SensorSize | None:
         return self.guard.sensor
+
+    def on_probation(self, *, min_frames: int, min_events: int) -> bool:
+        """Whether this camera has not yet sent enough to matter: no calibration (published
+        or restored) and fewer than ``min_frames`` frames or ``min_events`` events accepted.
+        A camera on probation may lose its slot to a new camera (``Service``)."""
+        c = self.counters
+        return self.calibration_msg is None and (c.frames < min_frames
+                                                 or c.events < min_events)
 
     # -- inputs --------------------------------------------------------------------------------
 
@@ -177,17 +202,28 @@ class CameraState:
                 t_last: int | None, drops_before: int) -> OnlineCalibrator:
         """The stream checks of one message (:meth:`StreamGuard.accept`: sensor, time, sequence
         number) and what they imply for OnEI: a new calibrator for the first message or a new
-        sensor, a new session (buffers emptied) for a new time base, a gap for lost events."""
+        sensor, a new session (buffers emptied) for a new time base, a gap for lost events.
+        A copy of a recent message is refused as a ``duplicate``, without changing anything."""
         what = f"{'events' if kind == 'events' else 'frame'} message seq {header['seq']}"
+        c = self.counters
+        self._not_lost[kind] += drops_before
         try:
             check = self.guard.accept(kind, t_first_us=t_first, t_last_us=t_last, what=what,
                                       seq=header["seq"], size=(header["height"],
                                                                header["width"]))
+        except DuplicateMessage as exc:
+            raise Rejected(str(exc), exc.reason, counted_as=DUPLICATE) from None
+        except LateMessage as exc:
+            # counted lost when the gap showed; it arrived (refused), so it is not lost
+            c.lost[kind] = max(0, c.lost[kind] - exc.recovered)
+            raise Rejected(str(exc), exc.reason) from None
         except EvcalError as exc:
             raise Rejected(str(exc), exc.reason) from None
         sensor = self.guard.sensor
         assert sensor is not None  # accept() fixed it
-        c = self.counters
+        not_lost, self._not_lost[kind] = self._not_lost[kind], 0
+        if check.recovered:
+            c.lost[kind] = max(0, c.lost[kind] - check.recovered)
         if self.calibrator is None or check.new_sensor:
             if check.new_sensor:
                 # the old sensor's calibration does not describe this one
@@ -204,8 +240,8 @@ class CameraState:
             log.info("camera %s: a new session of its %s stream (time base changed)", self.id,
                      kind)
         if check.lost:
-            # the gap minus the messages this service's own queue dropped: upstream loss
-            c.lost[kind] += max(0, check.lost - drops_before)
+            # the gap minus the messages this service dropped or refused unread: upstream loss
+            c.lost[kind] += max(0, check.lost - not_lost)
         if check.restart:
             c.seq_restarts[kind] += 1
         if (check.lost or check.restart) and kind == "events" and not check.new_session:
@@ -297,9 +333,17 @@ class CameraState:
                                       upd.t_cal_s - upd.t_fed_s, upd.t_enc_s - upd.t_cal_s,
                                       t_pub_s - upd.t_enc_s))
 
+    def reject_unread(self, stream: str, exc: EvcalError, drops_before: int = 0
+                      ) -> Rejection:
+        """Count an input refused before its sequence number was read (undecodable, too
+        large): with the messages dropped just before it, the next gap of its stream does not
+        count it as lost."""
+        self._not_lost[stream] += drops_before + 1
+        return self.reject(stream, exc)
+
     def reject(self, stream: str, exc: EvcalError) -> Rejection:
         """Count a refused input; the record says what to publish."""
-        reason = str(exc.reason)
+        reason = exc.counted_as if isinstance(exc, Rejected) else str(exc.reason)
         self.counters.errors[reason] = self.counters.errors.get(reason, 0) + 1
         return Rejection(self.id, stream, reason, str(exc))
 

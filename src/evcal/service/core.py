@@ -37,6 +37,7 @@ import logging
 import os
 import threading
 import time
+from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -100,9 +101,20 @@ class ServiceConfig:
     # a camera idle this long is snapshotted and dropped from memory (0: never); it comes
     # back from its snapshot with its next message
     idle_evict_s: float = 3600.0
-    # a camera none of whose messages was ever accepted is dropped after this long idle, and
-    # at once when a new camera needs its slot (junk ids cannot lock real cameras out)
+    # a camera is on probation until it has sent enough to matter: probation_frames frames
+    # and probation_events events accepted (or it has a calibration). On probation it is
+    # dropped after probation_s idle (no snapshot), and gives its slot to a new camera when
+    # every slot is taken: at once if nothing it sent was accepted data (an empty message,
+    # refused input), else once idle for displace_idle_s — so that ids that send once
+    # (2,000 valid empty messages) cannot lock a real camera out, while two cameras that
+    # both stream do not take each other's slot in turn
     probation_s: float = 10.0
+    probation_frames: int = 2
+    probation_events: int = 1000
+    displace_idle_s: float = 1.0
+    # camera ids refused a slot (or displaced) that a status query can still be answered
+    # for with the refusal (a replay then knows its camera was refused)
+    refused_memory: int = 4096
     # the service estimates each camera's log offset unless told (OnEI's own default is 30),
     # its equations span 5 frame intervals, as OffEI's (OnEI's own default closes them by
     # event count, which ends them in bursts of motion: 1.1-1.5x OffEI's c error on common
@@ -123,14 +135,16 @@ class ServiceConfig:
                 len(self.shard) == 2 and self.shard[1] >= 1 and 0 <= self.shard[0] < self.shard[1]):
             raise ConfigError(f"shard={self.shard!r} must be (index, count) with "
                               "0 <= index < count")
-        for name in ("queue_bytes", "max_cameras", "max_pixels", "max_message_bytes"):
+        for name in ("queue_bytes", "max_cameras", "max_pixels", "max_message_bytes",
+                     "refused_memory"):
             if int(getattr(self, name)) < 1:
                 raise ConfigError(f"{name}={getattr(self, name)} must be >= 1")
         if self.max_message_bytes > self.queue_bytes:
             raise ConfigError(f"max_message_bytes={self.max_message_bytes} exceeds "
                              f"queue_bytes={self.queue_bytes}: such a message could never be "
                              "queued")
-        for name in ("idle_evict_s", "probation_s"):
+        for name in ("idle_evict_s", "probation_s", "displace_idle_s", "probation_frames",
+                     "probation_events"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"{name}={getattr(self, name)} must be >= 0")
         for name in ("status_period_s", "snapshot_period_s", "error_rate_hz"):
@@ -156,6 +170,23 @@ class Observer(Protocol):
 
 
 
+@dataclass
+class Refusal:
+    """Why a camera id has no slot (or lost it): kept for its status queries."""
+
+    reason: str
+    message: str
+    first_wall: float
+    last_wall: float
+    messages: int = 0  # its messages refused for want of a slot
+    displaced: int = 0  # times it lost its probation slot to a new camera
+
+    def doc(self) -> dict[str, Any]:
+        return {"reason": self.reason, "message": self.message, "messages": self.messages,
+                "displaced": self.displaced, "first_wall": self.first_wall,
+                "last_wall": self.last_wall}
+
+
 class Service:
     """All cameras of one instance. Thread-safe entry points: ``on_sample``,
     ``query_calibration``, ``query_status``, ``cameras_info``, ``tick``; lifecycle:
@@ -177,6 +208,8 @@ class Service:
         # the attachment of calibration messages: the instance, signed when a key was given
         self.signer = signer or Signer(self.instance)
         self.cameras: dict[str, Camera] = {}
+        # camera ids refused a slot or displaced, newest last, at most refused_memory
+        self.refused: OrderedDict[str, Refusal] = OrderedDict()
         self._limiter = ErrorLimiter(config.error_rate_hz)  # refusals not of one camera
         self._lock = threading.Lock()
         self.rejected_cameras = 0
@@ -306,26 +339,60 @@ class Service:
             return False
         return True
 
-    def _make_room(self) -> bool:
-        """Drop the least recently active junk camera (never accepted a message) to make room
-        for a new one; False if there is none."""
-        now = time.monotonic()
-        # judged junk: nothing in flight, never an accepted message, and either every message
-        # so far refused or quiet since its probation ran out
-        junk = [c for c in self.cameras.values()
-                if c.state.sensor is None and c.in_flight == 0
-                and (c.state.counters.errors_total > 0
-                     or now - c.last_input_s > self.config.probation_s)]
-        if not junk:
+    def on_probation(self, cam: Camera) -> bool:
+        """Whether ``cam`` has not yet sent enough to keep its slot (see ``ServiceConfig``)."""
+        return cam.state.on_probation(min_frames=self.config.probation_frames,
+                                      min_events=self.config.probation_events)
+
+    def _make_room(self, now_s: float) -> bool:
+        """Take a slot from the least useful camera on probation for a new one (call with
+        ``self._lock`` held); False if none may give it up.
+
+        A camera with a message in flight keeps its slot (its first message may be the one
+        that matters). Among the others on probation: one that has no accepted data (only
+        empty or refused messages) gives way at once, one with data once idle for
+        ``displace_idle_s``; the victim is the one with the fewest frames, then events,
+        then the oldest last message.
+        """
+        cfg = self.config
+        movable = [c for c in self.cameras.values()
+                   if c.in_flight == 0 and self.on_probation(c)
+                   and ((c.counters.frames == 0 and c.counters.events == 0)
+                        or now_s - c.last_input_s >= cfg.displace_idle_s)]
+        if not movable:
             return False
-        victim = min(junk, key=lambda c: c.last_input_s)
+        victim = min(movable, key=lambda c: (c.counters.frames, c.counters.events,
+                                             c.last_input_s))
         del self.cameras[victim.id]
         self.evicted_cameras += 1
-        threading.Thread(target=victim.stop, kwargs={"timeout_s": 1.0, "drain": False},
-                         name="evcal-evict", daemon=True).start()
-        log.info("camera %s (no valid message in %.0f s) dropped to make room", victim.id,
-                 now - victim.started_s)
+        self._note_refusal(victim.id, str(ErrorReason.TOO_MANY_CAMERAS),
+                           f"camera {victim.id!r} was on probation (frames "
+                           f"{victim.counters.frames}, events {victim.counters.events}; it "
+                           f"keeps a slot from {cfg.probation_frames} frames and "
+                           f"{cfg.probation_events} events) and gave its slot to a new camera: "
+                           f"all {cfg.max_cameras} slots were taken (--max-cameras)",
+                           displaced=True)
+        victim.discard()  # nothing in flight: its threads end on their own
+        log.info("camera %s (on probation, idle %.1f s) gave its slot to a new camera",
+                 victim.id, now_s - victim.last_input_s)
         return True
+
+    def _note_refusal(self, camera_id: str, reason: str, message: str, *,
+                      displaced: bool = False) -> None:
+        """Remember why ``camera_id`` has no slot (call with ``self._lock`` held)."""
+        now = time.time()
+        rec = self.refused.get(camera_id)
+        if rec is None:
+            rec = self.refused[camera_id] = Refusal(reason, message, now, now)
+            while len(self.refused) > self.config.refused_memory:
+                self.refused.popitem(last=False)
+        else:
+            self.refused.move_to_end(camera_id)
+            rec.reason, rec.message, rec.last_wall = reason, message, now
+        if displaced:
+            rec.displaced += 1
+        else:
+            rec.messages += 1
 
     def camera(self, camera_id: str, *, create: bool = True) -> Camera | None:
         cam = self.cameras.get(camera_id)
@@ -336,8 +403,14 @@ class Service:
             if cam is None:
                 if self._closed:
                     return None
-                if len(self.cameras) >= self.config.max_cameras and not self._make_room():
+                if (len(self.cameras) >= self.config.max_cameras
+                        and not self._make_room(time.monotonic())):
                     self.rejected_cameras += 1
+                    self._note_refusal(
+                        camera_id, str(ErrorReason.TOO_MANY_CAMERAS),
+                        f"no slot for camera {camera_id!r}: all {self.config.max_cameras} "
+                        "slots (--max-cameras) are taken by cameras that are streaming or "
+                        "past their probation")
                     return None
                 cam = self._new_camera(camera_id, observe=self.observer is not None)
                 snap = self.store.load(camera_id) if self.store is not None else None
@@ -383,8 +456,10 @@ class Service:
         cam = self.camera(camera_id)
         if cam is None:
             if not self._closed:
+                rec = self.refused.get(camera_id)
                 self._publish_error(Rejection(
                     camera_id, kind, str(ErrorReason.TOO_MANY_CAMERAS),
+                    rec.message if rec is not None else
                     f"this instance already serves {self.config.max_cameras} cameras "
                     "(--max-cameras)"), None)
             return
@@ -414,13 +489,36 @@ class Service:
 
     def status(self, cam: Camera) -> dict[str, Any]:
         with cam.lock:
-            return camera_status(cam)
+            doc = camera_status(cam)
+        doc["probation"] = self.on_probation(cam)
+        rec = self.refused.get(cam.id)
+        doc["refused"] = rec.doc() if rec is not None else None  # refused before, or displaced
+        return doc
+
+    def refused_status(self, camera_id: str) -> dict[str, Any] | None:
+        """The ``status`` document of a camera id that has no slot: its refusal (None if it
+        was never refused or is served now)."""
+        rec = self.refused.get(camera_id)
+        if rec is None or camera_id in self.cameras:
+            return None
+        return {"camera": camera_id, "state": "refused", "refused": rec.doc()}
 
     def query_status(self, query_key: str) -> list[tuple[str, bytes, str]]:
-        return [(self.key(cam.id, "status"), strict_dumps(self.status(cam)).encode(),
-                 keys.ENC_STATUS)
-                for cam in list(self.cameras.values())
-                if self._match(query_key, self.key(cam.id, "status"))]
+        """Status replies for the cameras whose status key intersects ``query_key``; a query
+        for one camera id without a slot is answered with its refusal, so that its publisher
+        learns why nothing is processed (only for an exact key: a wildcard query lists the
+        cameras served)."""
+        out = [(self.key(cam.id, "status"), strict_dumps(self.status(cam)).encode(),
+                keys.ENC_STATUS)
+               for cam in list(self.cameras.values())
+               if self._match(query_key, self.key(cam.id, "status"))]
+        if not out and "*" not in query_key:
+            parsed = keys.split_camera_key(self.config.prefix, query_key)
+            doc = (self.refused_status(parsed[0])
+                   if parsed is not None and parsed[1] == "status" else None)
+            if doc is not None:
+                out.append((query_key, strict_dumps(doc).encode(), keys.ENC_STATUS))
+        return out
 
     def cameras_info(self) -> dict[str, Any]:
         return {
@@ -431,6 +529,7 @@ class Service:
                       if self.config.shard is not None else None),
             "pid": os.getpid(),
             "rejected_cameras": self.rejected_cameras,
+            "refused_camera_ids": len(self.refused),
             "invalid_camera_ids": self.invalid_camera_ids,
             "evicted_cameras": self.evicted_cameras,
             "forgotten_cameras": self.forgotten_cameras,
@@ -481,7 +580,7 @@ class Service:
             self.publish(self.key(cam.id, "status"), payload, keys.ENC_STATUS)
 
     def evict_idle(self, now_s: float | None = None) -> list[str]:
-        """Drop cameras idle beyond ``probation_s`` (never accepted a message) or
+        """Drop cameras idle beyond ``probation_s`` (on probation: nothing worth keeping) or
         ``idle_evict_s`` (snapshotted first, back from it with their next message)."""
         now = time.monotonic() if now_s is None else now_s
         cfg = self.config
@@ -490,7 +589,7 @@ class Service:
             idle = now - cam.last_input_s
             if cam.in_flight:
                 continue
-            established = cam.state.sensor is not None
+            established = not self.on_probation(cam)
             if (not established and idle > cfg.probation_s) or (
                     established and cfg.idle_evict_s > 0 and idle > cfg.idle_evict_s):
                 self._drop(cam, save=established)
@@ -523,6 +622,8 @@ class Service:
         if cam is not None:
             self._drop(cam, save=False)
         removed = self.store.remove(camera_id) if self.store is not None else False
+        with self._lock:
+            self.refused.pop(camera_id, None)  # its refusal is history too
         if cam is not None or removed:
             self.forgotten_cameras += 1
             log.info("camera %s forgotten", camera_id)
@@ -535,6 +636,8 @@ class Service:
             return 0
         n = 0
         for cam in list(self.cameras.values()):
+            if self.on_probation(cam):
+                continue  # not enough to keep: one-shot ids must not fill the disk either
             with cam.lock:
                 if not cam.state.dirty:
                     continue

@@ -207,6 +207,14 @@ class Camera:
         if self.thread.is_alive():
             self.thread.join(timeout_s)
 
+    def discard(self) -> None:
+        """End the decoder and the worker without waiting for them or for what is queued
+        (a camera dropped with nothing in flight: it costs no thread and no wait in the
+        receive thread that needs its slot)."""
+        self._stop.set()
+        self.queue.close()
+        self.handoff.close()
+
     def _decode_loop(self) -> None:
         """Decoder thread: wire decoding and validation, in parallel with the worker."""
         while not self._stop.is_set():
@@ -262,9 +270,9 @@ class Camera:
             with self.lock:
                 out: Sequence[Output] = ()
                 try:
-                    if isinstance(decoded, EvcalError):
-                        raise decoded
-                    if kind == "events":
+                    if isinstance(decoded, EvcalError):  # refused before its seq was read
+                        out = [self.state.reject_unread(kind, decoded, drops_before)]
+                    elif kind == "events":
                         out = self.state.on_events(decoded, nbytes, now_s=time.monotonic(),
                                                    drops_before=drops_before)
                     else:

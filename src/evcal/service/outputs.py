@@ -65,6 +65,12 @@ def camera_status(cam: Camera, *, now_s: float | None = None) -> dict[str, Any]:
         "errors_suppressed": c.errors_suppressed,
         "queue_bytes": cam.queue.nbytes,
         "queue_messages": len(cam.queue),
+        # queued, being decoded or processed: 0 means every message received so far is in
+        # the counters above (a client confirming delivery waits for it)
+        "in_flight_messages": cam.in_flight,
+        # how long this camera has been in memory: a client that could not read the
+        # counters before its run tells from it whether they count only its messages
+        "serving_s": now - cam.started_s,
         "calibration_seq": st.calibration_seq - 1 if st.calibration_msg else None,
         "last_update_t_us": st.calibration_t_us,
         "last_update_wall": st.last_update_wall,
