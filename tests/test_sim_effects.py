@@ -21,6 +21,7 @@ from evcal.sim.effects import (
     LogOffset,
     Refractory,
     ShotNoise,
+    ThresholdLight,
     ThresholdNoise,
     TimestampJitter,
     make_effect,
@@ -72,6 +73,9 @@ SHORTCUT_CASES = {
     "delay, light-dependent leak": [Refractory(period_us=300.0, mode="delay"),
                                     Leak(rate_hz=3.0, light_exponent=0.5)],
     "bandwidth": [Bandwidth(cutoff_hz=30.0), Leak(rate_hz=3.0)],
+    "threshold_light": [ThresholdLight(exponent=0.4), Refractory(period_us=300.0),
+                        ShotNoise(rate_hz=20.0), ThresholdNoise(sigma=0.2)],
+    "threshold_light, leak": [ThresholdLight(exponent=0.7), Leak(rate_hz=3.0)],
 }
 
 

@@ -128,20 +128,34 @@ class FlowInterpolator(FrameInterpolator):
         gy, gx = np.mgrid[0:h, 0:w].astype(np.float32)
         self._gx, self._gy = gx, gy
         self._ext: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._rows = slice(0, h)
+
+    def only_rows(self, rows: slice) -> FlowInterpolator:
+        """Render the sensor rows ``rows`` only (``render_block`` gives ``[K, rows, W]``):
+        the same values as the whole frame's rows, the warps sampling the whole frames (a
+        band of rows for screening costs its share of the warps)."""
+        h = self.images.shape[1]
+        y0, y1, step = rows.indices(h)
+        if step != 1 or y1 <= y0:
+            raise ValueError(f"rows {rows} must be a non-empty contiguous band of 0..{h}")
+        self._rows = slice(y0, y1)
+        return self
 
     def _between(self, k: int, tau: float) -> np.ndarray:
         cv2 = _cv2()
-        a, b = self.images[k], self.images[k + 1]
-        f01, f10 = self.fwd[k], self.bwd[k]
+        r = self._rows  # the output's rows; the warps sample the whole frames
+        a, b = self.images[k][r], self.images[k + 1][r]
+        f01, f10 = self.fwd[k][r], self.bwd[k][r]
+        gx, gy = self._gx[r], self._gy[r]
         t = np.float32(tau)
         ft0 = -(1 - t) * t * f01 + t * t * f10
         ft1 = (1 - t) * (1 - t) * f01 - t * (1 - t) * f10
         w0 = self._warp(k, 0, ft0)
         w1 = self._warp(k, 1, ft1)
         # visibility: the consistency of each frame's flow, sampled where the pixel comes from
-        v0 = cv2.remap(self.v_fwd[k], self._gx + ft0[..., 0], self._gy + ft0[..., 1],
+        v0 = cv2.remap(self.v_fwd[k], gx + ft0[..., 0], gy + ft0[..., 1],
                        cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-        v1 = cv2.remap(self.v_bwd[k], self._gx + ft1[..., 0], self._gy + ft1[..., 1],
+        v1 = cv2.remap(self.v_bwd[k], gx + ft1[..., 0], gy + ft1[..., 1],
                        cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         c0 = (1 - t) * v0
         c1 = t * v1
@@ -162,7 +176,7 @@ class FlowInterpolator(FrameInterpolator):
         overshoot at strong edges from making events of its own."""
         cv2 = _cv2()
         img = self.images[k + side]
-        mx, my = self._gx + flow[..., 0], self._gy + flow[..., 1]
+        mx, my = self._gx[self._rows] + flow[..., 0], self._gy[self._rows] + flow[..., 1]
         cub = cv2.remap(img, mx, my, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
         lo, hi = self._extremes(k + side)
         fx, fy = np.floor(mx), np.floor(my)  # the top-left of the four pixels around
@@ -191,14 +205,20 @@ class FlowInterpolator(FrameInterpolator):
     def render_block(self, t_s: np.ndarray | list[float], out: np.ndarray | None = None
                      ) -> np.ndarray:
         ts = np.asarray(t_s, np.float64).reshape(-1)
-        out = self._block_buffer(ts.size, out)
+        r = self._rows
+        shape = (ts.size, r.stop - r.start, self.images.shape[2])
+        if out is None:
+            out = np.empty(shape, np.float32)
+        elif out.shape != shape or out.dtype != np.float32:
+            raise ValueError(f"out has shape {out.shape} and dtype {out.dtype}; expected "
+                             f"float32 {shape}")
         ks, ws = self._locate(ts)
         for j in range(ts.size):  # one warp per requested time, vectorised over pixels
             k, tau = int(ks[j]), float(ws[j])
             if k < 0:
-                out[j] = self.images[0 if k == -1 else -1]
+                out[j] = self.images[0 if k == -1 else -1][r]
             else:
-                out[j] = self.images[k] if tau <= 0 else self._between(k, tau)
+                out[j] = self.images[k][r] if tau <= 0 else self._between(k, tau)
         return out
 
 

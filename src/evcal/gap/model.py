@@ -28,6 +28,7 @@ from ..recording import Frames, Recording
 from ..sim.effects import (
     Bandwidth,
     Effect,
+    Exposure,
     HotPixels,
     LogOffset,
     Refractory,
@@ -227,7 +228,13 @@ def simulate_model(model: Model, rec: Recording, seed: int, settings: SimSetting
     fr = rec.frames
     assert fr is not None
     rng = np.random.default_rng([seed, 7919])
-    drive = model_frames(model, fr)
+    # the exposure lag moves the frames' stamps only: the sequence of the frames without it,
+    # read ``lag`` earlier (one render serves every lag the workflow tries)
+    exp = model.effects.get(Exposure.name)
+    lag_us = int(round(float(exp.lag_us))) if isinstance(exp, Exposure) else 0
+    drive = model_frames(model, fr) if lag_us == 0 else model_frames(
+        replace(model, effects={k: e for k, e in model.effects.items()
+                                if k != Exposure.name}), fr)
     add = None
     if settings.dither and fr.images.dtype == np.uint8:
         # the quantisation error of a still pixel is the same in every frame: one offset per
@@ -252,7 +259,7 @@ def simulate_model(model: Model, rec: Recording, seed: int, settings: SimSetting
     cache = render if render is not None else RenderCache(max_bytes=0)
     key = frames_key(drive, settings.interpolation, times)
     src = cache.source(key, times, shape, make_source, add,
-                       rows=None if band is None else band.rows)
+                       rows=None if band is None else band.rows, lag_s=lag_us * 1e-6)
     dur = max(times[-1] * 1e-6, 1e-3)
     h, w = shape if band is None else band.rec.sensor.shape
     cfg = SimConfig(height=h, width=w, duration_s=dur, frame_rate_hz=1.0,
@@ -349,6 +356,42 @@ def anchor(model: Model, rec: Recording, meas: Observation, seed: int,
         b = np.clip(model.bias * k_pix + db[bins].reshape(model.bias.shape), -0.8 * c, 0.8 * c)
         model = replace(model, contrast=c, bias=b, anchored=True)
     return model, None
+
+
+def carry_anchor(model: Model, band: Band, before: Model, after: Model,
+                 meas_band: Observation, meas: Observation, *, n_bins: int = 6) -> Model:
+    """``model`` (the whole sensor's) corrected by the curves over pixel activity that
+    :func:`anchor` found on ``band``, from the band's maps ``before`` and ``after``
+    anchoring, so that anchoring it on the whole sensor starts where the band ended.
+
+    The correction is a function of the activity bin (a factor on ``c``, a shift of ``b``
+    after it), read back per bin as the median over the band's pixels and applied to every
+    pixel by its measured event count against the band's bin edges."""
+    if not after.anchored or after is before:
+        return model
+    fm = _fit(meas_band)
+    if fm["ok"].sum() < 20:
+        return model
+    count_band = (meas_band.on + meas_band.off).sum(0).astype(np.float64)
+    edges = np.unique(np.quantile(count_band[fm["ok"]], np.linspace(0, 1, n_bins + 1)))
+    edges[0], edges[-1] = -np.inf, np.inf
+    nb = edges.size - 1
+    bins_band = np.clip(np.searchsorted(edges, count_band, side="right") - 1, 0, nb - 1)
+    log_k = np.log(after.contrast.ravel() / before.contrast.ravel())
+    shift = after.bias.ravel() - before.bias.ravel() * np.exp(log_k)
+    lk = np.zeros(nb)
+    db = np.zeros(nb)
+    for j in range(nb):  # a handful of bins
+        m = bins_band == j
+        if m.any():
+            lk[j] = np.median(log_k[m])
+            db[j] = np.median(shift[m])
+    count = (meas.on + meas.off).sum(0).astype(np.float64)
+    bins = np.clip(np.searchsorted(edges, count, side="right") - 1, 0, nb - 1)
+    k_pix = np.exp(lk[bins]).reshape(model.contrast.shape)
+    c = np.maximum(model.contrast * k_pix, 1e-3)
+    b = np.clip(model.bias * k_pix + db[bins].reshape(model.bias.shape), -0.8 * c, 0.8 * c)
+    return replace(model, contrast=c, bias=b, anchored=True)
 
 
 # ------------------------------------------------------------------------------ candidates

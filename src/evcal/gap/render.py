@@ -45,12 +45,19 @@ def frames_key(frames: Frames, interpolation: str, times_us: np.ndarray) -> byte
 
 class CachedSource:
     """A source (``t_s -> [H, W]`` DN) reading a rendered sequence, plus a per-pixel offset
-    (the seed's dither), floored at 0. Only the cached sample times can be asked for."""
+    (the seed's dither), floored at 0. Only the cached sample times can be asked for.
 
-    def __init__(self, data: np.ndarray, times_s: np.ndarray, add: np.ndarray | None):
+    ``lag_s``: the sequence of the same frames stamped ``lag_s`` later (the ``exposure``
+    effect's lag), read as the rendered one at ``t - lag_s``: between two sample times by
+    linear interpolation, before the first held at it (as an interpolator holds the first
+    frame)."""
+
+    def __init__(self, data: np.ndarray, times_s: np.ndarray, add: np.ndarray | None,
+                 lag_s: float = 0.0):
         self._data = data
         self._times_s = times_s
         self._add = None if add is None else np.asarray(add, np.float32)
+        self._lag_s = float(lag_s)
 
     def _index(self, ts: np.ndarray) -> np.ndarray:
         i = np.searchsorted(self._times_s, ts)
@@ -71,13 +78,29 @@ class CachedSource:
         elif out.shape != shape or out.dtype != np.float32:
             raise ValueError(f"out has shape {out.shape}, dtype {out.dtype}; expected "
                              f"float32 {shape}")
-        for j, i in enumerate(idx):  # one frame copy per sample time, vectorised over pixels
-            np.copyto(out[j], self._data[i], casting="unsafe")
-            if self._add is not None:
-                out[j] += self._add
+        if self._lag_s != 0.0:
+            self._shifted(ts, out)
+        else:
+            for j, i in enumerate(idx):  # one frame copy per sample time, over pixels
+                np.copyto(out[j], self._data[i], casting="unsafe")
+        if self._add is not None:
+            out += self._add[None]
         if self._add is not None:
             np.maximum(out, 0.0, out=out)
         return out
+
+    def _shifted(self, ts: np.ndarray, out: np.ndarray) -> None:
+        times = self._times_s
+        u = ts - self._lag_s
+        k = np.clip(np.searchsorted(times, u, side="right") - 1, 0, times.size - 1)
+        k1 = np.minimum(k + 1, times.size - 1)
+        span = np.where(k1 > k, times[k1] - times[k], 1.0)
+        w = np.clip((u - times[k]) / span, 0.0, 1.0).astype(np.float32)
+        for j in range(ts.size):  # per sample time, vectorised over pixels
+            np.copyto(out[j], self._data[k[j]], casting="unsafe")
+            if w[j] > 0.0:
+                out[j] *= 1.0 - w[j]
+                out[j] += w[j] * self._data[k1[j]].astype(np.float32)
 
     def __call__(self, t_s: float) -> np.ndarray:
         one: np.ndarray = self.render_block([t_s])[0]
@@ -105,13 +128,14 @@ class RenderCache:
 
     def source(self, key: bytes, times_us: np.ndarray, shape: tuple[int, int],
                make_source: Callable[[], FrameInterpolator], add: np.ndarray | None = None,
-               rows: slice | None = None) -> CachedSource | _Offset:
+               rows: slice | None = None, lag_s: float = 0.0) -> CachedSource | _Offset:
         """The cached sequence of ``key`` as a source, rendered now if it is new; when it
         cannot be kept within ``max_bytes`` the interpolator itself (no cache). ``rows``:
         the source of those sensor rows only (``add`` is theirs), read from the whole
-        sequence's render."""
+        sequence's render. ``lag_s``: of the same frames stamped that much later (see
+        :class:`CachedSource`; ``make_source`` then makes the unlagged interpolator)."""
         with self._lock:  # simulations on several threads: one renders, the others wait
-            src = self._source(key, times_us, shape, make_source, add, rows)
+            src = self._source(key, times_us, shape, make_source, add, rows, lag_s)
         if self._on_use is not None:
             self._on_use(1.0 if rows is None else
                          len(range(*rows.indices(shape[0]))) / shape[0])
@@ -119,22 +143,51 @@ class RenderCache:
 
     def _source(self, key: bytes, times_us: np.ndarray, shape: tuple[int, int],
                 make_source: Callable[[], FrameInterpolator], add: np.ndarray | None,
-                rows: slice | None) -> CachedSource | _Offset:
+                rows: slice | None, lag_s: float) -> CachedSource | _Offset:
         times_s = np.asarray(times_us, np.int64) * 1e-6
         band = slice(None) if rows is None else rows
         hit = self._entries.get(key)
         if hit is not None:
             self.hits += 1
             self._entries[key] = self._entries.pop(key)  # most recently used last
-            return CachedSource(hit[0][:, band], hit[1], add)
+            return CachedSource(hit[0][:, band], hit[1], add, lag_s)
+        if rows is not None:
+            # a band of a sequence not rendered whole (a frame-side candidate screened on
+            # the band): the band's rows only, when the interpolator can render them alone
+            band_key = key + f"rows {rows.start}:{rows.stop}".encode()
+            hit = self._entries.get(band_key)
+            if hit is not None:
+                self.hits += 1
+                self._entries[band_key] = self._entries.pop(band_key)
+                return CachedSource(hit[0], hit[1], add, lag_s)
+            src = make_source()
+            only_rows = getattr(src, "only_rows", None)
+            if only_rows is not None:
+                n_rows = len(range(*rows.indices(shape[0])))
+                data = self._render(only_rows(rows), times_s, (n_rows, shape[1]))
+                if data is None:
+                    return _Offset(src, add, None, lag_s)  # not kept: rendered per use
+                self._entries[band_key] = (data, times_s)
+                return CachedSource(data, times_s, add, lag_s)
         n_values = times_s.size * shape[0] * shape[1]
         if 2 * n_values > self.max_bytes:
-            return _Offset(make_source(), add, rows)
+            return _Offset(make_source(), add, rows, lag_s)
+        data = self._render(make_source(), times_s, shape)
+        assert data is not None
+        self._entries[key] = (data, times_s)
+        return CachedSource(data[:, band], times_s, add, lag_s)
+
+    def _render(self, src: FrameInterpolator, times_s: np.ndarray, shape: tuple[int, int]
+                ) -> np.ndarray | None:
+        """``src`` rendered at ``times_s`` (room made for it), or None when it cannot be
+        kept."""
+        n_values = times_s.size * shape[0] * shape[1]
+        if 2 * n_values > self.max_bytes:
+            return None
         dtype = np.float32 if 4 * n_values <= self.max_bytes // 4 else np.float16
         while self._entries and self.nbytes() + n_values * np.dtype(dtype).itemsize \
                 > self.max_bytes:
             self._entries.pop(next(iter(self._entries)))
-        src = make_source()
         data = np.empty((times_s.size, *shape), dtype)
         block = 64
         buf = np.empty((block, *shape), np.float32)
@@ -143,21 +196,23 @@ class RenderCache:
             rendered = src.render_block(times_s[k:k + n], out=buf[:n])
             data[k:k + n] = rendered
         self.renders += 1
-        self._entries[key] = (data, times_s)
-        return CachedSource(data[:, band], times_s, add)
+        return data
 
 
 class _Offset:
     """An uncached source plus a per-pixel offset, floored at 0 (as :class:`CachedSource`)."""
 
     def __init__(self, src: FrameInterpolator, add: np.ndarray | None,
-                 rows: slice | None = None):
+                 rows: slice | None = None, lag_s: float = 0.0):
         self._src = src
         self._add = None if add is None else np.asarray(add, np.float32)
         self._rows = rows
+        self._lag_s = float(lag_s)
 
     def render_block(self, t_s: np.ndarray | list[float], out: np.ndarray | None = None
                      ) -> np.ndarray:
+        if self._lag_s != 0.0:  # the unlagged interpolator at the earlier times
+            t_s = np.asarray(t_s, np.float64) - self._lag_s
         if self._rows is None:
             res: np.ndarray = self._src.render_block(t_s, out=out)
         else:  # the whole frame rendered, its rows kept

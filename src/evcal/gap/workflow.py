@@ -26,6 +26,7 @@ import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -40,6 +41,7 @@ from .model import (
     Model,
     SimSettings,
     anchor,
+    carry_anchor,
     estimate_read_noise,
     fit_base,
     fit_candidate,
@@ -131,6 +133,8 @@ class Evaluation:
     # screened on the run's band of rows (GapConfig.screen_rows): its statistics and sims are
     # the band's, ``model`` the whole sensor's (not anchored yet: confirm() evaluates it)
     on_band: bool = False
+    # a screening's model anchored on the band (confirm() carries its correction over)
+    band_model: Model | None = None
 
     @property
     def gap(self) -> float:
@@ -261,6 +265,11 @@ class _Runner:
         return observe(simulate_model(model, self.rec, seed, self.settings, self.render),
                        trusted=self.trusted)
 
+    def _simulate_summarised(self, model: Model, seed: int
+                             ) -> tuple[Observation, dict[str, StatValue]]:
+        obs = self._simulate(model, seed)
+        return obs, summarise(obs)
+
     def evaluate(self, model: Model, what: str, *, spread: Evaluation | None = None
                  ) -> Evaluation:
         """Anchor ``model`` and simulate it with every seed (in parallel), or, with
@@ -272,18 +281,27 @@ class _Runner:
                               render=self.render, trusted=self.trusted)
         sims = [first] if first is not None else []
         n = 1 if spread is not None else len(self.seeds)
-        ev = Evaluation(model, sims, self.meas_disc([], None), [summarise(o) for o in sims])
+        ev = Evaluation(model, sims, self.meas_disc([], None), [])
         return self.extend(ev, n, what, spread=spread)
 
     def extend(self, ev: Evaluation, n: int, what: str, *, spread: Evaluation | None = None
                ) -> Evaluation:
-        """``ev`` with simulations up to ``n`` seeds (the missing ones run in parallel)."""
+        """``ev`` with simulations up to ``n`` seeds (the missing ones run in parallel, each
+        summarised in its thread, beside the summaries ``ev`` still lacks)."""
         todo = self.seeds[len(ev.sims):n]
         sims = list(ev.sims)
-        if todo:
-            with ThreadPoolExecutor(max_workers=min(self.workers, len(todo))) as pool:
-                sims += list(pool.map(lambda s: self._simulate(ev.model, s), todo))
-        summaries = list(ev.summaries) + [summarise(o) for o in sims[len(ev.summaries):]]
+        unsummarised = sims[len(ev.summaries):]
+        jobs: list[Callable[[], tuple[Observation, dict[str, StatValue]]]] = [
+            partial(_summarised, o) for o in unsummarised]
+        jobs += [partial(self._simulate_summarised, ev.model, s) for s in todo]
+        done: list[tuple[Observation, dict[str, StatValue]]] = []
+        if len(jobs) == 1:
+            done = [jobs[0]()]
+        elif jobs:
+            with ThreadPoolExecutor(max_workers=min(self.workers, len(jobs))) as pool:
+                done = list(pool.map(lambda job: job(), jobs))
+        sims = sims[:len(ev.summaries)] + [o for o, _ in done]
+        summaries = list(ev.summaries) + [s for _, s in done]
         # the derived arrays (per-window fits, intervals, per-event windows: half an
         # observation's memory, more with many events) are dropped once summarised; the
         # fitters recompute them on the few simulations they read (Observation.extra is a
@@ -297,25 +315,45 @@ class _Runner:
         """A screened evaluation completed with every seed (on the band: evaluated anew on
         the whole sensor)."""
         if ev.on_band:
-            return self.evaluate(ev.model, what)
+            model = ev.model
+            if ev.band_model is not None and self.band is not None:
+                model = carry_anchor(model, self.band, self.band.model(model), ev.band_model,
+                                     self.meas_band, self.meas)
+            return self.evaluate(model, what)
         return self.extend(ev, len(self.seeds), what) if ev.screened else ev
 
-    def _screen_on_band(self, model: Model, spread: Evaluation) -> Evaluation:
-        """``model`` screened on the band's rows with the first seed: anchored there, its
-        statistics against the band's measurement, with the spread of ``spread``'s
-        simulations cut to the band."""
+    def _screen_on_band(self, model: Model, spread: Evaluation | None, n: int = 1
+                        ) -> Evaluation:
+        """``model`` on the band's rows with the first ``n`` seeds: anchored there, its
+        statistics against the band's measurement; with one seed (a screening) the spread
+        is that of ``spread``'s simulations cut to the band."""
         band = self.band
         assert band is not None
         m_band, first = anchor(band.model(model), self.rec, self.meas_band, self.seeds[0],
                                self.settings, render=self.render, trusted=self.trusted_band,
                                band=band)
-        if first is None:
-            first = observe(simulate_model(m_band, self.rec, self.seeds[0], self.settings,
-                                           self.render, band), trusted=self.trusted_band)
-        summaries = [summarise(first)]
-        first.extra.clear()
-        disc = discrepancy(self.meas_stats_band, summaries, spread=self.band_spread(spread))
-        return Evaluation(model, [first], disc, summaries, on_band=True)
+
+        def sim(seed: int) -> tuple[Observation, dict[str, StatValue]]:
+            obs = observe(simulate_model(m_band, self.rec, seed, self.settings, self.render,
+                                         band), trusted=self.trusted_band)
+            return obs, summarise(obs)
+
+        jobs: list[Callable[[], tuple[Observation, dict[str, StatValue]]]] = [
+            partial(_summarised, first) if first is not None else partial(sim, self.seeds[0])]
+        jobs += [partial(sim, s) for s in self.seeds[1:n]]
+        if len(jobs) == 1:
+            done = [jobs[0]()]
+        else:
+            with ThreadPoolExecutor(max_workers=min(self.workers, len(jobs))) as pool:
+                done = list(pool.map(lambda job: job(), jobs))
+        sims = [o for o, _ in done]
+        summaries = [sm for _, sm in done]
+        if n == 1:
+            sims[0].extra.clear()
+        disc = discrepancy(self.meas_stats_band, summaries,
+                           spread=self.band_spread(spread) if n == 1 and spread is not None
+                           else None)
+        return Evaluation(model, sims, disc, summaries, on_band=True, band_model=m_band)
 
     def band_spread(self, ev: Evaluation) -> Discrepancy:
         """``ev``'s discrepancy on the band (its simulations cut to the band's rows): the
@@ -348,6 +386,14 @@ class _Runner:
             return m.with_effect(eff)  # refitted maps: not anchored
         return current.with_effect(eff)
 
+    def near_model(self, current: Model, near: Model, eff: Effect) -> Model:
+        """``eff`` (a new value of an effect ``near`` has) on top of ``current``, starting
+        from ``near``'s anchored maps when they are (the anchor then starts close to where
+        it ends, often taking one simulation)."""
+        if eff.name == "log_offset" or not near.anchored:
+            return self.candidate_model(current, eff)
+        return near.with_effect(eff)
+
     def debias(self, current: Evaluation, best: Evaluation, eff: Effect
                ) -> tuple[Effect, Evaluation, dict[str, Any]]:
         """The moment estimate's own bias, removed by simulation (a parametric bootstrap):
@@ -365,21 +411,42 @@ class _Runner:
         info: dict[str, Any] = {"moment": m, "value": m, "steps": []}
         if m <= 0:
             return eff, best, info
-        cur_eff, cur_ev = eff, best
+        if self.band is not None:
+            return self._debias_on_band(current, best, eff, info)
+        def refit(sim: Observation) -> Effect | None:
+            return fit_candidate(eff.name, sim, current.sims, current.model, self.rec)
+
+        def evaluate(nxt: Effect, at: Evaluation) -> Evaluation:
+            ev = self.evaluate(self.near_model(current.model, at.model, nxt),
+                               f"debias {eff.name}")
+            info["steps"][-1]["gap_next"] = float(ev.gap)
+            return ev
+
+        cur_eff, cur_ev = self._bootstrap(eff, m, best, refit, evaluate, info)
+        if cur_eff is eff or cur_ev.gap > best.gap + max(0.3, 0.1 * best.gap):
+            return eff, best, info
+        info["value"] = float(cur_eff.parameters()[key])
+        return cur_eff, cur_ev, info
+
+    def _bootstrap(self, eff: Effect, m: float, start: Evaluation,
+                   refit: Callable[[Observation], Effect | None],
+                   evaluate: Callable[[Effect, Evaluation], Evaluation],
+                   info: dict[str, Any]) -> tuple[Effect, Evaluation]:
+        """The steps of :meth:`debias` from ``start`` (the evaluation at the moment
+        estimate): ``refit`` of each simulation gives ``f(v)``, ``evaluate`` the evaluation
+        at the next value; returns the last value and its evaluation."""
+        key = eff.primary
+        cur_eff, cur_ev = eff, start
         for _ in range(self.DEBIAS_STEPS):
             v = float(cur_eff.parameters()[key])
-            again = []
-            for sim in cur_ev.sims:
-                e = fit_candidate(eff.name, sim, current.sims, current.model, self.rec)
-                if e is not None and float(e.parameters()[key]) > 0:
-                    again.append(float(e.parameters()[key]))
+            again = [float(e.parameters()[key]) for e in map(refit, cur_ev.sims)
+                     if e is not None and float(e.parameters()[key]) > 0]
             if len(again) < max(2, len(cur_ev.sims) // 2):
                 info["note"] = "the fitter did not find the effect in its own simulations"
                 break
             f_v = float(np.exp(np.mean(np.log(again))))
             factor = float(np.clip(m / f_v, 0.25, 4.0))
-            step: dict[str, Any] = {"value": v, "refits": again, "factor": round(factor, 4)}
-            info["steps"].append(step)
+            info["steps"].append({"value": v, "refits": again, "factor": round(factor, 4)})
             if abs(np.log(factor)) < 0.05:
                 break
             try:
@@ -387,14 +454,53 @@ class _Runner:
             except ValueError:  # outside the parameter's range
                 info["note"] = "the corrected value is outside the parameter's range"
                 break
-            cur_ev = self.evaluate(self.candidate_model(current.model, nxt),
-                                   f"debias {eff.name}")
+            cur_ev = evaluate(nxt, cur_ev)
             cur_eff = nxt
-            step["gap_next"] = float(cur_ev.gap)
-        if cur_eff is eff or cur_ev.gap > best.gap + max(0.3, 0.1 * best.gap):
+        return cur_eff, cur_ev
+
+    def _debias_on_band(self, current: Evaluation, best: Evaluation, eff: Effect,
+                        info: dict[str, Any]) -> tuple[Effect, Evaluation, dict[str, Any]]:
+        """:meth:`debias` with its bootstrap on the band of rows: the moment ``m`` is the
+        band's measurement's, each ``f(v)`` the fitter's on the band's rows of simulations
+        at ``v`` (``best``'s own cut to the band first, then the band's simulations on every
+        seed), both against ``current``'s simulations cut to the band. Only a corrected value
+        not clearly worse on the band is evaluated on the whole sensor."""
+        band = self.band
+        assert band is not None
+        key = eff.primary
+        cur_band = [rows_of(o, band.rows) for o in current.sims]
+        model_band = band.model(current.model)
+
+        def refit(sim: Observation) -> Effect | None:
+            return fit_candidate(eff.name, sim, cur_band, model_band, band.rec)
+
+        def evaluate(nxt: Effect, _at: Evaluation) -> Evaluation:
+            ev = self._screen_on_band(self.near_model(current.model, best.model, nxt), None,
+                                      len(self.seeds))
+            info["steps"][-1]["gap_next_band"] = float(ev.gap)
+            return ev
+
+        m_fit = refit(self.meas_band)
+        if m_fit is None or float(m_fit.parameters()[key]) <= 0:
+            info["note"] = "the fitter does not see the effect on the band of rows"
+            return eff, best, info
+        m = float(m_fit.parameters()[key])
+        info["moment_band"] = m
+        at_m = Evaluation(best.model, [rows_of(o, band.rows) for o in best.sims], best.disc)
+        best_band = discrepancy(self.meas_stats_band, [summarise(o) for o in at_m.sims]).gap
+        cur_eff, band_ev = self._bootstrap(eff, m, at_m, refit, evaluate, info)
+        if cur_eff is eff:
+            return eff, best, info
+        info["gap_band"] = {"moment": best_band, "corrected": float(band_ev.gap)}
+        if band_ev.gap > best_band + max(0.3, 0.1 * best_band):
+            info["note"] = "the corrected value explains the band of rows worse"
+            return eff, best, info
+        ev = self.evaluate(self.near_model(current.model, best.model, cur_eff),
+                           f"debias {eff.name}")
+        if ev.gap > best.gap + max(0.3, 0.1 * best.gap):
             return eff, best, info
         info["value"] = float(cur_eff.parameters()[key])
-        return cur_eff, cur_ev, info
+        return cur_eff, ev, info
 
     def scheme_candidate(self, current: Evaluation, tried: dict[str, dict[str, Any]]
                          ) -> tuple[Effect, Evaluation] | None:
@@ -441,8 +547,7 @@ class _Runner:
         ranked = sorted(range(len(fitted)),
                         key=lambda i: evals[i].gap + pen * fitted[i][1].n_fitted)
         if self.cfg.screen:
-            for i in ranked[:self.cfg.confirm_top]:
-                evals[i] = self.confirm(evals[i], f"confirm {fitted[i][0]}")
+            self._confirm_ranked(current, fitted, evals, ranked)
         best: tuple[float, Effect, Evaluation] | None = None
         for (name, eff), ev in zip(fitted, evals, strict=True):
             score = ev.gap + pen * eff.n_fitted
@@ -471,6 +576,27 @@ class _Runner:
             if id(ev) not in keep:
                 ev.sims.clear()
         return best
+
+    def _confirm_ranked(self, current: Evaluation, fitted: list[tuple[str, Effect]],
+                        evals: list[Evaluation], ranked: list[int]) -> None:
+        """The ``confirm_top`` best screened candidates confirmed, each only when its
+        screened gain reaches half the gain that names, against the current model's gap
+        where it was screened (on the band, the band's): what falls that short does not
+        qualify on every seed either. Each of them is confirmed otherwise, also one whose
+        screening looks far worse than the best's: one seed can misjudge a candidate by
+        more than the margin between two (a frame lag and a bandwidth limit explain the
+        same delay), which the comparison of bias-corrected values settles."""
+        cfg = self.cfg
+        pen = cfg.penalty_per_parameter
+        base = self.band_spread(current).gap if self.band is not None else current.gap
+        need = max(cfg.min_improvement, cfg.min_relative_improvement * (base - 1.0))
+        for i in ranked[:cfg.confirm_top]:
+            score = evals[i].gap + pen * fitted[i][1].n_fitted
+            if not evals[i].screened:
+                continue
+            if _gain(base, score) <= 0.5 * need:
+                return
+            evals[i] = self.confirm(evals[i], f"confirm {fitted[i][0]}")
 
     def beam_top(self, tried: dict[str, dict[str, Any]]) -> list[str]:
         """The ``beam_width`` screened candidates of the lowest score."""
@@ -567,8 +693,16 @@ class _Runner:
         gaps = []
         evals = []
         for f in factors:
-            if f == 1.0:
+            if f == 1.0 and self.band is None:
                 gaps.append(best.gap)
+                evals.append((eff, best))
+                continue
+            if f == 1.0:
+                # screenings on the band (the busiest rows) are compared with each other,
+                # not with ``best``'s gap on the whole sensor: the centre is screened too
+                ev = self.evaluate(self.near_model(current, best.model, eff),
+                                   f"refine {eff.name}", spread=best)
+                gaps.append(ev.gap)
                 evals.append((eff, best))
                 continue
             try:
@@ -576,7 +710,7 @@ class _Runner:
             except ValueError:  # outside the parameter's range (e.g. sigma above 1)
                 return eff, best  # no three-point search: the moment estimate stands
             # screened (one seed, ``best``'s spread): only a winner is confirmed
-            ev = self.evaluate(self.candidate_model(current, e), f"refine {eff.name}",
+            ev = self.evaluate(self.near_model(current, best.model, e), f"refine {eff.name}",
                                spread=best)
             gaps.append(ev.gap)
             evals.append((e, ev))
@@ -587,7 +721,7 @@ class _Runner:
             xv = float(np.clip(x[1] + 0.5 * (x[1] - x[0]) * (y[0] - y[2]) / den, x[0], x[2]))
             if abs(xv) > 0.05 and int(np.argmin(y)) != 0 and int(np.argmin(y)) != 2:
                 e = eff.with_params(**{key: _cast(eff, key, v0 * np.exp(xv))})
-                ev = self.evaluate(self.candidate_model(current, e), f"refine {eff.name}",
+                ev = self.evaluate(self.near_model(current, best.model, e), f"refine {eff.name}",
                                    spread=best)
                 gaps.append(ev.gap)
                 evals.append((e, ev))
@@ -595,7 +729,7 @@ class _Runner:
         # keep the moment estimate unless the search clearly beats it (the gap is noisy),
         # screened and then on every seed
         margin = max(0.3, 0.1 * best.gap)
-        if gaps[i] < best.gap - margin:
+        if gaps[i] < gaps[1] - max(0.3, 0.1 * gaps[1]) and evals[i][1] is not best:
             e, ev = evals[i]
             ev = self.confirm(ev, f"confirm refined {eff.name}")
             if ev.gap < best.gap - margin:
@@ -604,6 +738,10 @@ class _Runner:
 
 
 SCHEME_EFFECT = "timestamp_quantisation"  # a simulator's timestamp scheme, not a sensor effect
+
+
+def _summarised(obs: Observation) -> tuple[Observation, dict[str, StatValue]]:
+    return obs, summarise(obs)
 
 
 def _need(cfg: GapConfig, current: Evaluation) -> float:

@@ -68,6 +68,18 @@ def _response(x: float, tl_exp: float, tl_ref: float) -> Any:  # pragma: no cove
     return math.log(tl_ref) + ((x / tl_ref) ** tl_exp - 1.0) / tl_exp
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _response_inv(y: float, tl_exp: float, tl_ref: float) -> Any:  # pragma: no cover
+    """The ``x`` of :func:`_response` ``(x) = y`` (exponent in [0, 1]); 0 where ``y`` is
+    below the response's range (every ``x`` is above it)."""
+    if tl_exp == 0.0:
+        return math.exp(y)
+    u = 1.0 + tl_exp * (y - math.log(tl_ref))
+    if u <= 0.0:
+        return 0.0
+    return tl_ref * u ** (1.0 / tl_exp)
+
+
 @numba.njit(cache=True, nogil=True)
 def _grow(buf: np.ndarray, n: int) -> Any:  # pragma: no cover - compiled
     out = np.empty(max(2 * buf.size, n + 1024), buf.dtype)
@@ -303,11 +315,12 @@ def _search(j0: np.ndarray, n_slow: np.ndarray, slow_idx: np.ndarray, k: int,
                         dead_until[i] = tf + refr_us
         ref[i] = r
         lf[i] = b
-        if not bw and tl_exp == 0.0:
+        if not bw:
             # float32 rounds by far less than the margin, except below its normal range:
-            # there hi goes to 0 (no shortcut) and lo up to the smallest normal
-            hi = math.exp(r + th_on[i]) * (1.0 - _MARGIN)
-            lo = math.exp(r - th_off[i]) * (1.0 + _MARGIN)
+            # there hi goes to 0 (no shortcut) and lo up to the smallest normal; the
+            # response is monotone, so its levels have images in the intensity domain
+            hi = _response_inv(r + th_on[i], tl_exp, tl_ref[i]) * (1.0 - _MARGIN)
+            lo = _response_inv(r - th_off[i], tl_exp, tl_ref[i]) * (1.0 + _MARGIN)
             hi_i[i] = np.float32(hi) if hi >= _F32_TINY else np.float32(0.0)
             lo_i[i] = np.float32(lo) if lo >= _F32_TINY else np.float32(_F32_TINY)
             ref_i[i] = r
@@ -405,9 +418,10 @@ def run_steps(
         # pixel with a shot-noise candidate in the step is not quiet; every draw happens in
         # pass 2, so a pixel's random stream does not depend on the shortcut)
         # without light dependence, the drift goes into the test's loop (ref is read once)
-        # the intensity-domain bounds assume the comparator sees ln(I + dark): not with a
-        # low-pass or a light-dependent threshold, which run the exact search everywhere
-        exact = bw or tl_exp != 0.0 or not shortcut
+        # the intensity-domain bounds need the comparator to see a function of I + dark
+        # alone (not with a low-pass, which runs the exact search everywhere), and with leak
+        # a bound moved by the drift as ln's is (not a light-dependent threshold's)
+        exact = bw or (tl_exp != 0.0 and leak) or not shortcut
         fused = leak and leak_light_exp == 0.0 and not exact
         if leak and not fused:
             for i in range(n_pix):
