@@ -199,3 +199,53 @@ def test_replay_ros2_says_when_nobody_listens(sim_bag) -> None:
     res = run_client("replay", [str(bag), "--ros2", "--camera", "x", "--connect", ep, *ZARGS])
     assert res.returncode == 2
     assert "do not go with --ros2" in res.stderr
+
+
+def test_replay_ros2_to_a_listener_that_is_no_service_is_unconfirmed(sim_bag) -> None:
+    """Something subscribes to the topics (a ROS 2 node, a recorder) but no evcal service
+    answers for the camera: delivery is unconfirmed, exit 7 as `evcal replay`'s table says
+    (before: 0, with a note)."""
+    _, bag = sim_bag
+    ep = endpoint(free_port())
+    with Transport(ZenohOptions.loopback(listen=[ep])) as t:
+        t.subscribe("0/**", lambda key, payload, enc: None)
+        res = run_client("replay", [str(bag), "--ros2", "--connect", ep, *ZARGS, "--max-rate",
+                                    "--wait-subscriber", "10"])
+    assert res.returncode == 7, res.stderr
+    assert f"camera {CAMERA}: delivery not confirmed" in res.stderr, res.stderr
+    assert "unconfirmed (exit code 7)" in res.stderr, res.stderr
+
+
+def test_replay_ros2_judges_exit_codes_in_replays_order(capsys) -> None:
+    """The cameras' accounts are judged as `evcal replay` judges one run: refused (5) before
+    dropped (6) before lost (4) before unconfirmed (7); before, all of these were 4 (or 0)."""
+    from evcal.clients.replay import ReplayStats
+    from evcal.clients.rosreplay import BagReplayStats, report
+
+    def account(sent: int, *, processed: int, dropped: int = 0, rejected: int = 0,
+                confirmed: bool = True) -> ReplayStats:
+        acc = ReplayStats(event_messages=sent, confirmed=confirmed)
+        acc.delivered = {"event_messages": processed, "events": 10 * processed, "frames": 0,
+                         "dropped_messages": dropped, "rejected_messages": rejected,
+                         "refused_messages": 0,
+                         "accounted_messages": processed + dropped + rejected}
+        return acc
+
+    def code(accounts: dict[str, ReplayStats], unmatched: int = 0) -> int:
+        stats = BagReplayStats(messages={"/a/events": 10, "/b/events": 10},
+                               cameras={"a": ["/a/events"], "b": ["/b/events"]},
+                               accounts=accounts, unmatched_messages=unmatched)
+        return report("evcal replay", stats, 5.0, 0)
+
+    ok = account(10, processed=10)
+    assert code({"a": ok, "b": ok}) == 0
+    assert code({"a": ok, "b": account(10, processed=9, rejected=1)}) == 5
+    assert code({"a": account(10, processed=9, dropped=1),
+                 "b": account(10, processed=9, rejected=1)}) == 5
+    assert code({"a": account(10, processed=9, dropped=1), "b": ok}, unmatched=2) == 6
+    assert code({"a": account(10, processed=9), "b": ok}) == 4  # one never arrived
+    assert code({"a": ok, "b": ok}, unmatched=1) == 4
+    assert code({"a": ok, "b": account(10, processed=3, confirmed=False)}) == 7
+    assert code({"a": account(10, processed=9), "b": account(10, processed=3,
+                                                              confirmed=False)}) == 4
+    assert "dropped (exit code 6)" in capsys.readouterr().err

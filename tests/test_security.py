@@ -12,6 +12,7 @@ from __future__ import annotations
 import datetime
 import json
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -428,7 +429,7 @@ def test_a_rig_replays_to_its_own_cameras_through_the_shipped_router(tmp_path):
 
     import zenoh
 
-    from evcal.clients.replay import replay
+    from evcal.clients.replay import EXIT_UNCONFIRMED, exit_code, replay
     from evcal.io import write_recording
 
     if shutil.which("openssl") is None:
@@ -478,11 +479,17 @@ def test_a_rig_replays_to_its_own_cameras_through_the_shipped_router(tmp_path):
                                         "--wait-subscriber", "10", *cli])
             assert res.returncode == 0, res.stderr
             assert "the service processed 100 event messages" in res.stderr, res.stderr
-            # another rig's camera: the router drops the puts, the status stays hidden
+            # another rig's camera: the router drops the puts, the status stays hidden, so
+            # no service confirms delivery (replay would ask for --confirm-timeout, 60 s)
             with Transport(as_client("rig-rig1")) as t:
-                stats = replay(t, rec, "lab/rig2/cam0", speed=None, wait_subscriber_s=10)
+                t0 = time.monotonic()
+                stats = replay(t, rec, "lab/rig2/cam0", speed=None, wait_subscriber_s=10,
+                               confirm_timeout_s=3.0)
+                assert time.monotonic() - t0 < 30
             assert stats.subscribed
             assert stats.delivered is None
+            assert not stats.confirmed
+            assert exit_code(stats) == EXIT_UNCONFIRMED, stats.why_unconfirmed
             # a client certificate feeds nothing and sees no input subscriber
             with Transport(as_client("client")) as t:
                 stats = replay(t, rec, "lab/rig1/cam1", speed=None, wait_subscriber_s=1)

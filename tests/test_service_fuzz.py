@@ -17,15 +17,16 @@ from hypothesis import strategies as st
 
 pytest.importorskip("zenoh")
 
+from evcal.errors import ErrorReason  # noqa: E402
 from evcal.events import make_events  # noqa: E402
 from evcal.io.wire import decode_calibration, encode_events, encode_frame  # noqa: E402
 from evcal.online import OnEIConfig, onei  # noqa: E402
 from evcal.service import keys  # noqa: E402
 from evcal.service.core import ServiceConfig  # noqa: E402
 from evcal.service.server import run  # noqa: E402
-from evcal.testing import endpoint, free_port, wait_for  # noqa: E402
 from evcal.service.transport import Transport, ZenohOptions  # noqa: E402
 from evcal.sim.ideal import SimConfig, simulate_ideal  # noqa: E402
+from evcal.testing import endpoint, free_port, wait_for  # noqa: E402
 
 pytestmark = pytest.mark.timeout(240)
 ONEI = OnEIConfig(n_small=3000, n_large=1_000_000)
@@ -165,6 +166,9 @@ def test_fuzz_one_camera_while_another_streams(live):
              what="every error published")
     reasons = {e["reason"] for e in live["errors"]}
     assert {"not_msgpack", "malformed", "truncated"} <= reasons, reasons
+    # every reason counted or published is a code of the wire protocol (docs/WIRE.md)
+    codes = {str(r) for r in ErrorReason}
+    assert reasons | set(bad.errors) <= codes, (reasons | set(bad.errors)) - codes
 
     # the good camera is unaffected: its live calibration is the offline one
     wait_for(lambda: svc.cameras["fuzz/good"].counters.frames >= len(sim.recording.frames),

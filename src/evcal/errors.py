@@ -28,6 +28,7 @@ class ErrorReason(str, Enum):
     BAD_VALUES = "bad_values"  # NaN or infinite values where numbers are needed
     TIME_BACKWARDS = "time_backwards"  # a chunk starts before the previous one ended
     TIME_JUMP = "time_jump"  # time jumps far (a glitch, or a new time base not yet confirmed)
+    DUPLICATE = "duplicate"  # an exact copy of a recently accepted message (same seq, times)
     SENSOR_CHANGED = "sensor_changed"  # a message for another sensor size than the stream's
     SENSOR_TOO_LARGE = "sensor_too_large"  # more pixels than the configured limit
     TOO_LARGE = "too_large"  # a payload above the configured size limit

@@ -21,7 +21,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from evcal.errors import EvcalError
+from evcal.errors import ErrorReason, EvcalError
 from evcal.io.mcap_rec import McapWriter
 from evcal.io.wire import (
     decode_calibration_maps,
@@ -35,16 +35,21 @@ from evcal.service.cli import add_ros2_arguments, ros_domain
 from evcal.service.state import snapshot_name
 from evcal.service.transport import Transport, TransportError, options_from_args
 from evcal.signals import STOP_SIGNALS, SignalRelay
-from evcal.stream import StreamGuard
+from evcal.stream import DuplicateMessage, LateMessage, StreamError, StreamGuard
 
 from .common import base_parser, fail
 
 
 class CameraWriter:
     """One camera's MCAP file (:class:`~evcal.io.mcap_rec.McapWriter`), fed through the
-    stream's :class:`~evcal.stream.StreamGuard`: a message for another sensor size, events
-    going back in time or a frame not after the previous one are refused and counted, like the
-    service does; gaps in the publisher's sequence numbers are counted as ``lost``."""
+    stream's :class:`~evcal.stream.StreamGuard` with the service's semantics: a message for
+    another sensor size, events going back in time or a frame not after the previous one are
+    refused and counted (``rejected``), so is an exact copy of a recent message (a
+    ``duplicate``); ``lost`` counts the messages missing in the publisher's sequence numbers
+    that never arrived — one that arrived and was refused (also before its number could be
+    read) is not lost, and a late one (after a later message) comes off ``lost`` whether it
+    is placed or refused. One file holds one sensor: the new sensor of a publisher restart is
+    refused (``sensor_changed``)."""
 
     def __init__(self, path: Path, camera: str) -> None:
         self.path = path
@@ -55,42 +60,67 @@ class CameraWriter:
         self.counts = {"messages": 0, "events": 0, "frames": 0, "calibrations": 0,
                        "lost": 0, "rejected": 0}
         self.errors: list[str] = []
+        # per stream, since its last accepted message: messages refused before their
+        # sequence number was read; a gap of that many is not loss (as the service's)
+        self._not_lost = {"events": 0, "frames": 0}
 
-    def _sensor(self, header: dict[str, Any], what: str) -> None:
-        sensor = self.guard.check_sensor(header["height"], header["width"], what)
-        self.out.set_sensor(sensor, {"source": "evcal record", "camera": self.camera})
+    def _accept(self, kind: str, hd: dict[str, Any], t_first: int | None,
+                t_last: int | None, what: str) -> None:
+        """The stream checks of one message (raises :class:`~evcal.errors.EvcalError` for a
+        refused one) and what they say about loss."""
+        try:
+            check = self.guard.accept(kind, t_first_us=t_first, t_last_us=t_last, what=what,
+                                      seq=hd["seq"], size=(hd["height"], hd["width"]))
+        except LateMessage as exc:
+            # counted lost when the gap showed; it arrived (refused), so it is not lost
+            self.counts["lost"] = max(0, self.counts["lost"] - exc.recovered)
+            raise
+        not_lost, self._not_lost[kind] = self._not_lost[kind], 0
+        lost = self.counts["lost"] + max(0, check.lost - not_lost)
+        self.counts["lost"] = max(0, lost - check.recovered)
+        sensor = self.guard.sensor
+        assert sensor is not None  # accept() fixed it
+        if self.out.sensor is None:
+            self.out.set_sensor(sensor, {"source": "evcal record", "camera": self.camera})
+        elif sensor != self.out.sensor:
+            raise StreamError(f"{what}: a {sensor} sensor after a publisher restart, but this "
+                              f"file holds {self.out.sensor}: not recorded (one sensor per "
+                              "file)", ErrorReason.SENSOR_CHANGED)
 
     def add(self, kind: str, payload: bytes) -> None:
+        read = False  # the message's sequence number was read
         try:
             if kind == "events":
                 ev, hd = decode_events(payload)
+                read = True
                 what = f"events message seq {hd['seq']}"
-                self._sensor(hd, what)
+                t = ev["t_us"]
+                self._accept(kind, hd, int(t[0]) if t.size else None,
+                             int(t[-1]) if t.size else None, what)
                 if ev.size == 0:
-                    return
-                self.counts["lost"] += self.guard.accept_events(ev, what=what, seq=hd["seq"],
-                                                                validated=True).lost
-                t = int(ev["t_us"][0])
-                self.out.add_events(t, encode_events(ev, height=hd["height"],
-                                                     width=hd["width"],
-                                                     seq=self.out.counts["events"]))
+                    return  # its number counts (no gap), it records nothing
+                self.out.add_events(int(t[0]), encode_events(ev, height=hd["height"],
+                                                             width=hd["width"],
+                                                             seq=self.out.counts["events"]))
                 self.counts["events"] += int(ev.size)
             elif kind == "frames":
-                t, exp, img, hd = decode_frame(payload)
-                what = f"frame message seq {hd['seq']}"
-                self._sensor(hd, what)
-                self.counts["lost"] += self.guard.accept_frame(t, what=what, seq=hd["seq"]).lost
-                self.out.add_frame(t, encode_frame(t, img, exposure_us=exp,
-                                                   seq=self.out.counts["frames"]))
+                t_us, exp, img, hd = decode_frame(payload)
+                read = True
+                self._accept(kind, hd, t_us, t_us, f"frame message seq {hd['seq']}")
+                self.out.add_frame(t_us, encode_frame(t_us, img, exposure_us=exp,
+                                                      seq=self.out.counts["frames"]))
                 self.counts["frames"] += 1
             else:
                 _, hd = decode_calibration_maps(payload)
                 self.out.add_calibration(hd["t_us"], payload)
                 self.counts["calibrations"] += 1
         except EvcalError as exc:
+            if not read and kind in self._not_lost:
+                self._not_lost[kind] += 1
             self.counts["rejected"] += 1
+            reason = ErrorReason.DUPLICATE if isinstance(exc, DuplicateMessage) else exc.reason
             if len(self.errors) < 20:
-                self.errors.append(f"{kind}: {exc.reason}: {exc}")
+                self.errors.append(f"{kind}: {reason}: {exc}")
             return
         self.counts["messages"] += 1
 

@@ -10,7 +10,10 @@ event camera messages), whose hash it cannot compute, is skipped with a note.
 
 Delivery is checked as ``evcal replay`` does it, through the evcal service's status of the
 cameras the topics feed by default (their namespaces; a service run with ``--ros-topic-map``
-names other cameras, and delivery is then not confirmed).
+names other cameras, and delivery is then not confirmed), and the exit code follows the same
+table (:data:`evcal.clients.replay.EXIT_CODES`): the first outcome in its order that applies
+to the run or to any camera names the cause. A bag none of whose topics feeds an evcal camera
+is unconfirmed (7) when something subscribed.
 """
 
 from __future__ import annotations
@@ -20,7 +23,6 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 from evcal.io.ros2msg import type_hash
 from evcal.io.rosbag import bag_topics, iter_bag_messages
@@ -28,9 +30,26 @@ from evcal.service import keys
 from evcal.service.ros2 import ENCODING, INPUT_TYPES, RosNode, RosPublication, TopicMap
 from evcal.service.transport import Publisher, Transport
 
-from .replay import _delivered, _status
+from .replay import (
+    CONFIRM_TIMEOUT_S,
+    EXIT_CODES,
+    EXIT_ERROR,
+    EXIT_LOST,
+    EXIT_NOBODY,
+    EXIT_OK,
+    EXIT_UNCONFIRMED,
+    STATUS_QUERY_S,
+    STOPPED_CONFIRM_S,
+    ReplayStats,
+    StatusProbe,
+    _confirm,
+    _probe_status,
+)
+from .replay import exit_code as camera_exit_code
 
 NODE = "evcal_replay"
+# the exit codes in the order they are judged (EXIT_CODES lists 0 first)
+JUDGED = tuple(code for code, _, _ in (*EXIT_CODES[1:], EXIT_CODES[0]))
 
 
 @dataclass
@@ -44,14 +63,39 @@ class BagReplayStats:
     unmatched_messages: int = 0
     skipped_topics: dict[str, str] = field(default_factory=dict)  # topic -> why
     cameras: dict[str, list[str]] = field(default_factory=dict)  # camera -> its input topics
-    delivered: dict[str, dict[str, int]] = field(default_factory=dict)  # camera -> account
+    # camera -> the service's account of its messages (``evcal replay``'s, one per camera:
+    # ``delivered``, ``confirmed``, ``refusal``, ...); cameras sent nothing are not in it
+    accounts: dict[str, ReplayStats] = field(default_factory=dict)
+    stopped: bool = False  # SIGINT/SIGTERM (``stop``) ended the run early
+    send_error: str | None = None  # a put raised (the session failed)
 
     @property
     def total(self) -> int:
         return sum(self.messages.values())
 
+    @property
+    def delivered(self) -> dict[str, dict[str, int]]:
+        """camera -> the service's account of its messages (cameras it answered for)."""
+        return {c: a.delivered for c, a in self.accounts.items() if a.delivered is not None}
+
     def camera_messages(self, camera: str) -> int:
         return sum(self.messages.get(t, 0) for t in self.cameras.get(camera, []))
+
+
+def exit_code(stats: BagReplayStats) -> int:
+    """The exit code of a bag replay: ``evcal replay``'s table, judged in its order over the
+    run (error, nobody there, messages sent while nobody subscribed) and each camera's
+    account (refused, dropped, lost, unconfirmed)."""
+    if stats.send_error is not None:
+        return EXIT_ERROR
+    if not stats.subscribed:
+        return EXIT_NOBODY
+    codes = [camera_exit_code(acc) for acc in stats.accounts.values()]
+    if stats.unmatched_messages:
+        codes.append(EXIT_LOST)
+    if not stats.accounts and stats.total:
+        codes.append(EXIT_UNCONFIRMED)  # sent, but to no evcal camera that could confirm it
+    return min(codes, key=JUDGED.index, default=EXIT_OK)
 
 
 def _hash(msgtype: str) -> str | None:
@@ -64,8 +108,11 @@ def _hash(msgtype: str) -> str | None:
 def replay_bag(t: Transport, path: str | Path, *, domain: int = 0,
                speed: float | None = 1.0, topics: set[str] | None = None,
                stop: threading.Event | None = None, prefix: str = "evcal",
-               wait_subscriber_s: float = 5.0) -> BagReplayStats:
-    """Publish the bag at ``path`` (``speed=None``: as fast as possible)."""
+               wait_subscriber_s: float = 5.0,
+               confirm_timeout_s: float = CONFIRM_TIMEOUT_S) -> BagReplayStats:
+    """Publish the bag at ``path`` (``speed=None``: as fast as possible), then ask the
+    service for its account of each camera's messages (up to ``confirm_timeout_s``; 1 s once
+    ``stop`` is set), as ``evcal replay`` does (:func:`evcal.clients.replay.replay`)."""
     stop = stop or threading.Event()
     stats = BagReplayStats()
     types = bag_topics(path)
@@ -94,7 +141,7 @@ def replay_bag(t: Transport, path: str | Path, *, domain: int = 0,
             return stats
         time.sleep(0.02)
     status_keys = {c: keys.camera_key(prefix, c, "status") for c in stats.cameras}
-    before = {c: _status(t, k) for c, k in status_keys.items()}
+    before = {c: _probe_status(t, k) for c, k in status_keys.items()}
     wall0 = time.monotonic()
     t0: int | None = None
     for m in iter_bag_messages(path, topics=set(pubs)):
@@ -107,77 +154,96 @@ def replay_bag(t: Transport, path: str | Path, *, domain: int = 0,
             if delay > 0:
                 stop.wait(delay)
         pub, zpub = pubs[m.topic]
-        zpub.put(m.data, attachment=pub.attachment())
+        try:
+            zpub.put(m.data, attachment=pub.attachment())
+        except Exception as exc:  # a closed or failed session: reported, not raised
+            stats.send_error = f"{type(exc).__name__}: {exc}"
+            break
         stats.unmatched_messages += not zpub.has_subscribers
         stats.messages[m.topic] += 1
         stats.bytes += len(m.data)
-    # what was put has left before the session closes: a service's reply on the same link
-    # (a busy one answers late: up to 30 s), else half a second
-    key = next((k for c, k in status_keys.items() if before[c] is not None), None)
-    for _ in range(6 if key is not None else 1):
-        if t.flush(key, timeout_s=5.0, linger_s=0.0 if key is not None else 0.5):
-            break
+    stats.stopped = stop.is_set()
     stats.seconds = time.monotonic() - wall0
-    # a service is up (its liveliness token): a camera it has not answered for yet is being
-    # created; else (a recorder only) one try
-    wait_s = STATUS_WAIT_S if status_keys and _service_alive(t, prefix) else 0.0
-    for camera, key in status_keys.items():
-        if _status_soon(t, key, wait_s=wait_s) is not None:
-            stats.delivered[camera] = _delivered(t, key, before[camera] or {},
-                                                 stats.camera_messages(camera))
+    if stats.send_error is not None:
+        return stats
+    _confirm_cameras(t, stats, status_keys, before, prefix=prefix,
+                     since_s=wall0 - STATUS_QUERY_S,
+                     wait_s=STOPPED_CONFIRM_S if stats.stopped else confirm_timeout_s)
+    if not stats.accounts:
+        # what was put leaves before the session closes (no status reply to wait for)
+        t.flush(None, linger_s=0.5)
     return stats
 
 
-# how long a camera new to the service may take to answer for itself after the run (a busy
-# service creates it when its first message is taken off the queue)
-STATUS_WAIT_S = 10.0
-
-
-def _service_alive(t: Transport, prefix: str) -> bool:
-    try:
-        return bool(t.alive(keys.service_token_key(prefix), timeout_s=1.0))
-    except Exception:  # noqa: BLE001 - a diagnosis only
-        return False
-
-
-def _status_soon(t: Transport, key: str, *, wait_s: float) -> dict[str, Any] | None:
-    """The camera's status, asked again for up to ``wait_s`` (None: nobody answered)."""
+def _confirm_cameras(t: Transport, stats: BagReplayStats, status_keys: dict[str, str],
+                     before: dict[str, StatusProbe], *, prefix: str, since_s: float,
+                     wait_s: float) -> None:
+    """Each camera's account (:func:`evcal.clients.replay._confirm`), one after the other
+    within ``wait_s`` in all; a camera asked after the deadline still gets up to two status
+    queries' time (the service answers each within one, once it has processed the
+    messages)."""
     deadline = time.monotonic() + wait_s
-    while True:
-        st = _status(t, key)
-        if st is not None or time.monotonic() > deadline:
-            return st
-        time.sleep(0.2)
+    floor_s = min(wait_s, 2 * STATUS_QUERY_S)
+    for camera, key in status_keys.items():
+        sent = stats.camera_messages(camera)
+        if sent == 0:
+            continue  # nothing of it was sent: nothing to confirm
+        acc = ReplayStats(event_messages=sent)  # ``messages``: what its account must hold
+        _confirm(t, acc, key, before[camera], prefix=prefix, since_s=since_s,
+                 deadline=max(deadline, time.monotonic() + floor_s),
+                 stop_now=threading.Event())
+        stats.accounts[camera] = acc
 
 
 def report(prog: str, stats: BagReplayStats, wait_subscriber_s: float, domain: int) -> int:
-    """Print what was sent and delivered; the exit code (as ``evcal replay``'s)."""
+    """Print what was sent and delivered; returns :func:`exit_code` (``evcal replay``'s
+    table)."""
+    code = exit_code(stats)
     for topic, why in stats.skipped_topics.items():
         print(f"{prog}: skipped {topic}: {why}", file=sys.stderr)
     if not stats.subscribed:
         print(f"{prog}: nobody subscribes to the bag's topics in ROS domain {domain} after "
               f"{wait_subscriber_s:g} s (is `evcal serve --ros2` or a ROS 2 node running and "
               "reachable?); nothing was sent", file=sys.stderr)
-        return 3
+        return code
+    if stats.send_error is not None:
+        print(f"{prog}: sending failed: {stats.send_error}", file=sys.stderr)
     print(f"{prog}: sent {stats.total} messages ({stats.bytes / 1e6:.1f} MB) in "
           f"{stats.seconds:.2f} s on {len(stats.messages)} topics in ROS domain {domain}: "
-          + ", ".join(f"{tp} {n}" for tp, n in stats.messages.items()), file=sys.stderr)
-    code = 0
+          + ", ".join(f"{tp} {n}" for tp, n in stats.messages.items())
+          + (" (stopped)" if stats.stopped else ""), file=sys.stderr)
     if stats.unmatched_messages:
         print(f"{prog}: {stats.unmatched_messages} messages were sent while nobody subscribed "
               "(lost)", file=sys.stderr)
-        code = 4
-    for camera in stats.cameras:
-        d: dict[str, Any] | None = stats.delivered.get(camera)
-        if d is None:
-            print(f"{prog}: camera {camera}: delivery not confirmed (no evcal service "
-                  "answered for it)", file=sys.stderr)
-            continue
-        sent = stats.camera_messages(camera)
+    if stats.send_error is None and stats.total and not stats.accounts:
+        print(f"{prog}: delivery not confirmed: no topic sent feeds an evcal camera (an "
+              "EventPacket or Image topic; its namespace names the camera)", file=sys.stderr)
+    for camera, acc in stats.accounts.items():
+        _report_camera(prog, camera, acc)
+    outcome = {c: o for c, o, _ in EXIT_CODES}[code]
+    print(f"{prog}: {outcome} (exit code {code})", file=sys.stderr)
+    return code
+
+
+def _report_camera(prog: str, camera: str, acc: ReplayStats) -> None:
+    """One camera's account, as ``evcal replay`` prints it."""
+    if acc.service_gone:
+        print(f"{prog}: camera {camera}: the service answered for it before the run but not "
+              "after it, and is gone: the link was lost and messages may be lost",
+              file=sys.stderr)
+    d = acc.delivered
+    if acc.refusal is not None and (acc.displaced or (d or {}).get("refused_messages")):
+        print(f"{prog}: camera {camera}: the service refused it: "
+              f"{acc.refusal.get('reason')}: {acc.refusal.get('message')}", file=sys.stderr)
+    if d is not None:
         print(f"{prog}: camera {camera}: the service processed {d['event_messages']} event "
               f"messages ({d['events']} events) and {d['frames']} frames, dropped "
-              f"{d['dropped_messages']} and rejected {d['rejected_messages']} of {sent}",
+              f"{d['dropped_messages']}, rejected {d['rejected_messages']} and refused "
+              f"{d['refused_messages']} of {acc.messages}", file=sys.stderr)
+        missing = acc.missing_messages or 0
+        if acc.confirmed and missing > 0:
+            print(f"{prog}: camera {camera}: {missing} of {acc.messages} messages never "
+                  "reached the service", file=sys.stderr)
+    if not acc.confirmed:
+        print(f"{prog}: camera {camera}: delivery not confirmed: {acc.why_unconfirmed}",
               file=sys.stderr)
-        if d["accounted_messages"] < sent or d["dropped_messages"] or d["rejected_messages"]:
-            code = 4
-    return code

@@ -39,21 +39,10 @@ DecodedEvents = tuple[np.ndarray, dict[str, Any]]
 DecodedFrame = tuple[int, int, np.ndarray, dict[str, Any]]
 
 
-# the reason a duplicate is counted and published under (a message of the stream arrived
-# twice: dropped; neither a new session nor loss)
-DUPLICATE = "duplicate"
-
-
 class Rejected(EvcalError):
-    """An input message refused with a reason code (counted, published on ``errors``);
-    ``counted_as`` is the reason's name in the counters (``str(reason)`` unless given)."""
+    """An input message refused with a reason code (counted, published on ``errors``)."""
 
     default_reason = ErrorReason.REJECTED
-
-    def __init__(self, message: str, reason: ErrorReason | None = None, *,
-                 counted_as: str | None = None) -> None:
-        super().__init__(message, reason)
-        self.counted_as = counted_as or str(self.reason)
 
 
 # ----------------------------------------------------------------------------- output records
@@ -212,7 +201,8 @@ class CameraState:
                                       seq=header["seq"], size=(header["height"],
                                                                header["width"]))
         except DuplicateMessage as exc:
-            raise Rejected(str(exc), exc.reason, counted_as=DUPLICATE) from None
+            # a message of the stream arrived twice: dropped, neither a new session nor loss
+            raise Rejected(str(exc), ErrorReason.DUPLICATE) from None
         except LateMessage as exc:
             # counted lost when the gap showed; it arrived (refused), so it is not lost
             c.lost[kind] = max(0, c.lost[kind] - exc.recovered)
@@ -343,7 +333,7 @@ class CameraState:
 
     def reject(self, stream: str, exc: EvcalError) -> Rejection:
         """Count a refused input; the record says what to publish."""
-        reason = exc.counted_as if isinstance(exc, Rejected) else str(exc.reason)
+        reason = str(exc.reason)
         self.counters.errors[reason] = self.counters.errors.get(reason, 0) + 1
         return Rejection(self.id, stream, reason, str(exc))
 
