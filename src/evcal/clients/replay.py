@@ -618,7 +618,8 @@ def _main_ros2(args: Any, prog: str) -> int:
             stats = replay_bag(t, args.recording, domain=domain,
                                speed=None if args.max_rate else args.speed,
                                topics=set(args.topic) or None, stop=stop, prefix=args.prefix,
-                               wait_subscriber_s=args.wait_subscriber)
+                               wait_subscriber_s=args.wait_subscriber,
+                               confirm_timeout_s=args.confirm_timeout)
     except RecordingError as exc:
         return fail(prog, str(exc), 2)
     except TransportError as exc:
