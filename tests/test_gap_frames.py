@@ -210,3 +210,32 @@ def test_the_simulation_is_driven_by_the_corrected_frames() -> None:
     a = simulate_model(m, rec, 3, st)
     b = simulate_model(base, replace(rec, frames=clean), 3, st)
     np.testing.assert_array_equal(a.events, b.events)
+
+
+def test_a_sweep_of_lags_counts_the_windows_as_counting_anew() -> None:
+    """The exposure fitter moves the frame times through its lags and updates the counts
+    by the events that change window (``_lag_moves``): the counts must be those of counting
+    every lag anew, also with repeated lags, events outside the frames and moves across
+    more than one window."""
+    from evcal.gap.frames import _apply_moves, _count_windows, _lag_moves  # noqa: PLC0415
+
+    rng = np.random.default_rng(3)
+    for _ in range(40):
+        n_w, npix = int(rng.integers(2, 8)), int(rng.integers(1, 6))
+        ft = np.cumsum(rng.integers(5, 40, n_w + 1)).astype(np.int64)
+        n = int(rng.integers(0, 400))
+        t = np.sort(rng.integers(ft[0] - 50, ft[-1] + 50, n)).astype(np.int64)
+        pix = rng.integers(0, npix, n).astype(np.int32)
+        p = rng.choice(np.array([-1, 1], np.int8), n)
+        lags = np.sort(rng.integers(-60, 60, int(rng.integers(1, 12)))).astype(np.int64)
+        P = np.zeros((n_w, npix), np.int32)
+        E = np.zeros_like(P)
+        _count_windows(t, pix, p, ft + lags[0], P, E)
+        ev, win, start = _lag_moves(t, ft, lags)
+        for i in range(lags.size):
+            if i:
+                _apply_moves(pix, p, ev, win, int(start[i]), int(start[i + 1]), n_w, P, E)
+            P2, E2 = np.zeros_like(P), np.zeros_like(E)
+            _count_windows(t, pix, p, ft + lags[i], P2, E2)
+            np.testing.assert_array_equal(P, P2)
+            np.testing.assert_array_equal(E, E2)

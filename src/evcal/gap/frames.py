@@ -237,6 +237,72 @@ def _count_windows(t_us: np.ndarray, pix: np.ndarray, p: np.ndarray, ft: np.ndar
         P[k, pix[j]] += 1 if p[j] > 0 else -1
 
 
+@numba.njit(cache=True, nogil=True)
+def _lag_moves(t_us: np.ndarray, ft: np.ndarray, lags: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover - compiled
+    """The windows events leave as the frame times move from ``ft + lags[0]`` through the
+    increasing integer ``lags``: an event at ``t`` is in window ``j`` while
+    ``t - ft[j + 1] < lag <= t - ft[j]``, so it leaves ``j`` (for ``j - 1``) at the first lag
+    above ``t - ft[j]``. Returns ``(event, window left, start)``: the moves of lag ``i`` are
+    ``start[i]:start[i + 1]`` (counting-sorted by lag); an event may move more than once."""
+    n_l = lags.size
+    n_w = ft.size - 1
+    lo, hi = lags[0], lags[n_l - 1]
+    count = np.zeros(n_l + 1, np.int64)
+    # pass 1 counts the moves per lag, pass 2 places them
+    for rep in range(2):
+        if rep == 1:
+            start = np.zeros(n_l + 1, np.int64)
+            for i in range(n_l):
+                start[i + 1] = start[i] + count[i]
+            fill = start[:n_l].copy()
+            ev = np.empty(start[n_l], np.int64)
+            win = np.empty(start[n_l], np.int32)
+        k = 0  # the first frame time above t - lo, walked along
+        t_prev = t_us[0] if t_us.size else 0
+        for e in range(t_us.size):
+            t = t_us[e]
+            if t < t_prev:  # out of time order (not expected): walk again from the start
+                k = 0
+            t_prev = t
+            while k < n_w + 1 and ft[k] <= t - lo:
+                k += 1
+            j = k - 1  # -1: before the first frame; n_w: after the last
+            while j >= 0 and t - ft[j] < hi:
+                d = t - ft[j]  # it leaves window j at the first lag above d
+                i = np.searchsorted(lags, d, side="right")
+                if i < n_l and j <= n_w:
+                    if rep == 0:
+                        count[i] += 1
+                    else:
+                        ev[fill[i]] = e
+                        win[fill[i]] = j
+                        fill[i] += 1
+                j -= 1
+        if rep == 1:
+            return ev, win, start
+    return np.empty(0, np.int64), np.empty(0, np.int32), count  # not reached
+
+
+@numba.njit(cache=True, nogil=True)
+def _apply_moves(pix: np.ndarray, p: np.ndarray, ev: np.ndarray, win: np.ndarray, a: int,
+                 b: int, n_w: int, P: np.ndarray, E: np.ndarray
+                 ) -> None:  # pragma: no cover - compiled
+    """Moves ``a:b`` of :func:`_lag_moves` applied to the counts (window ``j`` to ``j - 1``;
+    windows outside ``0..n_w - 1`` hold nothing)."""
+    for m in range(a, b):
+        e = ev[m]
+        j = win[m]
+        q = pix[e]
+        s = 1 if p[e] > 0 else -1
+        if 0 <= j < n_w:
+            E[j, q] -= 1
+            P[j, q] -= s
+        if 0 <= j - 1 < n_w:
+            E[j - 1, q] += 1
+            P[j - 1, q] += s
+
+
 def _lag_pixel_sums(obs: Observation, lags_us: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per lag and pixel: the squared residual and the squared change summed over the
     pixel's windows (0 where its fit fails). A pixel's fit does not depend on the others', so
@@ -255,8 +321,17 @@ def _lag_pixel_sums(obs: Observation, lags_us: np.ndarray) -> tuple[np.ndarray, 
     tss = np.zeros((lags_us.size, npix))
     P = np.empty((n_w, npix), np.int32)
     E = np.empty((n_w, npix), np.int32)
-    for i, lag in enumerate(lags_us):  # a few dozen lags, each one pass over the events
-        _count_windows(obs.t_us, obs.pix, obs.p, ft + int(round(lag)), P, E)
+    lags = np.rint(np.asarray(lags_us, np.float64)).astype(np.int64)
+    order = np.argsort(lags, kind="stable")
+    lags_sorted = lags[order]
+    # the counts of the first lag, then only the events that change window at each next
+    # one (a sweep of the lags costs about one pass over the events, not one per lag)
+    _count_windows(obs.t_us, obs.pix, obs.p, ft + lags_sorted[0], P, E)
+    mv_ev, mv_win, start = _lag_moves(obs.t_us, ft, lags_sorted)
+    for n, i in enumerate(order):
+        if n > 0:
+            _apply_moves(obs.pix, obs.p, mv_ev, mv_win, int(start[n]), int(start[n + 1]), n_w,
+                         P, E)
         sums = window_sums(P, E, dL, w)
         c, b, ok = fit_from_sums(*sums[:6])
         ssr[i] = np.where(ok, residual_from_sums(sums, np.nan_to_num(c), np.nan_to_num(b)),
