@@ -17,6 +17,8 @@ from evcal.calibration import Calibration, Diagnostics, Special
 from evcal.events import EVENTS_DTYPE, SensorSize, make_events, validate_events
 from evcal.io import (
     CalibrationFileError,
+    EmptyRecordingError,
+    TruncatedRecordingError,
     WireError,
     decode_events,
     decode_frame,
@@ -507,11 +509,18 @@ def test_real_aedat4(shared_data: Path, tmp_path: Path) -> None:
 def test_real_aedat4_damaged(shared_data: Path, tmp_path: Path) -> None:
     data = (shared_data / "davis346_road" / "road.aedat4").read_bytes()
     (tmp_path / "cut.aedat4").write_bytes(data[: len(data) // 2])
-    with pytest.raises(RecordingError, match=r"cut\.aedat4: decoding failed after \d+ packets"):
-        read_aedat4(tmp_path / "cut.aedat4")
+    with pytest.raises(TruncatedRecordingError, match=r"cut\.aedat4: truncated file: .* inside "
+                                                      r"packet 350 "):
+        read_aedat4(tmp_path / "cut.aedat4", strict=True)
     (tmp_path / "head.aedat4").write_bytes(data[:100])
-    with pytest.raises(RecordingError, match="head.aedat4: cannot open as AEDAT4"):
+    with pytest.raises(EmptyRecordingError, match="head.aedat4: truncated inside its header"):
         read_aedat4(tmp_path / "head.aedat4")
+    bad = bytearray(data)
+    bad[3126:3130] = (99).to_bytes(4, "little")  # packet 0, whole, of a stream that is not
+    (tmp_path / "bad.aedat4").write_bytes(bytes(bad))
+    with pytest.raises(RecordingError, match=r"decoding failed after 0 packets \(corrupt "
+                                             r"packet 0\?\): unknown stream id"):
+        read_aedat4(tmp_path / "bad.aedat4")
     (tmp_path / "junk.aedat4").write_bytes(b"not an aedat file at all")
     with pytest.raises(RecordingError, match="wrong magic number"):
         read_aedat4(tmp_path / "junk.aedat4")
@@ -657,7 +666,9 @@ def test_mcap_truncated_and_corrupt(tmp_path: Path) -> None:
     path = write_mcap(_recording(), tmp_path / "rec.mcap", chunk_events=500)
     data = path.read_bytes()
     (tmp_path / "cut.mcap").write_bytes(data[: len(data) // 2])
-    with pytest.raises(RecordingError, match=r"cut\.mcap: the MCAP file is truncated"):
+    # one zstd chunk (one block): nothing of it decompresses
+    with pytest.raises(EmptyRecordingError, match=r"cut\.mcap: truncated before its first whole "
+                                                  r"record: .* inside a chunk record"):
         read_mcap(tmp_path / "cut.mcap")
     bad = bytearray(data)
     bad[len(bad) // 3 : len(bad) // 3 + 64] = bytes(64)

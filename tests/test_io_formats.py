@@ -16,7 +16,16 @@ import pytest
 
 from evcal.errors import ErrorReason
 from evcal.events import EVENTS_DTYPE, SensorSize
-from evcal.io import open_recording, read_aedat2, read_hdf5, read_prophesee, sniff
+from evcal.io import (
+    EmptyRecordingError,
+    TruncatedRecordingError,
+    TruncatedRecordingWarning,
+    open_recording,
+    read_aedat2,
+    read_hdf5,
+    read_prophesee,
+    sniff,
+)
 from evcal.recording import RecordingError
 
 DATA = Path(__file__).parent / "data" / "formats"
@@ -90,17 +99,24 @@ def test_prophesee_sensor_argument_is_checked() -> None:
 
 
 @pytest.mark.parametrize(("name", "cut", "match"), [
-    ("evt2_real.raw", -2, r"not a whole number of 4-byte words \(2 bytes left over"),
-    ("evt3_faery.raw", -1, "not a whole number of 16-bit words"),
-    ("cd_faery.dat", -5, r"not a whole number of 8-byte words \(3 bytes left over"),
-    ("evt21.raw", -4, "not a whole number of 8-byte words"),
+    ("evt2_real.raw", -2, r"inside a 4-byte EVT 2.0 word \(2 of its bytes present\)"),
+    ("evt3_faery.raw", -1, r"inside a 2-byte EVT 3.0 word \(1 of its bytes present\)"),
+    ("cd_faery.dat", -5, r"inside a 8-byte event \(3 of its bytes present\)"),
+    ("evt21.raw", -4, r"inside a 8-byte EVT 2.1 word \(4 of its bytes present\)"),
 ])
-def test_truncated_prophesee_files_are_refused(tmp_path: Path, name: str, cut: int,
-                                               match: str) -> None:
+def test_truncated_prophesee_files_read_their_whole_words(tmp_path: Path, name: str, cut: int,
+                                                          match: str) -> None:
     src = DATA / name
     path = _cut(src, tmp_path / name, src.stat().st_size + cut)
-    with pytest.raises(RecordingError, match=match) as info:
-        read_prophesee(path, sensor=VGA if name == "evt2_real.raw" else None)
+    sensor = VGA if name == "evt2_real.raw" else None
+    with pytest.warns(TruncatedRecordingWarning, match=match):
+        rec = read_prophesee(path, sensor=sensor)
+    full = read_prophesee(src, sensor=sensor)
+    assert np.array_equal(rec.events, full.events[: rec.n_events])
+    left = int(match.split(r"\(")[1].split()[0])  # the bytes of the partial word
+    assert rec.metadata["truncated"]["cut_bytes"] == left
+    with pytest.raises(TruncatedRecordingError, match=match) as info:
+        read_prophesee(path, sensor=sensor, strict=True)
     assert info.value.reason == ErrorReason.TRUNCATED
 
 
@@ -122,7 +138,7 @@ def test_prophesee_malformed_headers_and_words(tmp_path: Path) -> None:
         read_prophesee(path)
     path = tmp_path / "h.raw"
     path.write_bytes(b"% evt 3.0\n% geometry 10x")  # header cut before its newline
-    with pytest.raises(RecordingError, match="header has no end"):
+    with pytest.raises(EmptyRecordingError, match="truncated inside its header"):
         read_prophesee(path)
     dat = tmp_path / "trig.dat"
     dat.write_bytes(b"% Data file containing Trigger events\n% Version 2\n% Width 4\n"
@@ -130,7 +146,7 @@ def test_prophesee_malformed_headers_and_words(tmp_path: Path) -> None:
     with pytest.raises(RecordingError, match="external trigger events"):
         read_prophesee(dat)
     dat.write_bytes(b"% Data file containing CD events\n% Version 2\n% Width 4\n% Height 4\n")
-    with pytest.raises(RecordingError, match="no event type and size bytes"):
+    with pytest.raises(EmptyRecordingError, match="header only"):
         read_prophesee(dat)
 
 
@@ -318,9 +334,9 @@ def test_aedat2_davis_samples_and_time_wrap(tmp_path: Path) -> None:
 def test_aedat2_errors(tmp_path: Path) -> None:
     src = DATA / "v2e_davis240.aedat"
     cut = _cut(src, tmp_path / "cut.aedat", src.stat().st_size - 3)
-    with pytest.raises(RecordingError, match=r"not a whole number of 8-byte records \(5 bytes") \
-            as info:
-        read_aedat2(cut, sensor=DAVIS240)
+    with pytest.raises(TruncatedRecordingError, match=r"inside a 8-byte record \(5 of its "
+                                                      r"bytes present\)") as info:
+        read_aedat2(cut, sensor=DAVIS240, strict=True)
     assert info.value.reason == ErrorReason.TRUNCATED
     with pytest.raises(RecordingError, match="outside the 100x100 sensor"):
         read_aedat2(src, sensor=SensorSize(height=100, width=100))
@@ -357,14 +373,15 @@ def test_aedat31_truncated_and_corrupt(tmp_path: Path) -> None:
     data = src.read_bytes()
     start = data.index(b"#!END-HEADER\r\n") + 14
     cut = _cut(src, tmp_path / "cut.aedat", start + 28 + 8 + 10)  # into packet 1's header
-    with pytest.raises(RecordingError, match=r"packet 1 at byte \d+: only 10 bytes left") \
-            as info:
-        read_aedat2(cut)
+    with pytest.raises(TruncatedRecordingError, match=r"inside the 28-byte header of packet "
+                                                      r"1 \(10 bytes of it present\)") as info:
+        read_aedat2(cut, strict=True)
     assert info.value.reason == ErrorReason.TRUNCATED
     cut = _cut(src, tmp_path / "cut2.aedat", len(data) - 12)  # into the last (IMU6) packet
-    with pytest.raises(RecordingError, match=r"packet 7 .*\(type 3\) needs 36 bytes of "
-                                             r"events, 24 are left"):
-        read_aedat2(cut)
+    with pytest.warns(TruncatedRecordingWarning, match=r"inside packet 7 \(type 3; 64 bytes "
+                                                       r"with its header, 52 present\)"):
+        rec = read_aedat2(cut)
+    assert rec.n_events == 2674  # the IMU6 packet held no polarity event
     bad = bytearray(data)
     bad[start + 4 : start + 8] = (0).to_bytes(4, "little")  # eventSize 0
     (tmp_path / "bad.aedat").write_bytes(bytes(bad))
@@ -372,7 +389,7 @@ def test_aedat31_truncated_and_corrupt(tmp_path: Path) -> None:
         read_aedat2(tmp_path / "bad.aedat")
     assert info.value.reason == ErrorReason.MALFORMED
     (tmp_path / "nohead.aedat").write_bytes(b"#!AER-DAT3.1\r\n#Format: RAW\r\n")
-    with pytest.raises(RecordingError, match="no '#!END-HEADER' line"):
+    with pytest.raises(EmptyRecordingError, match="no '#!END-HEADER' line"):
         read_aedat2(tmp_path / "nohead.aedat")
 
 

@@ -81,7 +81,8 @@ def _open(path: str, sensor: str | None = None, args: argparse.Namespace | None 
     return open_recording(path, sensor=_sensor_arg(sensor),
                           events_topic=getattr(args, "events_topic", None),
                           frames_topic=getattr(args, "frames_topic", None),
-                          camera=getattr(args, "camera", None))
+                          camera=getattr(args, "camera", None),
+                          strict=getattr(args, "strict", False))
 
 
 def _offset_arg(text: str) -> float | str:
@@ -412,6 +413,9 @@ def build_parser() -> argparse.ArgumentParser:
                             help="a bag's image topic, when it holds several")
             sp.add_argument("--camera", metavar="NAME", default=None,
                             help="which camera of a stereo HDF5 file (MVSEC: left or right)")
+            sp.add_argument("--strict", action="store_true",
+                            help="refuse a recording file cut short (default: read its whole "
+                                 "records, with a warning naming where it was cut)")
         verbosity(sp)
 
     def review(sp: argparse.ArgumentParser, what: str) -> None:

@@ -15,6 +15,11 @@ jAER AEDAT 2.0, AEDAT 3.1          :func:`read_aedat2`          --
 
 :func:`open_recording` and :func:`write_recording` pick one by the path. Every reader raises
 :class:`~evcal.recording.RecordingError` with the path and what was wrong.
+
+Files cut short (RAW, DAT, AEDAT 2.0/3.1/4, evcal MCAP, ROS 1 bags, ROS 2 MCAP files) are read
+up to their last whole record with a :class:`TruncatedRecordingWarning`; ``strict=True``
+refuses them (:class:`TruncatedRecordingError`). An empty file, one cut inside its header, a
+header without data or a cut file without a whole record is an :class:`EmptyRecordingError`.
 """
 
 from __future__ import annotations
@@ -25,6 +30,13 @@ from pathlib import Path
 
 from ..events import SensorSize
 from ..recording import Recording, RecordingError
+from ._partial import (
+    EmptyRecordingError,
+    TruncatedRecordingError,
+    TruncatedRecordingWarning,
+    cut_in_header,
+    refuse_empty_file,
+)
 from ._util import file_head
 from .aedat2 import AEDAT2_MAGIC, AEDAT31_MAGIC, read_aedat2
 from .aedat4 import read_aedat4
@@ -39,7 +51,10 @@ from .wire import WireError, decode_events, decode_frame, encode_events, encode_
 
 __all__ = [
     "CalibrationFileError",
+    "EmptyRecordingError",
     "RosbagError",
+    "TruncatedRecordingError",
+    "TruncatedRecordingWarning",
     "WireError",
     "decode_events",
     "decode_frame",
@@ -125,7 +140,7 @@ def _sniff_content(path: Path) -> str | None:
 
 def open_recording(path: str | os.PathLike[str], *, sensor: SensorSize | None = None,
                    events_topic: str | None = None, frames_topic: str | None = None,
-                   camera: str | None = None) -> Recording:
+                   camera: str | None = None, strict: bool = False) -> Recording:
     """Read a recording, choosing the reader by its content (then by its suffix).
 
     A directory (or its ``events.txt``) is an Event Camera Dataset folder, one with
@@ -139,36 +154,55 @@ def open_recording(path: str | os.PathLike[str], *, sensor: SensorSize | None = 
     :func:`read_rosbag`) and ``camera`` an MVSEC camera (``left``/``right``, see
     :func:`read_hdf5`); they are refused for other kinds.
 
+    A file cut short (a copy stopped early, a recorder killed) is read up to its last whole
+    record (word, event, packet, message) with a :class:`TruncatedRecordingWarning` naming
+    the file, the byte where the whole part ends and what was left out, and
+    ``metadata["truncated"]`` saying the same; ``strict=True`` refuses it instead
+    (:class:`TruncatedRecordingError`). So are RAW/DAT, AEDAT 2.0/3.1/4, evcal MCAP, ROS 1
+    bags and ROS 2 MCAP files; HDF5, ``.npz``, sqlite3 bags and text files cut short are
+    refused as damaged.
+
     Raises
     ------
     RecordingError
         For a path that does not exist, an unknown kind (naming what evcal reads), or
-        whatever the reader finds wrong.
+        whatever the reader finds wrong; :class:`EmptyRecordingError` (reason ``truncated``)
+        for an empty file, one cut inside its header, a header without data or a cut file
+        without a whole record; :class:`TruncatedRecordingError` for a file cut short when
+        ``strict``.
     """
     path = Path(path)
     if not path.exists():
         raise RecordingError(f"{path}: no such file or directory")
+    if path.is_file() and path.suffix.lower() != ".txt":
+        size = refuse_empty_file(path)
+        head = file_head(path) or b""
+        cut_magics = [kind for magic, kind in (*_MAGICS, (b"#ROSBAG V2.0\n", "rosbag1"))
+                      if size < len(magic) and magic.startswith(head)]
+        if cut_magics:  # a file shorter than the magic it starts
+            raise cut_in_header(str(path), size, f"{head!r}, the start of the magic of "
+                                f"{' or '.join(cut_magics)}")
     by_content = _sniff_content(path)
     kind = by_content or _SUFFIXES.get(path.suffix.lower())
     if by_content is None and kind in ("hdf5", "prophesee", "aedat2"):
         # only the suffix says: a reader's refusal means "not this format" as much as
         # "a damaged file of it", so name both
         try:
-            return _open_kind(path, kind, sensor, events_topic, frames_topic, camera)
+            return _open_kind(path, kind, sensor, events_topic, frames_topic, camera, strict)
         except RecordingError as exc:
             raise RecordingError(
                 f"{path}: unknown recording format (its first bytes say nothing; by its suffix "
                 f"{path.suffix!r} it would be {kind}, whose reader says: {exc}); evcal reads "
                 f"{_KINDS}", exc.reason) from None
-    return _open_kind(path, kind, sensor, events_topic, frames_topic, camera)
+    return _open_kind(path, kind, sensor, events_topic, frames_topic, camera, strict)
 
 
 def _open_kind(path: Path, kind: str | None, sensor: SensorSize | None,
-               events_topic: str | None, frames_topic: str | None, camera: str | None
-               ) -> Recording:
+               events_topic: str | None, frames_topic: str | None, camera: str | None,
+               strict: bool) -> Recording:
     if kind in ("rosbag1", "rosbag2"):
         return read_rosbag(path, sensor=sensor, events_topic=events_topic,
-                           frames_topic=frames_topic)
+                           frames_topic=frames_topic, strict=strict)
     if events_topic is not None or frames_topic is not None:
         what = f"a recording of kind {kind!r}" if kind else "not one"
         raise RecordingError(f"{path}: events_topic/frames_topic choose topics of ROS bags; "
@@ -182,15 +216,15 @@ def _open_kind(path: Path, kind: str | None, sensor: SensorSize | None,
     if kind == "ecd":
         return read_ecd(path.parent if path.is_file() else path, sensor=sensor)
     if kind == "aedat4":
-        return read_aedat4(path, sensor=sensor)
+        return read_aedat4(path, sensor=sensor, strict=strict)
     if kind == "mcap":
-        return read_mcap(path, sensor=sensor)
+        return read_mcap(path, sensor=sensor, strict=strict)
     if kind == "npz":
         return read_npz(path, sensor=sensor)
     if kind in ("aedat2", "aedat3"):
-        return read_aedat2(path, sensor=sensor)
+        return read_aedat2(path, sensor=sensor, strict=strict)
     if kind == "prophesee":
-        return read_prophesee(path, sensor=sensor)
+        return read_prophesee(path, sensor=sensor, strict=strict)
     if kind == "aedat-other":
         raise RecordingError(f"{path}: an AEDAT file of another version than 2.0, 3.1 or 4.0 "
                              f"(the ones it reads); evcal reads {_KINDS}")

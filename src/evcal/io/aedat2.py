@@ -53,6 +53,15 @@ import numpy as np
 from ..errors import ErrorReason
 from ..events import SensorSize
 from ..recording import Frames, Recording, RecordingError
+from ._partial import (
+    Cut,
+    cut_in_header,
+    header_only,
+    nothing_whole,
+    refuse_empty_file,
+    report_cut,
+    words_cut,
+)
 from ._util import check_sensor_arg, events_sorted
 
 AEDAT2_MAGIC = b"#!AER-DAT2.0"
@@ -80,16 +89,18 @@ def _split_header(data: bytes, end_line: bytes | None, where: str) -> tuple[list
     while pos < len(data) and data[pos : pos + 1] == b"#":
         nl = data.find(b"\n", pos)
         if nl < 0:
-            raise RecordingError(f"{where}: the '#' header has no end (truncated file?)",
-                                 ErrorReason.TRUNCATED)
+            raise cut_in_header(where, len(data), f"line {len(lines) + 1} of the '#' header "
+                                "has no end")
         line = data[pos:nl].rstrip(b"\r")
         lines.append(line.decode("latin-1"))
         pos = nl + 1
         if end_line is not None and line.strip().lower() == end_line.lower():
             return lines, pos
     if end_line is not None and end_line == b"#!END-HEADER":
-        raise RecordingError(f"{where}: no '#!END-HEADER' line (truncated or not AEDAT 3.1)",
-                             ErrorReason.TRUNCATED)
+        if pos == len(data):
+            raise cut_in_header(where, len(data), "no '#!END-HEADER' line before the end")
+        raise RecordingError(f"{where}: no '#!END-HEADER' line before the binary data (not "
+                             "AEDAT 3.1?)", ErrorReason.MALFORMED)
     return lines, pos
 
 
@@ -118,14 +129,16 @@ def _check_inside(where: str, x: np.ndarray, y: np.ndarray, sensor: SensorSize,
             ErrorReason.OUT_OF_SENSOR)
 
 
-def _read_aedat2(data: bytes, where: str, sensor: SensorSize | None) -> Recording:
+def _read_aedat2(data: bytes, where: str, sensor: SensorSize | None, strict: bool
+                 ) -> Recording:
     lines, start = _split_header(data, b"#End Of ASCII Header", where)
     body = data[start:]
-    if len(body) % 8:
-        raise RecordingError(
-            f"{where}: AEDAT 2.0 data of {len(body)} bytes is not a whole number of 8-byte "
-            f"records ({len(body) % 8} bytes left over: truncated file?)",
-            ErrorReason.TRUNCATED)
+    if not body:
+        raise header_only(where, start, "event records")
+    # a file cut inside a record is read up to its last whole record
+    cut = words_cut(where, len(data), start, len(body), 8, "record")
+    if cut is not None and cut.whole_end == start:
+        raise nothing_whole(cut)
     chip, chip_sensor, layout = _chip(lines)
     if chip_sensor is not None:
         found = check_sensor_arg(chip_sensor, sensor, where)
@@ -138,6 +151,10 @@ def _read_aedat2(data: bytes, where: str, sensor: SensorSize | None) -> Recordin
             "with DVS128, DAVIS240, DAVIS346, ...); pass sensor= (e.g. --sensor-size 240x180) "
             "to read it with the DAVIS address layout (128x128: DVS128 layout)",
             ErrorReason.MALFORMED)
+    truncated = None
+    if cut is not None:
+        truncated = report_cut(cut, strict=strict)
+        body = body[: cut.whole_end - start]
     rec = np.frombuffer(body, dtype=[("a", ">u4"), ("t", ">u4")])
     addr = rec["a"].astype(np.int64)
     t32 = rec["t"].astype(np.int64)
@@ -168,6 +185,8 @@ def _read_aedat2(data: bytes, where: str, sensor: SensorSize | None) -> Recordin
     _check_inside(where, x, y, found, str(layout))
     events, reordered = events_sorted(t, x, y, on)
     meta.update(reordered_events=reordered, header=lines)
+    if truncated is not None:
+        meta["truncated"] = truncated
     return Recording(sensor=found, events=events, metadata=meta)
 
 
@@ -181,7 +200,8 @@ def _gray16(pixels: np.ndarray, channels: int) -> np.ndarray:
     return np.asarray(gray, np.float32)
 
 
-def _read_aedat31(data: bytes, where: str, sensor: SensorSize | None) -> Recording:
+def _read_aedat31(data: bytes, where: str, sensor: SensorSize | None, strict: bool
+                  ) -> Recording:
     lines, pos = _split_header(data, b"#!END-HEADER", where)
     chip, chip_sensor, _ = _chip(lines)
     text = "\n".join(lines)
@@ -195,12 +215,15 @@ def _read_aedat31(data: bytes, where: str, sensor: SensorSize | None) -> Recordi
     skipped_frames = 0
     source: int | None = None
     n = len(data)
+    if pos == n:
+        raise header_only(where, pos, "packets")
     k = 0
+    cut: Cut | None = None  # a file cut inside a packet is read up to its last whole packet
     while pos < n:
         if n - pos < _PACKET_HEADER.size:
-            raise RecordingError(f"{where}: packet {k} at byte {pos}: only {n - pos} bytes "
-                                 "left of its 28-byte header (truncated file?)",
-                                 ErrorReason.TRUNCATED)
+            cut = Cut(where, n, pos, f"{k:,} whole packets", f"the 28-byte header of packet "
+                      f"{k} ({n - pos} bytes of it present)")
+            break
         (ev_type, ev_source, ev_size, ts_offset, ts_overflow, capacity, number,
          _valid) = _PACKET_HEADER.unpack_from(data, pos)
         if ev_size <= 0 or capacity < 0 or not 0 <= number <= capacity or ev_type < 0:
@@ -211,10 +234,10 @@ def _read_aedat31(data: bytes, where: str, sensor: SensorSize | None) -> Recordi
         body_start = pos + _PACKET_HEADER.size
         end = body_start + capacity * ev_size
         if end > n:
-            raise RecordingError(
-                f"{where}: packet {k} at byte {pos} (type {ev_type}) needs {capacity * ev_size}"
-                f" bytes of events, {n - body_start} are left (truncated file?)",
-                ErrorReason.TRUNCATED)
+            cut = Cut(where, n, pos, f"{k:,} whole packets",
+                      f"packet {k} (type {ev_type}; {end - pos:,} bytes with its header, "
+                      f"{n - pos:,} present)")
+            break
         body = data[body_start : body_start + number * ev_size]
         if ev_type == 1 and (source is None or ev_source == source):
             if ev_size != 8 or ts_offset != 4:
@@ -260,6 +283,11 @@ def _read_aedat31(data: bytes, where: str, sensor: SensorSize | None) -> Recordi
         raise RecordingError(f"{where}: the AEDAT 3.1 header names no chip evcal knows and "
                              "there are no frames; pass sensor= (e.g. --sensor-size 346x260)",
                              ErrorReason.MALFORMED)
+    truncated = None
+    if cut is not None:
+        if k == 0:
+            raise nothing_whole(cut)
+        truncated = report_cut(cut, strict=strict)
     if pol_chunks:
         d = np.concatenate([c["d"] for c, _ in pol_chunks]).astype(np.int64)
         ts = np.concatenate([c["t"].astype(np.int64) + (ov << 31) for c, ov in pol_chunks])
@@ -283,32 +311,40 @@ def _read_aedat31(data: bytes, where: str, sensor: SensorSize | None) -> Recordi
     meta = {"format": "aedat3.1", "chip": chip, "packets": k, "skipped_packets": skipped,
             "skipped_frames": skipped_frames, "invalid_events": int(np.count_nonzero(~valid)),
             "polarity_source": source, "reordered_events": reordered, "header": lines}
+    if truncated is not None:
+        meta["truncated"] = truncated
     return Recording(sensor=found, events=events,
                      frames=frame_obj if frame_obj is not None else Frames.empty(*found.shape),
                      metadata=meta)
 
 
-def read_aedat2(path: str | os.PathLike[str], *, sensor: SensorSize | None = None
-                ) -> Recording:
+def read_aedat2(path: str | os.PathLike[str], *, sensor: SensorSize | None = None,
+                strict: bool = False) -> Recording:
     """Read a jAER AEDAT 2.0 or an AEDAT 3.1 file (see the module docstring).
+
+    A file that ends inside a record (2.0) or packet (3.1) is read up to its last whole one,
+    with a :class:`TruncatedRecordingWarning` and ``metadata["truncated"]``; ``strict=True``
+    refuses it instead (:class:`TruncatedRecordingError`).
 
     Raises
     ------
     RecordingError
-        For a missing file, another AEDAT version, a file that ends inside a record or packet
-        (``truncated``), an impossible packet header, no known sensor size, or events outside
-        the sensor.
+        For a missing file, another AEDAT version, an impossible packet header, no known
+        sensor size, or events outside the sensor; :class:`EmptyRecordingError`
+        (``truncated``) for an empty file, one cut inside its header, a header without
+        records or packets, or no whole one.
     """
     path = Path(path)
     where = str(path)
     if not path.is_file():
         raise RecordingError(f"{where}: no such file")
+    refuse_empty_file(path)
     data = path.read_bytes()
     try:
         if data.startswith(AEDAT2_MAGIC):
-            rec = _read_aedat2(data, where, sensor)
+            rec = _read_aedat2(data, where, sensor, strict)
         elif data.startswith(AEDAT31_MAGIC):
-            rec = _read_aedat31(data, where, sensor)
+            rec = _read_aedat31(data, where, sensor, strict)
         else:
             first = data[:40].split(b"\n", 1)[0].decode("latin-1", "replace").strip()
             raise RecordingError(f"{where}: starts with {first!r}; evcal reads AEDAT 2.0 "

@@ -11,6 +11,12 @@ A metadata record named ``evcal`` holds ``sensor`` (``WxH``), ``height``, ``widt
 ``format_version`` and ``metadata_json`` (the recording's metadata). Message ``log_time`` and
 ``publish_time`` are the time of the chunk's first event (or of the frame) in ns, clamped at 0;
 ``sequence`` is the per-channel message counter, the same as the envelope's ``seq``.
+
+A file without its end (a writer stopped before :meth:`McapFileWriter.close`, a copy cut
+short) is read up to its last whole message (:mod:`evcal.io._mcap_partial`), with a
+:class:`~evcal.io.TruncatedRecordingWarning`; ``strict=True`` refuses it. A finished file
+with the ``evcal`` record and no message is a legitimate empty recording; a cut file with no
+whole message is an :class:`~evcal.io.EmptyRecordingError`.
 """
 
 from __future__ import annotations
@@ -26,6 +32,8 @@ import numpy as np
 
 from ..events import SensorSize
 from ..recording import Frames, Recording, RecordingError, concat_events
+from ._mcap_partial import McapPrefix, mcap_is_whole, scan_mcap_prefix
+from ._partial import nothing_whole, report_cut
 from ._util import check_sensor_arg, metadata_from_json, metadata_to_json
 from .wire import WireError, decode_events, decode_frame, encode_events, encode_frame
 
@@ -238,21 +246,20 @@ def write_mcap(
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 
 
-def _check_magic(path: Path) -> None:
-    """Clear errors for a missing, foreign or truncated (never finished) MCAP file."""
+def _prefix(path: Path, strict: bool) -> tuple[McapPrefix | None, dict[str, Any] | None]:
+    """Clear errors for a missing, foreign or empty MCAP file; for one without its end (never
+    finished, or cut), its whole records and the ``truncated`` metadata (a warning, or
+    :class:`~evcal.io.TruncatedRecordingError` when ``strict``)."""
     if not path.is_file():
         raise RecordingError(f"{path}: no such file")
-    size = path.stat().st_size
-    with open(path, "rb") as f:
-        head = f.read(len(MCAP_MAGIC))
-        if size >= 2 * len(MCAP_MAGIC):
-            f.seek(size - len(MCAP_MAGIC))
-        tail = f.read(len(MCAP_MAGIC))
-    if head != MCAP_MAGIC:
-        raise RecordingError(f"{path}: not an MCAP file (it does not start with the MCAP magic)")
-    if tail != MCAP_MAGIC:
-        raise RecordingError(f"{path}: the MCAP file is truncated: it does not end with the MCAP "
-                             f"magic ({size} bytes; was the writer stopped before finishing?)")
+    if mcap_is_whole(path):
+        return None, None
+    with _mcap_errors(path):
+        prefix = scan_mcap_prefix(path)
+    if not prefix.n_messages:
+        raise nothing_whole(prefix.cut)
+    # outside _mcap_errors: a warning made an error by a filter stays what it is
+    return prefix, report_cut(prefix.cut, strict=strict)
 
 
 def _read_metadata(reader: Any, path: Path) -> dict[str, str] | None:
@@ -291,26 +298,32 @@ def _mcap_errors(path: Path) -> Iterator[None]:
                              f"{type(exc).__name__}: {exc}") from None
 
 
-def iter_mcap(path: str | os.PathLike[str], *, sensor: SensorSize | None = None
-              ) -> tuple[SensorSize, Iterator[tuple[str, int, Any]], int]:
+def iter_mcap(path: str | os.PathLike[str], *, sensor: SensorSize | None = None,
+              strict: bool = True) -> tuple[SensorSize, Iterator[tuple[str, int, Any]], int]:
     """An evcal MCAP recording as a stream, for files larger than memory: ``(sensor,
     messages, n_messages)``, ``messages`` yielding ``("events", t_us of the first event,
     events)`` and ``("frames", t_us, image)`` in the file's time order (log time), each
     message decoded and checked as :func:`read_mcap` does. The sensor comes from the
     ``evcal`` metadata record (or ``sensor=``); a message for another size is refused when
-    it is reached."""
+    it is reached. A file without its end is refused (:class:`~evcal.io.
+    TruncatedRecordingError`) unless ``strict=False``, which streams its whole messages in
+    file order (``n_messages`` counts them) after a warning."""
     from mcap.reader import make_reader
 
     path = Path(path)
-    _check_magic(path)
-    try:
-        with open(path, "rb") as f:
-            reader = make_reader(f, validate_crcs=True)
-            meta = _read_metadata(reader, path)
-            summary = reader.get_summary()
-    except Exception as exc:  # mcap and OS errors of a corrupt file
-        raise RecordingError(f"{path}: cannot read as MCAP (truncated or corrupt file?): "
-                             f"{type(exc).__name__}: {exc}") from None
+    prefix, _truncated = _prefix(path, strict)
+    if prefix is not None:
+        meta = prefix.metadata.get(METADATA_NAME)
+        summary = None
+    else:
+        try:
+            with open(path, "rb") as f:
+                reader = make_reader(f, validate_crcs=True)
+                meta = _read_metadata(reader, path)
+                summary = reader.get_summary()
+        except Exception as exc:  # mcap and OS errors of a corrupt file
+            raise RecordingError(f"{path}: cannot read as MCAP (corrupt file?): "
+                                 f"{type(exc).__name__}: {exc}") from None
     if meta is not None:
         try:
             found = SensorSize.parse(meta["sensor"])
@@ -324,12 +337,21 @@ def iter_mcap(path: str | os.PathLike[str], *, sensor: SensorSize | None = None
         raise RecordingError(f"{path}: no 'evcal' metadata record: give the sensor size "
                              "(sensor=) to stream it")
     total = int(sum(summary.statistics.channel_message_counts.values())) if (
-        summary is not None and summary.statistics is not None) else 0
+        summary is not None and summary.statistics is not None) else (
+        prefix.n_messages if prefix is not None else 0)
 
-    def messages() -> Iterator[tuple[str, int, Any]]:
-        with _mcap_errors(path), open(path, "rb") as f:
+    def in_order() -> Iterator[tuple[Any, Any]]:
+        if prefix is not None:
+            yield from prefix.messages()
+            return
+        with open(path, "rb") as f:
             reader = make_reader(f, validate_crcs=True)
             for _schema, channel, message in reader.iter_messages(log_time_order=True):
+                yield channel, message
+
+    def messages() -> Iterator[tuple[str, int, Any]]:
+        with _mcap_errors(path):
+            for channel, message in in_order():
                 if channel.topic == EVENTS_TOPIC:
                     ev, header = decode_events(message.data)
                     kind, t_us, payload = "events", (int(ev["t_us"][0]) if ev.size else 0), ev
@@ -348,7 +370,8 @@ def iter_mcap(path: str | os.PathLike[str], *, sensor: SensorSize | None = None
     return found, messages(), total
 
 
-def read_mcap(path: str | os.PathLike[str], *, sensor: SensorSize | None = None) -> Recording:
+def read_mcap(path: str | os.PathLike[str], *, sensor: SensorSize | None = None,
+              strict: bool = False) -> Recording:
     """Read an evcal MCAP recording.
 
     Parameters
@@ -358,31 +381,48 @@ def read_mcap(path: str | os.PathLike[str], *, sensor: SensorSize | None = None)
     sensor : SensorSize, optional
         Checked against the file's ``evcal`` metadata; needed only when the file has
         neither that record nor messages telling the size.
+    strict : bool
+        Refuse a file without its end (:class:`~evcal.io.TruncatedRecordingError`) instead
+        of reading its whole messages with a :class:`~evcal.io.TruncatedRecordingWarning`.
 
     Returns
     -------
     Recording
-        ``metadata`` is the stored metadata with ``format`` = "mcap" and ``source`` set.
+        ``metadata`` is the stored metadata with ``format`` = "mcap" and ``source`` set, and
+        ``truncated`` (where the file was cut) for a file without its end.
 
     Raises
     ------
     RecordingError
-        For an unreadable or truncated file, a malformed message (naming channel and seq),
-        missing or repeated event chunks, or messages that disagree on the sensor size.
+        For an unreadable file, a malformed message (naming channel and seq), missing or
+        repeated event chunks, or messages that disagree on the sensor size;
+        :class:`~evcal.io.EmptyRecordingError` for an empty file or a cut one without a
+        whole message.
     """
     from mcap.reader import make_reader
 
     path = Path(path)
-    _check_magic(path)
+    prefix, truncated = _prefix(path, strict)
     events: dict[int, np.ndarray] = {}
     frames: dict[int, tuple[int, int, np.ndarray]] = {}
     sizes: set[tuple[int, int]] = set()
     meta_record: dict[str, str] | None = None
     topics: set[str] = set()
-    with _mcap_errors(path), open(path, "rb") as f:
-        reader = make_reader(f, validate_crcs=True)
-        meta_record = _read_metadata(reader, path)
-        for _schema, channel, message in reader.iter_messages(log_time_order=False):
+
+    def all_messages() -> Iterator[tuple[Any, Any]]:
+        nonlocal meta_record
+        if prefix is not None:
+            meta_record = prefix.metadata.get(METADATA_NAME)
+            yield from prefix.messages()
+            return
+        with open(path, "rb") as f:
+            reader = make_reader(f, validate_crcs=True)
+            meta_record = _read_metadata(reader, path)
+            for _schema, channel, message in reader.iter_messages(log_time_order=False):
+                yield channel, message
+
+    with _mcap_errors(path):
+        for channel, message in all_messages():
             topic = channel.topic
             topics.add(topic)
             if topic == EVENTS_TOPIC:
@@ -448,6 +488,8 @@ def read_mcap(path: str | os.PathLike[str], *, sensor: SensorSize | None = None)
             raise RecordingError(f"{path}: {exc}") from None
     metadata["format"] = "mcap"
     metadata["source"] = str(path)
+    if truncated is not None:
+        metadata["truncated"] = truncated
     try:
         return Recording(sensor=found, events=concat_events([events[s] for s in seqs]),
                          frames=fr if fr is not None else Frames.empty(0, 0),

@@ -54,6 +54,14 @@ from ..errors import ErrorReason
 from ..events import EVENTS_DTYPE, SensorSize
 from ..recording import Recording, RecordingError
 from ._evcodecs import Evt3Decoder, PayloadError
+from ._partial import (
+    cut_in_header,
+    header_only,
+    nothing_whole,
+    refuse_empty_file,
+    report_cut,
+    words_cut,
+)
 from ._util import check_sensor_arg
 
 RAW_ENCODINGS = ("evt2", "evt21", "evt3")
@@ -92,9 +100,13 @@ def read_header(data: bytes, where: str) -> PropheseeHeader:
     n = len(data)
     while pos < n and data[pos : pos + 1] == b"%":
         nl = data.find(b"\n", pos, pos + _HEADER_MAX_BYTES)
+        if nl < 0 and n - pos < _HEADER_MAX_BYTES:
+            raise cut_in_header(where, n, f"line {len(lines) + 1} of the '%' header has no "
+                                "end")
         if nl < 0:
-            raise RecordingError(f"{where}: the '%' header has no end (truncated file?)",
-                                 ErrorReason.TRUNCATED)
+            raise RecordingError(f"{where}: a '%' header line longer than "
+                                 f"{_HEADER_MAX_BYTES} bytes: not a Prophesee file?",
+                                 ErrorReason.MALFORMED)
         line = data[pos:nl].decode("latin-1").rstrip("\r")
         pos = nl + 1
         lines.append(line)
@@ -281,9 +293,6 @@ def _decode_evt3(body: bytes, sensor: SensorSize, where: str, cols: _Columns) ->
 
 
 def _decode_dat(body: bytes, version: int, where: str, cols: _Columns) -> str:
-    if len(body) < 2:
-        raise RecordingError(f"{where}: no event type and size bytes after the header "
-                             "(truncated file?)", ErrorReason.TRUNCATED)
     ev_type, ev_size = body[0], body[1]
     if ev_size != 8:
         raise RecordingError(f"{where}: DAT event size {ev_size}, expected 8",
@@ -333,8 +342,8 @@ def _finish(cols: _Columns, sensor: SensorSize, where: str) -> tuple[np.ndarray,
     return events, reordered, dropped
 
 
-def read_prophesee(path: str | os.PathLike[str], *, sensor: SensorSize | None = None
-                   ) -> Recording:
+def read_prophesee(path: str | os.PathLike[str], *, sensor: SensorSize | None = None,
+                   strict: bool = False) -> Recording:
     """Read the events of a Prophesee RAW (EVT 2.0 / 2.1 / 3.0) or DAT file.
 
     Parameters
@@ -344,24 +353,31 @@ def read_prophesee(path: str | os.PathLike[str], *, sensor: SensorSize | None = 
         ``% Data file containing ...`` or ``% Version``).
     sensor : SensorSize, optional
         Required when the header declares no size; checked against it otherwise.
+    strict : bool
+        Refuse a file that ends inside a word (:class:`TruncatedRecordingError`) instead of
+        reading its whole words with a :class:`TruncatedRecordingWarning`.
 
     Returns
     -------
     Recording
         Events only (no frames); times are the camera's µs. ``metadata`` holds ``format``
         (``"evt2"``, ``"evt21"``, ``"evt3"``, ``"dat"``), ``header`` (the ``%`` lines),
-        ``trigger_events``, ``reordered_events``, ``dropped_events``.
+        ``trigger_events``, ``reordered_events``, ``dropped_events``, and ``truncated``
+        (where the file was cut) for a file that ends inside a word.
 
     Raises
     ------
     RecordingError
-        For a missing file, an unknown encoding, no sensor size, a body that ends inside a
-        word (``truncated``), word types the encoding does not have (``malformed``).
+        For a missing file, an unknown encoding, no sensor size, word types the encoding
+        does not have (``malformed``); :class:`EmptyRecordingError` (``truncated``) for an
+        empty file, one cut inside its header or one without a whole word after it;
+        :class:`TruncatedRecordingError` for a file that ends inside a word when ``strict``.
     """
     path = Path(path)
     where = str(path)
     if not path.is_file():
         raise RecordingError(f"{where}: no such file")
+    refuse_empty_file(path)
     data = path.read_bytes()
     if not data.startswith(b"%"):
         raise RecordingError(f"{where}: not a Prophesee RAW/DAT file (no '%' header)",
@@ -372,19 +388,36 @@ def read_prophesee(path: str | os.PathLike[str], *, sensor: SensorSize | None = 
     cols = _Columns()
     dropped = 0
     meta: dict[str, Any] = {"source": where, "header": header.lines}
-    if kind == "prophesee_dat" and header.encoding is None:
-        found = _sensor(header, sensor, where)
+    dat = kind == "prophesee_dat" and header.encoding is None
+    # the binary part: fixed-size words after the '%' lines (DAT: after two more bytes);
+    # a file cut inside a word is read up to its last whole word
+    start = header.length + (2 if dat else 0)
+    if dat and len(body) == 1:
+        raise cut_in_header(where, len(data), "one of the two event type and size bytes "
+                            "after the '%' lines")
+    if len(data) <= start:
+        raise header_only(where, header.length, "event data")
+    if not dat and header.encoding not in RAW_ENCODINGS:
+        said = header.encoding or "nothing (no '% evt' or '% format' line)"
+        raise RecordingError(
+            f"{where}: the header gives the encoding as {said}; evcal reads EVT 2.0, "
+            "EVT 2.1 and EVT 3.0 RAW files", ErrorReason.MALFORMED)
+    found = _sensor(header, sensor, where)
+    word, unit = (8, "event") if dat else {"evt2": (4, "EVT 2.0 word"),
+                                          "evt21": (8, "EVT 2.1 word"),
+                                          "evt3": (2, "EVT 3.0 word")}[str(header.encoding)]
+    cut = words_cut(where, len(data), start, len(data) - start, word, unit)
+    if cut is not None:
+        if cut.whole_end == start:
+            raise nothing_whole(cut)
+        meta["truncated"] = report_cut(cut, strict=strict)
+        body = body[: cut.whole_end - header.length]
+    if dat:
         version = header.dat_version if header.dat_version is not None else 2
         meta["format"] = "dat"
         meta["dat_version"] = version
         meta["event_type"] = _decode_dat(body, version, where, cols)
     else:
-        if header.encoding not in RAW_ENCODINGS:
-            said = header.encoding or "nothing (no '% evt' or '% format' line)"
-            raise RecordingError(
-                f"{where}: the header gives the encoding as {said}; evcal reads EVT 2.0, "
-                "EVT 2.1 and EVT 3.0 RAW files", ErrorReason.MALFORMED)
-        found = _sensor(header, sensor, where)
         meta["format"] = header.encoding
         if header.encoding == "evt2":
             _decode_evt2(body, where, cols)

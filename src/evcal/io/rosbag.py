@@ -51,7 +51,10 @@ import numpy as np
 from ..errors import ErrorReason
 from ..events import EVENTS_DTYPE, SensorSize
 from ..recording import Frames, Recording, RecordingError
+from ._bag_partial import PartialBag, PartialBagError, partial_mcap_bag, scan_ros1
 from ._evcodecs import DecodedPacket, PacketDecoder, PayloadError, make_decoder
+from ._mcap_partial import mcap_is_whole, scan_mcap_prefix
+from ._partial import Cut, cut_in_header, nothing_whole, refuse_empty_file, report_cut
 from ._util import check_sensor_arg, file_head
 
 if TYPE_CHECKING:
@@ -134,7 +137,8 @@ def typestore(ros_version: int) -> Typestore:
 
 def is_ros2_mcap(path: str | os.PathLike[str]) -> bool:
     """True for an MCAP file of ROS 2 messages: profile ``ros2``, or else ``ros2msg`` /
-    ``ros2idl`` schemas or ``cdr`` channels (evcal's own MCAP has msgpack channels)."""
+    ``ros2idl`` schemas or ``cdr`` channels (evcal's own MCAP has msgpack channels; for a
+    file cut short, those of its whole records)."""
     try:
         with open(path, "rb") as f:
             head = f.read(8 + 1 + 8 + 4 + 16)
@@ -145,14 +149,19 @@ def is_ros2_mcap(path: str | os.PathLike[str]) -> bool:
                 return True
             from mcap.reader import make_reader
 
-            f.seek(0)
-            summary = make_reader(f).get_summary()
+            if mcap_is_whole(Path(path)):
+                f.seek(0)
+                summary = make_reader(f).get_summary()
+                if summary is None:
+                    return False
+                schemas, channels = summary.schemas.values(), summary.channels.values()
+            else:
+                prefix = scan_mcap_prefix(Path(path))
+                schemas, channels = prefix.schemas.values(), prefix.channels.values()
     except Exception:  # unreadable: the MCAP reader reports what is wrong
         return False
-    if summary is None:
-        return False
-    return (any(s.encoding in ("ros2msg", "ros2idl") for s in summary.schemas.values())
-            or any(c.message_encoding == "cdr" for c in summary.channels.values()))
+    return (any(s.encoding in ("ros2msg", "ros2idl") for s in schemas)
+            or any(c.message_encoding == "cdr" for c in channels))
 
 
 def is_rosbag(path: str | os.PathLike[str]) -> str | None:
@@ -183,6 +192,7 @@ class _Bag:
     ros_version: int
     storage: str
     readers: list[Any] = field(default_factory=list)  # rosbags Readers, opened
+    cuts: list[Cut] = field(default_factory=list)  # of the files read up to a cut
 
 
 def _open_reader(reader: Any, where: Path) -> Any:
@@ -221,8 +231,52 @@ def _ros2_folder(folder: Path) -> tuple[str, list[Path]]:
     return "", files
 
 
-def _open_bag(path: Path) -> _Bag:
+def _partial(reader: PartialBag, bag: _Bag, strict: bool, report: bool) -> PartialBag:
+    """A file read up to its cut: none of it whole is an error, else warn (or refuse)."""
+    if not reader.message_count:
+        raise nothing_whole(reader.cut)
+    if report:
+        report_cut(reader.cut, strict=strict)
+    bag.cuts.append(reader.cut)
+    return reader
+
+
+def _open_mcap_file(file: Path, bag: _Bag, strict: bool, report: bool) -> Any:
+    """One ROS 2 MCAP file: by ``rosbags`` when whole, else up to its cut."""
+    from rosbags.rosbag2 import Reader as Reader2
+
+    if mcap_is_whole(file):
+        return _open_reader(Reader2(file), file)
+    try:
+        prefix = scan_mcap_prefix(file)
+    except RecordingError as exc:
+        raise RosbagError(str(exc), exc.reason) from None
+    except Exception as exc:  # mcap and OS errors of a damaged file
+        raise RosbagError(f"{file}: cannot read as MCAP (corrupt file?): "
+                          f"{type(exc).__name__}: {exc}") from None
+    return _partial(partial_mcap_bag(prefix), bag, strict, report)
+
+
+def _open_ros1(path: Path, bag: _Bag, strict: bool, report: bool) -> Any:
+    """A ROS 1 bag: by ``rosbags`` when whole (indexed), else up to its cut."""
     from rosbags.rosbag1 import Reader as Reader1
+
+    try:
+        return _open_reader(Reader1(path), path)
+    except RosbagError as exc:
+        whole_error = exc  # no index where the header says: cut short, or corrupt
+    try:
+        scanned = scan_ros1(path)
+    except PartialBagError as exc:  # corrupt, not cut: both errors say so
+        raise RosbagError(f"{whole_error}; walking its records: {exc}") from None
+    if scanned is None:
+        raise whole_error
+    return _partial(scanned, bag, strict, report)
+
+
+def _open_bag(path: Path, strict: bool = False, report: bool = True) -> _Bag:
+    """The bag at ``path``, its files opened; a file cut short (a ROS 1 bag, a ROS 2 MCAP
+    file) is read up to its cut: warned about when ``report``, refused when ``strict``."""
     from rosbags.rosbag2 import Reader as Reader2
 
     if path.is_file() and path.name == "metadata.yaml":
@@ -231,32 +285,44 @@ def _open_bag(path: Path) -> _Bag:
         if not (path / "metadata.yaml").is_file():
             raise RosbagError(f"{path}: a folder without metadata.yaml is not a ROS 2 bag")
         storage, files = _ros2_folder(path)
-        if storage:
+        if storage == "sqlite3" or (storage == "mcap" and all(mcap_is_whole(f)
+                                                              for f in files)):
             return _Bag(path, 2, storage, [_open_reader(Reader2(path), path)])
         # an empty storage_identifier (the shared EventPacket bag): told by the files' suffix,
         # which the single-file reader goes by; files are read in metadata.yaml's order
-        bag = _Bag(path, 2, "mcap" if files[0].suffix == ".mcap" else "sqlite3")
+        # (so are the files of an MCAP bag with a file cut short)
+        bag = _Bag(path, 2, storage or ("mcap" if files[0].suffix == ".mcap" else "sqlite3"))
         try:
             for file in files:
-                bag.readers.append(_open_reader(Reader2(file), file))
+                bag.readers.append(_open_mcap_file(file, bag, strict, report)
+                                   if bag.storage == "mcap" else
+                                   _open_reader(Reader2(file), file))
         except BaseException:
             _close(bag)
             raise
         return bag
+    refuse_empty_file(path)
     try:
         with open(path, "rb") as f:
             head = f.read(16)
     except OSError as exc:
         raise RosbagError(f"{path}: cannot read: {exc}") from None
+    if 0 < len(head) < 13 and b"#ROSBAG V2.0\n".startswith(head):
+        raise cut_in_header(str(path), len(head), "the '#ROSBAG V2.0' line, cut")
     if head.startswith(ROS1_MAGIC):
-        return _Bag(path, 1, "rosbag1", [_open_reader(Reader1(path), path)])
+        bag = _Bag(path, 1, "rosbag1")
+        bag.readers.append(_open_ros1(path, bag, strict, report))
+        return bag
     for magic, suffix, storage in ((MCAP_MAGIC, ".mcap", "mcap"),
                                    (SQLITE_MAGIC, ".db3", "sqlite3")):
         if head.startswith(magic):
             if path.suffix != suffix:
                 raise RosbagError(f"{path}: a ROS 2 {storage} file must be named *{suffix} "
                                   "for the bag reader; rename it")
-            return _Bag(path, 2, storage, [_open_reader(Reader2(path), path)])
+            bag = _Bag(path, 2, storage)
+            bag.readers.append(_open_mcap_file(path, bag, strict, report) if storage == "mcap"
+                               else _open_reader(Reader2(path), path))
+            return bag
     raise RosbagError(f"{path}: not a ROS bag (neither #ROSBAG, the MCAP magic, an SQLite "
                       "database nor a folder with metadata.yaml)")
 
@@ -335,7 +401,7 @@ class BagMessage:
 def bag_topics(path: str | os.PathLike[str]) -> dict[str, str]:
     """Every topic of a bag and its type (:class:`RosbagError` for a bag that does not open
     or a topic carrying several types)."""
-    bag = _open_bag(Path(path))
+    bag = _open_bag(Path(path), report=False)
     try:
         topics = _topics(bag)
     finally:
@@ -346,16 +412,18 @@ def bag_topics(path: str | os.PathLike[str]) -> dict[str, str]:
     return {t: next(iter(types)) for t, types in topics.items()}
 
 
-def iter_bag_messages(path: str | os.PathLike[str], *, topics: set[str] | None = None
-                      ) -> Iterator[BagMessage]:
+def iter_bag_messages(path: str | os.PathLike[str], *, topics: set[str] | None = None,
+                      strict: bool = False) -> Iterator[BagMessage]:
     """The messages of a bag (of ``topics``, else all) in log-time order, each as CDR.
 
     A ROS 1 bag's messages are converted to their ROS 2 form (``rosbags``' ``ros1_to_cdr``
     with the ROS 2 types: a ``Header`` loses its ``seq``) for the types evcal knows (ROS 2
-    Humble's standard types and :data:`MSG_DEFINITIONS`). The bag is closed when the iterator
-    is exhausted or closed. Raises :class:`RosbagError`.
+    Humble's standard types and :data:`MSG_DEFINITIONS`). A bag file cut short gives its
+    whole messages in file order, after a :class:`~evcal.io.TruncatedRecordingWarning`
+    (``strict``: :class:`~evcal.io.TruncatedRecordingError`). The bag is closed when the
+    iterator is exhausted or closed. Raises :class:`RosbagError`.
     """
-    bag = _open_bag(Path(path))
+    bag = _open_bag(Path(path), strict)
     try:
         store = typestore(2) if bag.ros_version == 1 else None
         current = "the first message"
@@ -610,7 +678,8 @@ def _sorted_events(chunks: list[np.ndarray]) -> tuple[np.ndarray, int]:
 
 
 def read_rosbag(path: str | os.PathLike[str], *, sensor: SensorSize | None = None,
-                events_topic: str | None = None, frames_topic: str | None = None) -> Recording:
+                events_topic: str | None = None, frames_topic: str | None = None,
+                strict: bool = False) -> Recording:
     """Read events and frames of a ROS 1 or ROS 2 bag (see the module docstring).
 
     Parameters
@@ -622,6 +691,11 @@ def read_rosbag(path: str | os.PathLike[str], *, sensor: SensorSize | None = Non
         Checked against the size the messages declare; needed only when no message does.
     events_topic, frames_topic : str, optional
         The topic to read when the bag holds several of that kind (else the one there is).
+    strict : bool
+        Refuse a bag file cut short (:class:`~evcal.io.TruncatedRecordingError`) instead of
+        reading its whole messages with a :class:`~evcal.io.TruncatedRecordingWarning`. Cut
+        ROS 1 bags and ROS 2 MCAP files are read up to their last whole message (in file
+        order); a cut sqlite3 file is refused as corrupt whatever ``strict`` says.
 
     Returns
     -------
@@ -629,19 +703,22 @@ def read_rosbag(path: str | os.PathLike[str], *, sensor: SensorSize | None = Non
         ``metadata`` holds ``format`` ("rosbag1"/"rosbag2"), ``storage``, ``source``,
         ``events_topic``, ``events_type``, ``encoding``, ``frames_topic``,
         ``frame_encoding``, ``messages``, ``lost_messages``, ``seq_gaps``,
-        ``dropped_events``, ``reordered_events`` and ``trigger_events``.
+        ``dropped_events``, ``reordered_events``, ``trigger_events``, and ``truncated``
+        (where the file was cut) for a bag file cut short.
 
     Raises
     ------
     RosbagError
         (a :class:`~evcal.recording.RecordingError`) for a bag that does not open, ambiguous
         or missing topics, an unknown encoding, a truncated or malformed message (naming the
-        topic and the message index), or sizes that disagree.
+        topic and the message index), or sizes that disagree;
+        :class:`~evcal.io.EmptyRecordingError` for an empty file or one cut before its first
+        whole message.
     """
     path = Path(path)
     if not path.exists():
         raise RosbagError(f"{path}: no such file or directory")
-    bag = _open_bag(path)
+    bag = _open_bag(path, strict)
     try:
         return _read(bag, sensor, events_topic, frames_topic)
     finally:
@@ -744,6 +821,9 @@ def _read(bag: _Bag, sensor: SensorSize | None, events_topic: str | None,
     unit = getattr(decoder, "time_base_unit", None)
     if unit is not None:
         metadata["time_base_unit"] = unit
+    if bag.cuts:
+        cuts = [c.metadata() for c in bag.cuts]
+        metadata["truncated"] = cuts[0] if len(cuts) == 1 else cuts
     if stream.lost:
         warnings.warn(f"{bag.path}: {stream.lost} EventPacket messages lost on {ev_topic} "
                       f"({len(stream.seq_gaps)} seq gaps, first {stream.seq_gaps[0]})",
