@@ -60,18 +60,24 @@ def test_a_full_disk_stops_recording_cleanly_and_keeps_the_file_readable(tmp_pat
     cal = Calibration.uniform((48, 64), 0.2, 0.01, log_offset=30.0)
     status = {"latency_ms": {"last": 5.0}, "event_rate_hz": 1e5, "errors_total": 0}
     for k in range(5):
-        log._next_disk_check = 0.0  # check every call (normally once a second)
         log.updated("cam0", cal, k * 40_000, status)
     assert log.stopped is None
-    free["bytes"] = 10 << 20  # the disk fills up
+    free["bytes"] = 10 << 20  # the disk fills up: the next call sees it (no once-a-second)
     for k in range(5, 10):
-        log._next_disk_check = 0.0
         log.updated("cam0", cal, k * 40_000, status)
-    assert log.stopped is not None and "MiB free" in log.stopped
-    assert log.state()["recording"] is False
+    assert "MiB free" in (log.stopped or "")
+    state = log.state()
+    assert (state["recording"], state["reason"], state["complete"]) == (False, "disk_full",
+                                                                         True)
+    assert state["bytes"] == path.stat().st_size
     log.close()  # never raises, even after a stop
     ents = read_entities(path)  # what was written is complete and readable
     assert ents["/cameras/cam0/series/latency_ms"] == 5
+    rerun = shutil.which("rerun")
+    if rerun:
+        res = subprocess.run([rerun, "rrd", "verify", str(path)], capture_output=True,
+                             text=True, timeout=120)
+        assert res.returncode == 0, res.stdout + res.stderr
 
 
 def test_a_rerun_failure_stops_recording_never_the_caller(tmp_path):
@@ -83,7 +89,8 @@ def test_a_rerun_failure_stops_recording_never_the_caller(tmp_path):
 
     log.rec.log = broken  # every write fails from now on
     log.updated("cam0", cal, 0, {})
-    assert log.stopped is not None and "No space left" in log.stopped
+    assert "No space left" in (log.stopped or "")
+    assert log.state()["reason"] == "rerun_error"
     log.frame("cam0", 1, np.zeros((4, 5), np.uint8))  # ignored, no exception
     log.close()
 

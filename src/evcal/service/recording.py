@@ -28,6 +28,15 @@ an absolute timestamp, for cameras whose t_us is Unix time, as ROS stamps are) a
 ``wall_time``. Sinks: the file, plus a gRPC server a viewer connects to (``serve_port``) or
 a running viewer (``connect_url``).
 
+The file is always a valid ``.rrd``: rerun's file sink writes into a pipe, and
+:class:`_RrdFile` appends what comes out to the file in whole messages (rerun's own sink,
+writing to a full disk or past ``RLIMIT_FSIZE``, leaves the file cut mid-message and without
+its footer, which ``rerun rrd verify`` refuses). Before each call, :class:`RrdLogger` checks
+that the bytes the call may log, what rerun still holds and the footer (rerun's manifest of
+every chunk) fit under the file-size limit and in the free space; when they do not, it stops
+recording and lets rerun end the stream into the room it kept. That room is held on the disk
+by an unlinked reserve file, so that another process filling the disk cannot take it.
+
 File growth is bounded: maps and reconstructions at most once per ``map_period_s`` /
 ``recon_period_s`` of sensor time, and no more images once ``max_image_bytes`` were logged
 (a warning says so in the file); scalars at most every ``scalar_period_s`` (tens of bytes
@@ -37,13 +46,20 @@ appears.
 
 from __future__ import annotations
 
+import errno
 import itertools
 import logging
+import os
+import resource
 import shutil
+import signal
+import struct
+import tempfile
 import threading
 import time
 from collections.abc import Callable, Collection
 from dataclasses import dataclass
+from enum import Enum
 from pathlib import Path
 from typing import Any
 
@@ -147,13 +163,315 @@ def _disk_free(path: Path) -> int:
     return int(shutil.disk_usage(path).free)
 
 
+class StopReason(str, Enum):
+    """Why the recorder stopped (the ``reason`` of its state; stable strings)."""
+
+    DISK_FULL = "disk_full"  # less than min_free_bytes would be left on the disk
+    FILE_SIZE_LIMIT = "file_size_limit"  # the process's RLIMIT_FSIZE would be exceeded
+    WRITE_ERROR = "write_error"  # the file could not be written (an I/O error)
+    RERUN_ERROR = "rerun_error"  # rerun raised, timed out, or wrote what this cannot parse
+
+    def __str__(self) -> str:
+        return self.value
+
+
+# rerun 0.41's .rrd framing (re_log_encoding): a 12-byte stream header starting "RRF2", then
+# messages, each a 16-byte header (kind, payload length: u64 little-endian) and its payload;
+# kind 0 ends the stream and carries the footer (the manifest of every chunk, with byte
+# offsets into the stream), followed by a 32-byte trailer. A file is valid for `rerun rrd
+# verify` only with that end: it is written after the last message or not at all.
+_MAGIC = b"RRF2"
+_STREAM_HEADER = 12
+_MESSAGE_HEADER = struct.Struct("<QQ")
+_END = 0
+_TRAILER = 32
+_MAX_MESSAGE = 1 << 40  # a longer message means the bytes are not that framing
+_NO_LIMIT = 1 << 62
+# Bounds of what rerun writes, measured on rerun-sdk 0.41 (1 to 24 cameras) with margins of
+# 2x or more: the footer (its manifest has columns per entity and component) holds ~140 KiB
+# per camera plus ~100 bytes per message and ~26 more per camera; a camera logs about 30
+# entities (at most one pending message each when the stream ends); a row costs at most
+# 3.7 KiB beyond its arrays' bytes (alone in its message, three timelines); the blueprint,
+# re-sent when a camera appears, ~70 KiB per camera.
+_FOOTER_BYTES = 64 << 10
+_FOOTER_BYTES_PER_CAMERA = 256 << 10
+_FOOTER_BYTES_PER_MESSAGE = 256
+_FOOTER_BYTES_PER_MESSAGE_CAMERA = 64
+_BLUEPRINT_BYTES_PER_CAMERA = 128 << 10
+_ENTITIES_PER_CAMERA = 32
+_ROW_BYTES = 8 << 10
+_RESERVE_STEP = 1 << 20
+_RESERVE_SLACK = 64 << 10  # file-system blocks beyond the bytes a write needs
+
+
+def _file_size_limit() -> int:
+    """The process's RLIMIT_FSIZE in bytes (a huge number when unlimited); read at each
+    check, since ``prlimit`` can change it while the service runs."""
+    soft = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
+    return _NO_LIMIT if soft == resource.RLIM_INFINITY or soft < 0 else int(soft)
+
+
+def _ignore_sigxfsz() -> None:
+    """Make a write past RLIMIT_FSIZE fail with EFBIG instead of killing the process. CPython
+    ignores SIGXFSZ at start-up; a program embedding it may not, and only the main thread
+    may change it."""
+    sig = getattr(signal, "SIGXFSZ", None)
+    if sig is None or signal.getsignal(sig) == signal.SIG_IGN:
+        return
+    if threading.current_thread() is not threading.main_thread():
+        log.warning("SIGXFSZ is not ignored and the recorder was made outside the main thread: "
+                    "a write past the file-size limit would kill the process")
+        return
+    signal.signal(sig, signal.SIG_IGN)
+
+
+def _reason_of(exc: OSError) -> StopReason:
+    if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        return StopReason.DISK_FULL
+    if exc.errno == errno.EFBIG:
+        return StopReason.FILE_SIZE_LIMIT
+    return StopReason.WRITE_ERROR
+
+
+def _preallocate(fd: int, size: int) -> None:
+    """Make the file ``fd`` hold ``size`` bytes of disk (not sparse)."""
+    if hasattr(os, "posix_fallocate"):
+        os.posix_fallocate(fd, 0, size)
+        return
+    have = os.fstat(fd).st_size  # no posix_fallocate (macOS): zeros are as good
+    zeros = bytes(1 << 20)
+    while have < size:
+        have += os.pwrite(fd, zeros[:size - have], have)
+
+
+class _RrdFile:
+    """The ``.rrd`` on disk, fed by rerun's file sink through a pipe (``sink_path``).
+
+    A thread reads the pipe and appends whole units of rerun's framing (the stream header, one
+    message, or the end message with its trailer) to the file, so that the file always ends on
+    a message boundary: a write that fails (disk full, file too large) is cut back to the last
+    boundary, and from then on the pipe is read and discarded, so that rerun never blocks on
+    it. ``reserve`` holds disk space in an unlinked file beside the ``.rrd``; a write finding
+    the disk full takes its bytes from that reserve and tries again.
+    """
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        # O_EXCL: free_path() chose an unused name; never truncate a file that appeared since
+        self.fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL
+                          | getattr(os, "O_CLOEXEC", 0), 0o644)
+        self._read_fd, write_fd = os.pipe()
+        self._write_fd: int | None = write_fd
+        # rerun opens its own descriptor of the pipe by this name
+        fds = "/dev/fd" if os.path.isdir("/dev/fd") else "/proc/self/fd"
+        self.sink_path = f"{fds}/{write_fd}"
+        self.received = 0  # bytes read from the pipe
+        self.written = 0  # bytes in the file: whole units only
+        self.messages = 0  # messages in the file (the footer grows with them)
+        self.complete = False  # the end and trailer are written: `rerun rrd verify` accepts it
+        self.failure: tuple[StopReason, str] | None = None
+        self._buf = bytearray()
+        self._unit: int | None = _STREAM_HEADER  # bytes of the next unit (None: not known yet)
+        self._unit_is_end = False
+        self._reserve_lock = threading.Lock()
+        self._reserve: Any = None  # the unlinked reserve file, made on first use
+        self.reserved = 0
+        self._reserve_broken = False
+        self._reading = True  # the read end is open
+        self._done = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="evcal-rrd-writer", daemon=True)
+        self._thread.start()
+
+    def sink_opened(self) -> None:
+        """Rerun holds its own descriptor of the pipe: the stream ends when rerun closes it."""
+        if self._write_fd is not None:
+            os.close(self._write_fd)
+            self._write_fd = None
+
+    # -- the writer thread -----------------------------------------------------------------
+
+    def _run(self) -> None:
+        try:
+            while True:
+                try:
+                    data = os.read(self._read_fd, 1 << 20)
+                except OSError as exc:
+                    self._fail(StopReason.WRITE_ERROR, f"cannot read rerun's stream: {exc}")
+                    return
+                if not data:
+                    return  # rerun closed the stream
+                self.received += len(data)
+                if self.failure is not None or self.complete:
+                    continue  # read and dropped: rerun must never block on a full pipe
+                try:
+                    self._feed(data)
+                except Exception as exc:  # noqa: BLE001 - the thread keeps draining the pipe
+                    self._fail(StopReason.WRITE_ERROR,
+                               f"writing {self.path} failed ({type(exc).__name__}: {exc})")
+        finally:
+            # a writer that gave up unblocks rerun too: its writes now fail with EPIPE
+            self._reading = False
+            os.close(self._read_fd)
+            self._done.set()
+
+    def _feed(self, data: bytes) -> None:
+        buf = self._buf
+        buf += data
+        while True:
+            if self._unit is None:
+                if len(buf) < _MESSAGE_HEADER.size:
+                    return
+                kind, length = _MESSAGE_HEADER.unpack_from(buf)
+                if length > _MAX_MESSAGE:
+                    self._fail(StopReason.RERUN_ERROR, self._not_rrd(
+                        f"a message header says {length} bytes"))
+                    return
+                self._unit_is_end = kind == _END
+                self._unit = _MESSAGE_HEADER.size + length + (_TRAILER if kind == _END else 0)
+            if len(buf) < self._unit:
+                return
+            if self.written == 0 and bytes(buf[:4]) != _MAGIC:
+                self._fail(StopReason.RERUN_ERROR, self._not_rrd(
+                    f"the stream starts with {bytes(buf[:4])!r}, not {_MAGIC!r}"))
+                return
+            unit, is_message = buf[:self._unit], self.written > 0
+            del buf[:self._unit]
+            self._unit = None
+            if not self._append(unit):
+                return
+            if self._unit_is_end:
+                self.complete = True
+                return
+            self.messages += is_message
+
+    def _not_rrd(self, what: str) -> str:
+        return (f"rerun-sdk {rr.__version__} wrote a stream this recorder cannot frame ({what}; "
+                "expected rerun 0.41's .rrd framing): recording stopped")
+
+    def _append(self, unit: bytearray) -> bool:
+        """Write ``unit`` at the end of the file; on failure cut the file back to where it
+        was and record why."""
+        start, done = self.written, 0
+        while done < len(unit):
+            try:
+                done += os.pwrite(self.fd, unit[done:], start + done)
+            except OSError as exc:
+                if (exc.errno in (errno.ENOSPC, errno.EDQUOT)
+                        and self._take_reserve(len(unit) - done)):
+                    continue  # the reserve was kept for these bytes
+                try:
+                    os.ftruncate(self.fd, start)
+                except OSError:  # noqa: S110 - nothing more to do; the failure says why
+                    pass
+                self._fail(_reason_of(exc), f"cannot write {self.path} ({exc.strerror}) at "
+                           f"{start} bytes: the file ends at its last whole message, without "
+                           "rerun's footer")
+                return False
+        self.written = start + len(unit)
+        return True
+
+    def _fail(self, reason: StopReason, message: str) -> None:
+        if self.failure is None:
+            self.failure = (reason, message)
+            log.error("rerun recording: %s", message)
+
+    # -- disk reserve ------------------------------------------------------------------------
+
+    def reserve(self, nbytes: int) -> bool:
+        """Hold ``nbytes`` of disk beside the file (in whole MiB, at most 2 MiB more): given to
+        writes that find the disk full, and back to the disk at close; False when the disk
+        has not that much."""
+        step = -(-nbytes // _RESERVE_STEP) * _RESERVE_STEP
+        with self._reserve_lock:
+            if self._reserve_broken:
+                return True
+            if self._reserve is not None and step + _RESERVE_STEP < self.reserved:
+                try:  # the promise shrank (rerun flushed): give the excess back
+                    os.ftruncate(self._reserve.fileno(), step)
+                    self.reserved = step
+                except OSError:  # noqa: S110 - keeping more than needed is harmless
+                    pass
+            if nbytes <= self.reserved:
+                return True
+            try:
+                if self._reserve is None:
+                    self._reserve = tempfile.TemporaryFile(  # noqa: SIM115 - closed in close()
+                        dir=self.path.parent, prefix=".evcal-rrd-reserve-")
+                for size in (step, nbytes):
+                    try:
+                        _preallocate(self._reserve.fileno(), size)
+                    except OSError as exc:
+                        if exc.errno not in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG):
+                            raise
+                        continue
+                    self.reserved = size
+                    return True
+                return False
+            except OSError as exc:
+                # a file system that cannot preallocate: record on, without the reserve
+                self._reserve_broken = True
+                log.warning("rerun recording: cannot reserve disk space beside %s (%s): a "
+                            "disk filled by another process may leave the file without its "
+                            "footer", self.path, exc)
+                return True
+
+    def _take_reserve(self, nbytes: int) -> bool:
+        """Give ``nbytes`` of the reserve back to the disk; False when it is empty."""
+        with self._reserve_lock:
+            if self._reserve is None or self.reserved == 0:
+                return False
+            self.reserved = max(0, self.reserved - nbytes - _RESERVE_SLACK)
+            try:
+                os.ftruncate(self._reserve.fileno(), self.reserved)
+            except OSError:
+                return False
+            return True
+
+    # -- end -------------------------------------------------------------------------------
+
+    def pending(self) -> int:
+        """Bytes rerun wrote into the pipe that this has not read yet."""
+        if not self._reading:
+            return 0
+        try:
+            import fcntl  # noqa: PLC0415 - Unix only, like the pipe
+            import termios  # noqa: PLC0415
+
+            n = bytearray(4)
+            fcntl.ioctl(self._read_fd, termios.FIONREAD, n)
+            return int.from_bytes(n, "little")
+        except (OSError, ImportError):
+            return 64 << 10  # a pipe's default capacity
+
+    def wait(self, timeout_s: float) -> bool:
+        """Wait until rerun closed the stream and all of it was handled."""
+        return self._done.wait(max(0.0, timeout_s))
+
+    def close(self) -> None:
+        """Release the reserve and the descriptors. A writer thread still running (a disk
+        that does not answer) keeps its descriptor: closing it under the thread could let a
+        later write land in whatever file reuses the number."""
+        self.sink_opened()
+        with self._reserve_lock:
+            if self._reserve is not None:
+                self._reserve.close()
+                self._reserve = None
+                self.reserved = 0
+        if self._done.is_set() and self.fd >= 0:
+            os.close(self.fd)
+            self.fd = -1
+
+
 class RrdLogger:
     """Writes one ``.rrd`` per service run; implements :class:`evcal.service.core.Observer`.
 
     It never overwrites a file (a restart writes ``run.1.rrd`` beside ``run.rrd``) and never
-    fails the service: when the disk gets short (less than ``min_free_bytes`` free) or rerun
-    raises, it logs why, finishes the file so that what was written stays readable, and
-    stops recording (``state()`` says so, the service's ``cameras`` reply shows it).
+    fails the service. Before each call that logs, it checks that what the call may log, what
+    rerun still holds and the footer fit under the process's file-size limit and in the free
+    space (keeping ``min_free_bytes`` free); when they do not, or rerun raises, it logs why,
+    finishes the file (a valid ``.rrd``, footer included) and stops recording: ``state()``
+    says why (``reason``), and the service's ``cameras`` reply shows it. Finishing never
+    takes longer than ``finish_timeout_s``.
     """
 
     def __init__(self, path: str | Path, *, map_period_s: float = 2.0,
@@ -162,6 +480,7 @@ class RrdLogger:
                  max_recon_events: int = 5_000_000, recording_id: str | None = None,
                  min_free_bytes: int = 64 << 20,
                  disk_free: Callable[[Path], int] = _disk_free,
+                 max_unflushed_bytes: int = 4 << 20, finish_timeout_s: float = 3.0,
                  truth: dict[str, tuple[np.ndarray, np.ndarray]] | None = None,
                  serve_port: int | None = None, connect_url: str | None = None,
                  app_id: str = APP_ID, started: str = "evcal service started"):
@@ -171,8 +490,13 @@ class RrdLogger:
             log.warning("%s exists: this run records to %s", self.requested_path, self.path)
         self.min_free_bytes = int(min_free_bytes)
         self._disk_free = disk_free
-        self._next_disk_check = 0.0
+        # bytes logged since rerun was last flushed (an upper bound), and rerun's output then
+        self.max_unflushed_bytes = int(max_unflushed_bytes)
+        self._unflushed = 0
+        self._flushed_at = 0
+        self.finish_timeout_s = float(finish_timeout_s)
         self.stopped: str | None = None  # why recording stopped, None while it records
+        self.reason: StopReason | None = None
         self.errors = 0
         self.map_period_us = int(map_period_s * 1e6)
         self.recon_period_us = int(recon_period_s * 1e6)
@@ -184,21 +508,35 @@ class RrdLogger:
         self._images_stopped = False
         self._cams: dict[str, _CameraLog] = {}
         self._lock = threading.Lock()
+        self._finish_lock = threading.Lock()
+        self._finished = False
+        self._closed = False
         # camera -> (true c, true b) maps: error maps and c/b MAE curves are logged for them
         self.truth = {k: (np.asarray(c, np.float64), np.asarray(b, np.float64))
                       for k, (c, b) in (truth or {}).items()}
-        self.rec = rr.RecordingStream(app_id, recording_id=recording_id)
+        _ignore_sigxfsz()
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        sinks: list[Any] = [rr.FileSink(str(self.path))]
+        self._file = _RrdFile(self.path)
+        self.rec = rr.RecordingStream(app_id, recording_id=recording_id)
+        sinks: list[Any] = [rr.FileSink(self._file.sink_path)]
         if serve_port is not None:  # a viewer connects: rerun --connect rerun+http://...
             sinks.append(rr.GrpcServerSink(port=int(serve_port)))
         if connect_url is not None:  # a running viewer
             sinks.append(rr.GrpcSink(connect_url))
         self.serve_port = serve_port
-        self.rec.set_sinks(*sinks, default_blueprint=make_blueprint([]))
-        self._set_time(None)
-        self.rec.log("service", rr.TextLog(started, level="INFO"))
-        self._closed = False
+        try:
+            self.rec.set_sinks(*sinks, default_blueprint=make_blueprint([]))
+        except BaseException:
+            self._file.sink_opened()
+            self._file.wait(self.finish_timeout_s)
+            self._file.close()
+            if self._file.written == 0:
+                self.path.unlink(missing_ok=True)
+            raise
+        self._file.sink_opened()
+        if self._room_for(len(started) + _ROW_BYTES):
+            self._set_time(None)
+            self.rec.log("service", rr.TextLog(started, level="INFO"))
 
     # -- helpers ---------------------------------------------------------------------------
 
@@ -210,57 +548,148 @@ class RrdLogger:
         self.rec.set_time("wall_time", timestamp=time.time())
 
     def state(self) -> dict[str, Any]:
-        """Where and whether it records (for the service's ``cameras`` reply)."""
+        """Where and whether it records (for the service's ``cameras`` reply): ``reason`` is
+        a :class:`StopReason` code once stopped, ``bytes`` the file's size, ``complete``
+        whether the file has its footer (after the stop or the close)."""
         return {"path": str(self.path), "recording": self.stopped is None,
-                "stopped": self.stopped, "errors": self.errors,
-                "image_bytes": self.image_bytes}
+                "stopped": self.stopped,
+                "reason": str(self.reason) if self.reason is not None else None,
+                "errors": self.errors, "image_bytes": self.image_bytes,
+                "bytes": self._file.written, "complete": self._file.complete}
 
-    def _disk_ok(self) -> bool:
-        """False (and recording stopped) when the disk is nearly full; checked at most once
-        a second."""
-        now = time.monotonic()
-        if now < self._next_disk_check:
-            return True
-        self._next_disk_check = now + 1.0
-        free = self._disk_free(self.path.parent)
-        if free < self.min_free_bytes:
-            self.stop(f"the disk holding {self.path} has {free >> 20} MiB free, less than "
-                      f"{self.min_free_bytes >> 20} MiB: recording stopped, the file so far is "
-                      "complete")
+    def _footer_bytes(self, cameras: int) -> int:
+        """An upper bound of what rerun writes when the stream of ``cameras`` cameras ends:
+        the messages it may still batch (one per entity), the end message and the footer."""
+        messages = self._file.messages + _ENTITIES_PER_CAMERA * (cameras + 1)
+        per_message = _FOOTER_BYTES_PER_MESSAGE + _FOOTER_BYTES_PER_MESSAGE_CAMERA * cameras
+        return _FOOTER_BYTES + _FOOTER_BYTES_PER_CAMERA * cameras + per_message * messages
+
+    def _room_for(self, nbytes: int, *, new_camera: bool = False) -> bool:
+        """Whether a call logging at most ``nbytes`` fits, with everything rerun may
+        still write after it, under the file-size limit and in the free space (keeping
+        ``min_free_bytes``), and the disk space for it is reserved; otherwise recording stops.
+        Near the limit rerun is flushed first, so that only its real backlog counts. A new
+        camera widens the footer of every message already written."""
+        f = self._file
+        if f.failure is not None:
+            self.errors += 1
+            self.stop(*f.failure)
             return False
+        need = nbytes
+        if self._held() + need > self.max_unflushed_bytes and not self._flush():
+            return False
+        while True:
+            promised = (f.pending() + self._held() + need
+                        + self._footer_bytes(len(self._cams) + new_camera))
+            limit = _file_size_limit()
+            if f.received + promised > limit:
+                why = (StopReason.FILE_SIZE_LIMIT,
+                       f"{self.path} would pass the file-size limit of {limit} bytes "
+                       f"(RLIMIT_FSIZE; {f.written} written): recording stopped, the file is "
+                       "finished and readable")
+            else:
+                free = self._disk_free(self.path.parent)
+                # min_free_bytes stay free once all that is promised is written; the reserve is
+                # ours, and follows the promise (a disk others filled stops recording at once)
+                if (free + f.reserved - promised >= self.min_free_bytes
+                        and f.reserve(promised)):
+                    self._unflushed += need
+                    return True
+                why = (StopReason.DISK_FULL,
+                       f"the disk holding {self.path} has {max(0, free) >> 20} MiB free (and "
+                       f"{f.reserved >> 10} KiB this recorder reserved), and recording on "
+                       f"needs {promised >> 10} KiB while keeping "
+                       f"{self.min_free_bytes >> 20} MiB free: recording stopped, the file is "
+                       "finished and readable")
+            if self._held() == 0:
+                break
+            if not self._flush():  # what rerun really holds, then judge again
+                return False
+        self.stop(*why)
+        return False
+
+    def _held(self) -> int:
+        """An upper bound of the bytes rerun holds: those logged since the last flush less
+        what it wrote since (in order: all of it came from those calls)."""
+        f = self._file
+        return max(0, self._unflushed - (f.received + f.pending() - self._flushed_at))
+
+    def _flush(self) -> bool:
+        """Flush rerun's batches into the file (bounded); a timeout stops recording."""
+        try:
+            self.rec.flush(timeout_sec=self.finish_timeout_s)
+        except Exception as exc:  # noqa: BLE001 - rerun's timeout error has no public type
+            self.errors += 1
+            self.stop(StopReason.RERUN_ERROR, f"rerun did not flush within "
+                      f"{self.finish_timeout_s:g} s ({exc}): recording stopped")
+            return False
+        self._unflushed = 0
+        self._flushed_at = self._file.received + self._file.pending()
         return True
 
-    def stop(self, reason: str) -> None:
+    def stop(self, reason: StopReason, message: str) -> None:
         """Stop recording for good, finishing the file (never raises)."""
-        if self.stopped is not None:
-            return
-        self.stopped = reason
-        log.error("rerun recording: %s", reason)
-        try:
-            self._set_time(None)
-            self.rec.log("service", rr.TextLog(reason, level="ERROR"))
-        except Exception:  # noqa: BLE001 - stopping anyway
-            pass
+        with self._finish_lock:
+            if self.stopped is not None:
+                return
+            self.stopped, self.reason = message, reason
+        log.error("rerun recording: %s", message)
+        if self._file.failure is None:  # the file still takes messages: say why it ends
+            try:
+                self._set_time(None)
+                self.rec.log("service", rr.TextLog(message, level="ERROR"))
+            except Exception:  # noqa: BLE001, S110 - stopping anyway
+                pass
         self._finish()
 
     def _finish(self) -> None:
-        try:
-            self.rec.flush()
-            self.rec.disconnect()
-        except Exception as exc:  # noqa: BLE001 - the file so far is what it is
-            self.errors += 1
-            log.error("rerun recording: cannot finish %s: %s", self.path, exc)
+        """Let rerun end the stream (its last batches, then the footer) and wait for that to
+        reach the file, ``finish_timeout_s`` at most: shutdown never waits on a stuck disk."""
+        with self._finish_lock:
+            if self._finished:
+                return
+            self._finished = True
+        deadline = time.monotonic() + self.finish_timeout_s
 
-    def _guard(self, fn: Callable[..., None], *args: Any) -> None:
-        """Run one observer call unless stopped; a failure stops recording, never the
-        service."""
-        if self.stopped is not None or self._closed or not self._disk_ok():
+        def end() -> None:
+            try:
+                self.rec.flush(timeout_sec=self.finish_timeout_s)
+                self.rec.disconnect()  # drops the file sink: it writes the footer and closes
+            except Exception as exc:  # noqa: BLE001 - reported, the file is what it is
+                self.errors += 1
+                log.error("rerun recording: cannot finish %s: %s", self.path, exc)
+
+        ender = threading.Thread(target=end, name="evcal-rrd-finish", daemon=True)
+        ender.start()
+        ender.join(self.finish_timeout_s)
+        if not self._file.wait(deadline - time.monotonic()):
+            self.errors += 1
+            log.error("rerun recording: %s not finished within %g s; it ends at its last "
+                      "whole message, without rerun's footer", self.path, self.finish_timeout_s)
+        elif not self._file.complete and self._file.failure is None:
+            self.errors += 1
+            log.error("rerun recording: rerun ended %s without its footer", self.path)
+        self._file.close()
+
+    def _guard(self, nbytes: int | None, fn: Callable[..., None], *args: Any,
+               new_camera: bool = False) -> None:
+        """Run one observer call that logs at most ``nbytes`` (None: logs nothing)
+        unless stopped or out of room; a failure stops recording, never the service."""
+        if self.stopped is not None or self._closed:
+            return
+        if nbytes is None:
+            if self._file.failure is not None:
+                self.errors += 1
+                self.stop(*self._file.failure)
+                return
+        elif not self._room_for(nbytes, new_camera=new_camera):
             return
         try:
             fn(*args)
-        except Exception as exc:  # noqa: BLE001 - disk full, rerun errors
+        except Exception as exc:  # noqa: BLE001 - rerun errors
             self.errors += 1
-            self.stop(f"recording failed ({type(exc).__name__}: {exc}); stopped")
+            self.stop(StopReason.RERUN_ERROR,
+                      f"recording failed ({type(exc).__name__}: {exc}); stopped")
 
     def _image_budget(self, nbytes: int, camera: str) -> bool:
         with self._lock:
@@ -304,7 +733,7 @@ class RrdLogger:
     # -- Observer --------------------------------------------------------------------------
 
     def events(self, camera: str, events: np.ndarray) -> None:
-        self._guard(self._events, camera, events)
+        self._guard(None, self._events, camera, events)  # counted, logged at a frame
 
     def _events(self, camera: str, events: np.ndarray) -> None:
         cl = self._cams.get(camera)
@@ -319,7 +748,11 @@ class RrdLogger:
                 cl.event_counts[1] += np.bincount(flat[~on], minlength=n)
 
     def frame(self, camera: str, t_us: int, image: np.ndarray) -> None:
-        self._guard(self._frame, camera, t_us, image)
+        cl = self._cams.get(camera)
+        # at most the ON/OFF image (RGB), three reconstructions (uint8), three PSNRs, a warning
+        nbytes = (None if cl is None else 3 * cl.shape[0] * cl.shape[1] + 3 * int(image.size)
+                  + 8 * _ROW_BYTES)
+        self._guard(nbytes, self._frame, camera, t_us, image)
 
     def _frame(self, camera: str, t_us: int, image: np.ndarray) -> None:
         cl = self._cams.get(camera)
@@ -367,7 +800,15 @@ class RrdLogger:
 
     def updated(self, camera: str, cal: Calibration, t_us: int, status: dict[str, Any]
                 ) -> None:
-        self._guard(self._updated, camera, cal, t_us, status)
+        # at most 6 series and a warning; when maps are due 6 float32 maps, their uint8 masks,
+        # the special map and 2 histograms; for a new camera the blueprint and its static rows
+        cl = self._cams.get(camera)
+        maps = (cl is None or cl.last_map_t_us is None
+                or t_us - cl.last_map_t_us >= self.map_period_us)
+        nbytes = (7 + 15 * maps) * _ROW_BYTES + 31 * int(cal.contrast.size) * maps
+        if cl is None:
+            nbytes += 9 * _ROW_BYTES + _BLUEPRINT_BYTES_PER_CAMERA * (len(self._cams) + 1)
+        self._guard(nbytes, self._updated, camera, cal, t_us, status, new_camera=cl is None)
 
     def _updated(self, camera: str, cal: Calibration, t_us: int, status: dict[str, Any]
                  ) -> None:
@@ -455,7 +896,9 @@ class RrdLogger:
                           "frames or events); the open reconstruction was abandoned")
 
     def note(self, camera: str, text: str, level: str = "WARN") -> None:
-        self._guard(self._note, camera, text, level)
+        # a TextLog row when the camera is known, nothing otherwise
+        nbytes = 4 * len(text) + _ROW_BYTES if camera in self._cams else None
+        self._guard(nbytes, self._note, camera, text, level)
 
     def _note(self, camera: str, text: str, level: str) -> None:
         if camera in self._cams:
@@ -463,19 +906,22 @@ class RrdLogger:
             self.rec.log(entity(camera, "log"), rr.TextLog(text, level=level))
 
     def close(self) -> None:
-        """Flush and finish the file (footer included): the ``.rrd`` is complete after this.
-        Never raises."""
+        """Flush and finish the file (footer included): the ``.rrd`` is complete after this,
+        within ``finish_timeout_s``. Never raises."""
         if self._closed:
             return
         self._closed = True
         if self.stopped is not None:
             return  # already finished
-        try:
-            self._set_time(None)
-            self.rec.log("service", rr.TextLog("evcal service stopped", level="INFO"))
-        except Exception:  # noqa: BLE001
-            self.errors += 1
+        if self._file.failure is None:  # its room is in the footer's reserve
+            try:
+                self._set_time(None)
+                self.rec.log("service", rr.TextLog("evcal service stopped", level="INFO"))
+            except Exception:  # noqa: BLE001
+                self.errors += 1
         self._finish()
+        if self._file.failure is not None:
+            self.stopped, self.reason = self._file.failure[1], self._file.failure[0]
 
 
 def write_review(path: str | Path, rec: Recording, cal: Calibration, *,
