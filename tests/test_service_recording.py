@@ -114,6 +114,45 @@ def _mask_of(path, entity_suffix):
     return found
 
 
+def test_histograms_are_bars_as_wide_as_their_bins(tmp_path):
+    """The c and b histograms are read back with one bar per bin, centred on the bin, as
+    wide as the bin (in the map's units): bars that do not overlap."""
+    from rerun.chunk import RrdReader
+
+    rng = np.random.default_rng(2)
+    shape = (30, 40)
+    cal = Calibration.uniform(shape, 0.2, 0.01, log_offset=30.0).replace(
+        contrast=(0.2 + 0.02 * rng.standard_normal(shape)).astype(np.float32),
+        bias=(0.01 * rng.standard_normal(shape)).astype(np.float32),
+        valid=np.ones(shape, bool))
+    path = tmp_path / "h.rrd"
+    log = RrdLogger(path, map_period_s=0.0, scalar_period_s=0.0)
+    log.updated("cam0", cal, 1_000_000, {})
+    log.close()
+    reader = RrdReader(str(path))
+    seen = {}
+    for store in reader.recordings():
+        for chunk in reader.stream(store=store).collect().stream():
+            name = str(chunk.entity_path)
+            if not name.startswith("/cameras/cam0/hist/"):
+                continue
+            rb = chunk.to_record_batch()
+            cols = {c.split(":")[-1]: rb.column(c).to_pylist()[-1]
+                    for c in rb.schema.names if c.startswith("BarChart:")}
+            seen[name.rsplit("/", 1)[-1]] = cols
+    assert set(seen) == {"contrast", "bias"}
+    for name, values in (("contrast", cal.contrast), ("bias", cal.bias)):
+        cols = seen[name]
+        x = np.asarray(cols["abscissa"][0]["buffer"], np.float64)
+        w = np.asarray(cols["widths"], np.float64).ravel()
+        counts = np.asarray(cols["values"][0]["buffer"], np.float64)
+        assert x.size == w.size == counts.size == 50
+        np.testing.assert_allclose(np.diff(x), w[:-1], rtol=1e-4)  # touching, not overlapping
+        assert w.max() < 0.5 * (x[-1] - x[0]) / 10  # far narrower than a unit-wide bar
+        assert counts.sum() == values.size
+        assert x[0] - w[0] / 2 <= values.min() and values.max() <= x[-1] + w[-1] / 2
+
+
 def test_series_each_in_one_view_of_its_own_scale():
     """Every logged series is in exactly one view (valid_fraction used to be in none) and
     rates, latencies, fractions and dB do not share an axis."""

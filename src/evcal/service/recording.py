@@ -883,8 +883,11 @@ class RrdLogger:
             lo, hi = rng
             pad = 0.25 * (hi - lo)
             counts, edges = np.histogram(values, bins=50, range=(lo - pad, hi + pad))
+            # each bar as wide as its bin, on the map's own axis (without widths the viewer
+            # draws every bar 1 unit wide: bins 0.007 apart overlap into one block)
             self.rec.log(entity(camera, "hist", name), rr.BarChart(
-                counts.astype(np.float64), abscissa=0.5 * (edges[:-1] + edges[1:])))
+                counts.astype(np.float64), abscissa=0.5 * (edges[:-1] + edges[1:]),
+                widths=np.diff(edges).astype(np.float32)))
 
     def discard(self, camera: str, dropped: int) -> None:
         """The service dropped ``dropped`` calls of ``camera`` (this recorder fell behind): an
