@@ -24,7 +24,8 @@ import time
 from typing import Any
 
 from evcal.events import SensorSize
-from evcal.gap.workflow import GapConfig, run_gap
+from evcal.gap.workflow import GapConfig, n_simulations, run_gap
+from evcal.progress import Progress
 from evcal.sim.effects import (
     Bandwidth,
     HotPixels,
@@ -92,10 +93,28 @@ def _speed_case(name: str, path: str, out: Any) -> None:
 
     from evcal.io import open_recording  # noqa: PLC0415
 
+
     rec = open_recording(path)
+    cfg = GapConfig()
+    # the estimates of the whole run's duration that `evcal gap` would show: its first line
+    # (10 s in) and at a quarter of the run (found afterwards from the samples)
+    prog = Progress(n_simulations(cfg), "gap", unit="simulations", quiet=True, skip_first=True)
+    samples: list[tuple[float, float]] = []  # (elapsed, estimated total)
+
+    def tick(work: float) -> None:
+        prog.update(work)
+        first = prog._first  # noqa: SLF001 - the rate's start, as Progress.line takes it
+        now = time.perf_counter() - t0
+        if first is not None and prog.done > first[1] and prog.total is not None:
+            rate = (prog.done - first[1]) / max(time.monotonic() - first[0], 1e-9)
+            samples.append((now, now + (prog.total - prog.done) / rate))
+
     t0 = time.perf_counter()
-    res = run_gap(rec, GapConfig())
+    res = run_gap(rec, cfg, progress=tick, plan=prog.plan)
     dt = time.perf_counter() - t0
+
+    def estimate_at(at_s: float) -> float:
+        return next((est for el, est in samples if el >= at_s), float("nan"))
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     h, w = rec.sensor.shape
     win = res.recording_info["window"]
@@ -105,7 +124,8 @@ def _speed_case(name: str, path: str, out: Any) -> None:
              "gap": (res.initial.gap, res.final.gap), "peak_mib": peak,
              "s_per_mevent": dt / max(rec.n_events / 1e6, 1e-9),
              "s_per_mpix_s": dt / (h * w / 1e6 * rec.duration_s),
-             "window_frames": f"{win['frames']}/{win['of_frames']}"})
+             "window_frames": f"{win['frames']}/{win['of_frames']}",
+             "eta_first_s": estimate_at(10.0), "eta_quarter_s": estimate_at(0.25 * dt)})
 
 
 def speed(cases: list[str]) -> int:
@@ -115,8 +135,9 @@ def speed(cases: list[str]) -> int:
     print(f"load average before: {os.getloadavg()[0]:.2f} (1 min), "
           f"{os.cpu_count()} cores")
     print("| case | sensor | duration | events | analysed frames | simulations | wall | "
-          "s / M events | s / megapixel-second | peak memory | named | gap |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "s / M events | s / megapixel-second | peak memory | named | gap | "
+          "duration estimated at 10 s / at a quarter |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     import tempfile  # noqa: PLC0415
     from pathlib import Path  # noqa: PLC0415
 
@@ -144,7 +165,8 @@ def speed(cases: list[str]) -> int:
               f"{r['window_frames']} | {r['simulations']} | {r['seconds']:.0f} s | "
               f"{r['s_per_mevent']:.1f} | {r['s_per_mpix_s']:.1f} | "
               f"{r['peak_mib']:.0f} MiB | {', '.join(r['named']) or 'none'} | "
-              f"{r['gap'][0]:.1f} -> {r['gap'][1]:.1f} |", flush=True)
+              f"{r['gap'][0]:.1f} -> {r['gap'][1]:.1f} | {r['eta_first_s']:.0f} s / "
+              f"{r['eta_quarter_s']:.0f} s |", flush=True)
     tmp.cleanup()
     return 0
 

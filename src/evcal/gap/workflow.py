@@ -785,8 +785,11 @@ def n_simulations(cfg: GapConfig, rounds: int | None = None, band_share: float =
         cands = max(k - i, 0)
         total += cands * screen + cfg.confirm_top * confirm
         if i < n_rounds - 1:
-            # the named effect: bias correction (on every seed), refinement (screened)
-            total += 2 * full + 2 * screen
+            # the named effect: bias correction (its steps on the band with every seed, the
+            # corrected value on the whole sensor), refinement (three screenings)
+            debias = _Runner.DEBIAS_STEPS * full if band_share >= 1.0 else \
+                _Runner.DEBIAS_STEPS * (cfg.n_seeds + ANCHOR_SIMS - 1) * band_share + full
+            total += debias + 3 * screen
     return total
 
 
