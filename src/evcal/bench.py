@@ -162,6 +162,31 @@ def bench_onei(sensor: SensorSize, n_frames: int, events_per_frame: int,
             "feed_events_per_s": float(cuts[-1] / t_feed)}
 
 
+def bench_streaming_offe(sensor: SensorSize, n_events: int, chunk_events: int = 100_000
+                         ) -> dict[str, float]:
+    """The events-only estimator of the service (:class:`evcal.offe.StreamingOffE`): events
+    per second fed in chunks of ``chunk_events`` (a service message's size), and the time of
+    one set of maps (:meth:`~evcal.offe.StreamingOffE.calibration`), over 10 s of random
+    events."""
+    from .offe import StreamingOffE  # noqa: PLC0415
+
+    ev = random_events(sensor, n_events, 10_000_000)
+    chunks = [ev[i : i + chunk_events] for i in range(0, ev.size, chunk_events)]
+    est = StreamingOffE(sensor)
+
+    def feed() -> None:
+        fresh = StreamingOffE(sensor)
+        for c in chunks:
+            fresh.feed_events(c)
+        nonlocal est
+        est = fresh
+
+    t_feed = _best(feed, 2)
+    t_maps = _best(est.calibration, 2)
+    return {"events_per_s": n_events / t_feed, "maps_s": t_maps,
+            "state_MiB": sum(a.nbytes for a in est.state_dict().values()) / 2**20}
+
+
 def run_bench(*, quick: bool = False, progress: bool = True) -> dict[str, Any]:
     """All figures; ``quick`` shrinks the sizes for smoke runs."""
     out: dict[str, Any] = {}
@@ -215,6 +240,13 @@ def run_bench(*, quick: bool = False, progress: bool = True) -> dict[str, Any]:
         out[f"onei_memory_MiB_per_megapixel ({sensor}, buffer and state)"] = round(
             r["state_MiB_per_Mpx"], 1)
         out[f"onei_feed_Mev_per_s ({sensor})"] = round(r["feed_events_per_s"] / 1e6, 1)
+    n_eo = 2_000_000 if quick else 20_000_000
+    say(f"streaming OffE (events-only cameras) at {hd}, {n_eo} events")
+    r_eo = bench_streaming_offe(hd, n_eo)
+    out[f"offe_streaming_Mev_per_s ({hd}, 100k-event chunks)"] = round(
+        r_eo["events_per_s"] / 1e6, 2)
+    out[f"offe_streaming_ms_per_update ({hd})"] = round(r_eo["maps_s"] * 1e3, 1)
+    out[f"offe_streaming_state_MiB ({hd})"] = round(r_eo["state_MiB"], 1)
     from .sim.bench import bench_simulator  # noqa: PLC0415
 
     for effects in (False, True):

@@ -23,9 +23,10 @@ from typing import Any
 import numpy as np
 
 from ..calibration import Calibration
-from ..errors import ErrorReason, EvcalError, StateError
+from ..errors import CalibrationError, ErrorReason, EvcalError, StateError
 from ..events import SensorSize
 from ..io.wire import encode_calibration
+from ..offe import OffEConfig, StreamingOffE
 from ..online import OnEIConfig, OnlineCalibrator
 from ..stream import DuplicateMessage, LateMessage, StreamGuard
 
@@ -53,7 +54,7 @@ class CalibrationUpdate:
     """A new calibration to publish (the message is encoded once, here)."""
 
     camera: str
-    t_us: int  # sensor time of the frame that triggered it
+    t_us: int  # sensor time of the frame that triggered it (events-only: its latest event)
     seq: int  # calibration stream counter
     calibration: Calibration
     message: bytes
@@ -150,9 +151,17 @@ class CameraState:
     """One camera's stream checks, OnEI state, counters and latest calibration."""
 
     def __init__(self, camera_id: str, *, onei: OnEIConfig | None = None,
-                 max_pixels: int | None = None, observe: bool = False) -> None:
+                 max_pixels: int | None = None, observe: bool = False,
+                 offe: OffEConfig | None = None, offe_period_us: int = 1_000_000) -> None:
         self.id = camera_id
         self.onei = onei or OnEIConfig()
+        # events-only cameras: streaming OffE until the camera's first frame (then OnEI),
+        # an update every offe_period_us of sensor time
+        self.offe_config = offe or OffEConfig()
+        self.offe_period_us = int(offe_period_us)
+        self.events_only: StreamingOffE | None = None
+        self._offe_next_t_us: int | None = None
+        self._offe_pending = False  # events fed since its latest update
         self.guard = StreamGuard(max_pixels=max_pixels)
         self.calibrator: OnlineCalibrator | None = None
         self.counters = Counters()
@@ -222,10 +231,14 @@ class CameraState:
             # live: the online log offset is taken when it is ready, no frame waits for it
             self.calibrator = OnlineCalibrator(sensor, replace(self.onei, offset_wait=False))
             self.frame_dtype = None
+            self._start_events_only(sensor)
             log.info("camera %s: %s sensor", self.id, sensor)
         elif check.new_session:
             self.calibrator.new_session()
             self.frame_dtype = None
+            if self.events_only is not None:
+                # its step grid is in the old time base
+                self._start_events_only(sensor)
             c.restarts[kind] += 1
             log.info("camera %s: a new session of its %s stream (time base changed)", self.id,
                      kind)
@@ -247,7 +260,15 @@ class CameraState:
         t = ev["t_us"]
         cal = self._accept("events", header, int(t[0]) if t.size else None,
                            int(t[-1]) if t.size else None, drops_before)
-        cal.feed_events(ev, checked=True)
+        out: list[Output] = []
+        if self.events_only is None:
+            cal.feed_events(ev, checked=True)
+        elif ev.size:
+            # no frame yet: OnEI would only hold these events pending (up to
+            # max_pending_events, 260 MB) for a first frame that may never come
+            upd = self._feed_events_only(ev, now_s)
+            if upd is not None:
+                out.append(upd)
         c = self.counters
         c.events += int(ev.size)
         c.event_messages += 1
@@ -255,8 +276,46 @@ class CameraState:
         self.rate.add(now_s, int(ev.size))
         self.dirty = True
         if self.observe and ev.size:
-            return [Observed("events", (self.id, ev))]
-        return []
+            out.append(Observed("events", (self.id, ev)))
+        return out
+
+    def _start_events_only(self, sensor: SensorSize) -> None:
+        """A fresh events-only estimate, unless the camera has sent frames (OnEI's)."""
+        if self.counters.frames == 0:
+            self.events_only = StreamingOffE(sensor, self.offe_config)
+            self._offe_next_t_us = None
+
+    def _feed_events_only(self, ev: np.ndarray, now_s: float) -> CalibrationUpdate | None:
+        """Events of a camera without frames: into the streaming OffE sums; an update once
+        ``offe_period_us`` of sensor time has passed since the previous one (none while no
+        pixel has enough events for its regression)."""
+        est = self.events_only
+        assert est is not None
+        t_start = time.monotonic()
+        est.feed_events(ev)
+        self._offe_pending = True
+        t_last = int(ev["t_us"][-1])
+        if self._offe_next_t_us is None:
+            assert est.t0_us is not None
+            self._offe_next_t_us = est.t0_us + self.offe_period_us
+        if t_last < self._offe_next_t_us:
+            return None
+        self._offe_next_t_us = t_last + self.offe_period_us
+        return self._events_only_update(now_s, t_start)
+
+    def _events_only_update(self, now_s: float, t_start: float) -> CalibrationUpdate | None:
+        """The events-only estimate of the events so far, at its latest event's time."""
+        est = self.events_only
+        assert est is not None
+        assert est.last_t_us is not None
+        self._offe_pending = False
+        t_fed = time.monotonic()
+        try:
+            cal = est.calibration()
+        except CalibrationError as exc:
+            log.debug("camera %s: no events-only calibration yet: %s", self.id, exc)
+            return None
+        return self._publishable(cal, est.last_t_us, now_s, t_start, t_fed, from_frame=False)
 
     def on_frame(self, decoded: DecodedFrame, nbytes: int, *, t_recv_s: float,
                  t_start_s: float, drops_before: int = 0) -> list[Output]:
@@ -272,6 +331,12 @@ class CameraState:
             updated = cal.feed_frame(t_us, image, exposure_us)
         except EvcalError as exc:
             raise Rejected(f"{what}: {exc}", ErrorReason.REJECTED) from None
+        if self.events_only is not None:
+            # frames came: OnEI takes over (its first update replaces the events-only one)
+            log.info("camera %s: frames arrived, moving from the events-only estimate to "
+                     "OnEI", self.id)
+            self.events_only = None
+            self._offe_next_t_us = None
         out: list[Output] = []
         if updated:
             out.append(self._update(cal, t_us, t_recv_s, t_start_s))
@@ -286,7 +351,11 @@ class CameraState:
         """Between messages (the worker found its queue empty): an online log-offset
         estimate finished since the last frame is taken now, and its calibration published
         (a stream that stopped, or a replay that outran the estimate, is not left without
-        one)."""
+        one). So is the events-only estimate of the events that came since its latest update:
+        a stream that stopped between two periods is not left without its last events."""
+        if self.events_only is not None and self._offe_pending:
+            upd = self._events_only_update(now_s, time.monotonic())
+            return [upd] if upd is not None else []
         cal = self.calibrator
         if cal is None or cal.last_frame_t_us is None or not cal.poll_offset():
             return []
@@ -298,6 +367,11 @@ class CameraState:
         published message, the query cache and the recorder share it."""
         t_fed = time.monotonic()
         cal = cal_state.calibration()
+        return self._publishable(cal, t_us, t_recv_s, t_start_s, t_fed, from_frame=from_frame)
+
+    def _publishable(self, cal: Calibration, t_us: int, t_recv_s: float, t_start_s: float,
+                     t_fed: float, *, from_frame: bool) -> CalibrationUpdate:
+        """``cal`` encoded once, as this camera's latest calibration."""
         t_cal = time.monotonic()
         msg = encode_calibration(cal, t_us=t_us, seq=self.calibration_seq)
         t_enc = time.monotonic()
@@ -379,6 +453,8 @@ class CameraState:
             "saved_wall": time.time(),
         }
         arrays = {f"est__{k}": v for k, v in self.calibrator.state_dict().items()}
+        if self.events_only is not None:
+            arrays.update({f"offe__{k}": v for k, v in self.events_only.state_dict().items()})
         arrays["service_json"] = np.array(json.dumps(meta))
         arrays["calibration_msg"] = np.frombuffer(self.calibration_msg or b"", np.uint8)
         return arrays
@@ -411,6 +487,15 @@ class CameraState:
             guard.sensor = calibrator.sensor
             counters = Counters(**{k: meta["counters"][k] for k in Counters.__dataclass_fields__
                                    if k in meta["counters"]})
+            events_only = None
+            offe = {k[6:]: v for k, v in arrays.items() if k.startswith("offe__")}
+            if offe:
+                events_only = StreamingOffE.from_state(offe)
+                if events_only.sensor != calibrator.sensor:
+                    raise StateError(f"the events-only state is for a {events_only.sensor} "
+                                     f"sensor, the camera's is {calibrator.sensor}")
+            elif counters.frames == 0:  # snapshots written before the events-only estimate
+                events_only = StreamingOffE(calibrator.sensor, self.offe_config)
             calibration_seq = int(meta["calibration_seq"])
             calibration_t_us = meta["calibration_t_us"]
             msg = arrays["calibration_msg"].tobytes()
@@ -419,6 +504,7 @@ class CameraState:
         except Exception as exc:  # noqa: BLE001 - whatever is wrong, it is not a snapshot
             raise StateError(f"not a camera snapshot: {type(exc).__name__}: {exc}") from None
         self.calibrator, self.guard, self.counters = calibrator, guard, counters
+        self.events_only, self._offe_next_t_us = events_only, None
         self.calibration_seq, self.calibration_t_us = calibration_seq, calibration_t_us
         self.calibration_msg = msg or None
         self.calibration = None

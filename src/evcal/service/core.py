@@ -47,6 +47,7 @@ import numpy as np
 from ..calibration import Calibration
 from ..errors import ConfigError, ErrorReason, EvcalError
 from ..jsonable import strict_dumps
+from ..offe import OffEConfig
 from ..online import OnEIConfig
 from . import keys
 from .camera import LATENCY_PARTS, CalibrationUpdate, CameraState, Observed, Output, Rejected
@@ -125,6 +126,11 @@ class ServiceConfig:
     # an update frame then adds only its own; 1280x720 at 20 M events/s: 29 -> 23 ms)
     onei: OnEIConfig = field(default_factory=lambda: OnEIConfig(log_offset="auto",
                                                                 window_frames=5, eager=True))
+    # a camera that sends events and no frames gets the events-only estimate (streaming
+    # OffE: the same maps as `evcal calibrate --method offe` on the same events), updated
+    # every offe_period_us of sensor time; its first frame moves it to OnEI
+    offe: OffEConfig = field(default_factory=OffEConfig)
+    offe_period_us: int = 1_000_000
 
     def __post_init__(self) -> None:
         if self.on_full not in ON_FULL:
@@ -136,7 +142,7 @@ class ServiceConfig:
             raise ConfigError(f"shard={self.shard!r} must be (index, count) with "
                               "0 <= index < count")
         for name in ("queue_bytes", "max_cameras", "max_pixels", "max_message_bytes",
-                     "refused_memory"):
+                     "refused_memory", "offe_period_us"):
             if int(getattr(self, name)) < 1:
                 raise ConfigError(f"{name}={getattr(self, name)} must be >= 1")
         if self.max_message_bytes > self.queue_bytes:
@@ -323,7 +329,7 @@ class Service:
     def _new_camera(self, camera_id: str, *, observe: bool) -> Camera:
         cfg = self.config
         state = CameraState(camera_id, onei=cfg.onei, max_pixels=cfg.max_pixels,
-                            observe=observe)
+                            observe=observe, offe=cfg.offe, offe_period_us=cfg.offe_period_us)
         cam = Camera(state, emit=self._emit, queue_bytes=cfg.queue_bytes,
                      max_message_bytes=cfg.max_message_bytes, block=cfg.on_full == "block")
         cam.limiter = ErrorLimiter(cfg.error_rate_hz)

@@ -87,6 +87,11 @@ def camera_status(cam: Camera, *, now_s: float | None = None) -> dict[str, Any]:
         "valid_fraction": (st.calibration.valid_fraction
                            if st.calibration is not None else None),
         "estimator": cal.status() if cal is not None else None,
+        # "offe" while the camera has sent no frame (events-only estimate), then "onei"
+        "method": "offe" if st.events_only is not None else "onei",
+        "events_only": ({"events": st.events_only.n_events,
+                         "steps": st.events_only.n_steps}
+                        if st.events_only is not None else None),
         # ROS 2 input (serve --ros2): messages per topic, events dropped outside the declared
         # size or reordered in a packet, each events topic's encoding
         "ros2": cam.ros.status() if cam.ros is not None else None,

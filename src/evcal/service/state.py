@@ -50,6 +50,7 @@ from ..errors import ErrorReason, StateError
 from ..events import SensorSize
 from ..io._util import load_npz_arrays
 from ..io.wire import FRAME_DTYPES, MAX_SIZE, WireError, decode_calibration
+from ..offe import StreamingOffE
 from ..online import STATE_FORMAT as ONEI_FORMAT
 from ..online import OnEIConfig, OnlineCalibrator
 from .camera import STATE_FORMAT as CAMERA_FORMAT
@@ -65,6 +66,9 @@ _counter = itertools.count()
 MSG_KEY = "calibration_msg"
 META_KEY = "service_json"
 EST = "est__"  # the calibrator's state (OnlineCalibrator.state_dict) under this prefix
+# an events-only camera's streaming OffE state (StreamingOffE.state_dict), all or nothing
+OFFE = "offe__"
+OFFE_TEXT = f"{OFFE}scalars"
 # text read before the sensor is known, so bounded on its own: real ones are a few kB
 TEXT_KEYS = (ID_KEY, META_KEY, f"{EST}format", f"{EST}scalars")
 MAX_TEXT_BYTES = 1 << 20
@@ -189,6 +193,33 @@ def _est_layout(config_json: str) -> dict[str, tuple[frozenset[np.dtype[Any]],
     return layout
 
 
+@functools.lru_cache(maxsize=1)
+def _offe_layout() -> dict[str, tuple[np.dtype[Any], tuple[int, ...]]]:
+    """The streaming OffE state's per-pixel fields: dtype and values per pixel (taken from
+    a tiny estimator, so that it follows :meth:`StreamingOffE.state_dict`)."""
+    st = StreamingOffE(SensorSize(1, 7)).state_dict()
+    return {k: (a.dtype, a.shape[1:]) for k, a in st.items() if a.dtype.kind != "U"}
+
+
+def _check_offe(members: dict[str, _Member], sensor: SensorSize) -> None:
+    """The events-only estimator's fields, when the snapshot has them: every one of them,
+    each ``(n_pixels, ...)`` of its dtype."""
+    have = {k[len(OFFE):] for k in members if k.startswith(OFFE)}
+    if not have:
+        return
+    layout = _offe_layout()
+    want = {*layout, "scalars"}
+    if have != want:
+        raise StateError(f"the snapshot's events-only state has {sorted(have)}, expected "
+                         f"{sorted(want)}")
+    for k, (dtype, tail) in layout.items():
+        mem = members[OFFE + k]
+        shape = (sensor.n_pixels, *tail)
+        if mem.dtype != dtype or tuple(mem.shape) != shape:
+            raise StateError(f"{OFFE}{k} is {mem.dtype} {mem.shape}, expected {dtype} "
+                             f"{shape} for a {sensor} sensor")
+
+
 def _sensor(scalars: str, max_pixels: int | None) -> tuple[SensorSize, str]:
     """The sensor and calibrator configuration (JSON) a snapshot declares, within limits."""
     try:
@@ -214,13 +245,15 @@ def _check_layout(members: dict[str, _Member], sensor: SensorSize, config: str,
     """Every field's dtype and shape for ``sensor``; buffers no larger than the file."""
     n = sensor.n_pixels
     layout = _est_layout(config)
-    known = {*TEXT_KEYS, MSG_KEY, *(EST + k for k in layout)}
+    known = {*TEXT_KEYS, MSG_KEY, *(EST + k for k in layout),
+             *(OFFE + k for k in (*_offe_layout(), "scalars"))}
     unknown = sorted(set(members) - known)
     if unknown:
         raise StateError(f"unknown field(s) {unknown}: not a snapshot of this version")
     missing = sorted(set(layout) - {k[len(EST):] for k in members} - EST_OPTIONAL)
     if missing:
         raise StateError(f"the snapshot lacks {[EST + k for k in missing]}")
+    _check_offe(members, sensor)
     buffered = 0
     for k, (dtypes, dims) in layout.items():
         mem = members.get(EST + k)
@@ -266,7 +299,7 @@ def read_snapshot(f: IO[bytes], *, max_pixels: int | None = None) -> dict[str, n
     with zipfile.ZipFile(f) as zf:
         members = _members(zf)
         arrays: dict[str, np.ndarray] = {}
-        for k in TEXT_KEYS:
+        for k in (*TEXT_KEYS, OFFE_TEXT):
             mem = members.get(k)
             if mem is None:
                 continue  # missing fields are named below, the id may be (older files)

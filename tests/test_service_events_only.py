@@ -1,0 +1,374 @@
+"""Events-only cameras: streaming OffE (offe.StreamingOffE), the camera state machine's
+events-only estimate and its move to OnEI, snapshots, and end to end on loopback."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from evcal.bench import random_events
+from evcal.errors import CalibrationError, StateError
+from evcal.events import SensorSize
+from evcal.io.wire import (
+    decode_calibration,
+    decode_events,
+    decode_frame,
+    encode_events,
+    encode_frame,
+)
+from evcal.offe import OffEConfig, StreamingOffE, offe
+from evcal.online import OnEIConfig
+from evcal.recording import Frames, Recording
+from evcal.service.camera import CalibrationUpdate, CameraState
+from evcal.service.state import atomic_savez, read_snapshot
+from evcal.sim.ideal import SimConfig, simulate_ideal
+
+# as the shared_data fixture (conftest.py), but needed at collection for the EVT 3.0 files
+DATA = Path(os.environ.get("EVCAL_SHARED_DATA")
+            or Path(__file__).resolve().parents[2] / "shared" / "data")
+MAPS = ("contrast", "bias", "valid", "reason", "stderr_contrast", "stderr_bias", "special",
+        "n_events")
+
+
+def biased_events(sensor: SensorSize, n: int, duration_us: int, seed: int) -> np.ndarray:
+    """Random events whose ON fraction differs per pixel (a bias map for OffE to find)."""
+    rng = np.random.default_rng(seed)
+    ev = random_events(sensor, n, duration_us, seed)
+    on_fraction = rng.uniform(0.3, 0.7, sensor.n_pixels)
+    pix = ev["y"].astype(np.int64) * sensor.width + ev["x"]
+    ev["p"] = np.where(rng.random(n) < on_fraction[pix], 1, -1)
+    ev["t_us"] += 1_000_123  # not on the step grid's origin
+    return ev
+
+
+def assert_same_maps(a, b) -> None:
+    for k in MAPS:
+        np.testing.assert_allclose(getattr(a, k), getattr(b, k), rtol=1e-12, atol=1e-12,
+                                   err_msg=k)
+    assert a.method == b.method == "offe"
+    assert a.diagnostics.n_steps == b.diagnostics.n_steps
+
+
+# ----------------------------------------------------------------------------- the estimator
+
+
+@pytest.mark.parametrize("n_chunks", [1, 7, 333])
+def test_streaming_equals_offline_offe_in_chunks(n_chunks: int) -> None:
+    sensor = SensorSize(height=30, width=40)
+    ev = biased_events(sensor, 200_000, 3_000_000, seed=n_chunks)
+    # events exactly on a step (and on the last one): they belong after it, as offline
+    ev["t_us"][-7:] = ev["t_us"][0] + 3_000_000
+    ev["t_us"][1000:1010] = ev["t_us"][0] + 10_000 * 17
+    ev.sort(order="t_us", kind="stable")
+    ref = offe(Recording(sensor, ev, None))
+    st = StreamingOffE(sensor)
+    rng = np.random.default_rng(0)
+    cuts = np.sort(rng.integers(0, ev.size, n_chunks - 1))
+    for chunk in np.split(ev, cuts):  # some chunks empty
+        st.feed_events(chunk)
+    assert_same_maps(st.calibration(), ref)
+    assert st.n_events == ev.size
+
+
+def test_streaming_equals_offline_on_real_events() -> None:
+    path = DATA / "davis346_road" / "road.aedat4"
+    if not path.exists():
+        pytest.skip(f"{path} is absent (shared real recordings)")
+    from evcal.io import open_recording  # noqa: PLC0415
+
+    rec = open_recording(path)
+    ref = offe(rec, OffEConfig(step_us=5_000))
+    st = StreamingOffE(rec.sensor, OffEConfig(step_us=5_000))
+    for chunk in np.array_split(rec.events, 59):
+        st.feed_events(chunk)
+    assert_same_maps(st.calibration(), ref)
+
+
+def test_streaming_state_round_trip_and_refusals() -> None:
+    sensor = SensorSize(height=12, width=10)
+    ev = biased_events(sensor, 40_000, 2_000_000, seed=3)
+    a = StreamingOffE(sensor)
+    a.feed_events(ev[:15_000])
+    b = StreamingOffE.from_state({k: v.copy() for k, v in a.state_dict().items()})
+    a.feed_events(ev[15_000:])
+    b.feed_events(ev[15_000:])
+    assert_same_maps(a.calibration(), b.calibration())
+    bad = a.state_dict()
+    bad["counts"] = bad["counts"][:-1]
+    with pytest.raises(StateError, match=r"counts: int64\(119, 4\), expected "
+                                         r"int64\(120, 4\)"):
+        StreamingOffE.from_state(bad)
+    with pytest.raises(CalibrationError, match="none yet"):
+        StreamingOffE(sensor).calibration()
+
+
+# ----------------------------------------------------------------------------- the camera
+
+
+def _events_msg(ev: np.ndarray, sensor: SensorSize, seq: int):
+    return decode_events(encode_events(ev, height=sensor.height, width=sensor.width, seq=seq))
+
+
+def test_camera_without_frames_publishes_offe_then_moves_to_onei() -> None:
+    sensor = SensorSize(height=36, width=48)
+    sim = simulate_ideal(SimConfig(height=36, width=48, duration_s=4.0, seed=2))
+    rec = sim.recording
+    t_frames_start = int(rec.events["t_us"][0]) + 2_000_000
+    cam = CameraState("lab/cam", onei=OnEIConfig(n_small=15_000, n_large=10_000_000,
+                                                 window_frames=5), offe_period_us=500_000)
+    updates: list[CalibrationUpdate] = []
+    seq_ev = seq_fr = 0
+    ft = rec.frames.t_us
+    chunks = np.split(rec.events, np.searchsorted(rec.events["t_us"], ft, side="left"))
+    for i, chunk in enumerate(chunks):
+        if chunk.size:
+            out = cam.on_events(_events_msg(chunk, sensor, seq_ev), 100, now_s=0.0)
+            seq_ev += 1
+            updates += [o for o in out if isinstance(o, CalibrationUpdate)]
+        if i < len(ft) and ft[i] >= t_frames_start:
+            msg = encode_frame(int(ft[i]), rec.frames.images[i], exposure_us=0, seq=seq_fr)
+            seq_fr += 1
+            out = cam.on_frame(decode_frame(msg), len(msg), t_recv_s=0.0, t_start_s=0.0)
+            updates += [o for o in out if isinstance(o, CalibrationUpdate)]
+    methods = [u.calibration.method for u in updates]
+    before = [u for u in updates if u.t_us < t_frames_start]
+    assert before, "an events-only camera got no calibration"
+    assert {u.calibration.method for u in before} == {"offe"}
+    assert not any(u.from_frame for u in before)  # no frame latency for them
+    # the first frame ends the events-only estimate; OnEI's updates follow
+    assert cam.events_only is None
+    assert "onei" in methods
+    first_onei = methods.index("onei")
+    assert set(methods[first_onei:]) == {"onei"}
+    # what it published before frames is offline OffE of the events up to then
+    last = before[-1]
+    upto = rec.events[rec.events["t_us"] <= last.t_us]
+    ref = offe(Recording(sensor, upto, None))
+    np.testing.assert_allclose(last.calibration.bias, ref.bias, atol=1e-12)
+    _, meta = decode_calibration(last.message)
+    assert meta["method"] == "offe"
+
+
+def test_camera_events_only_idle_update_and_snapshot(tmp_path: Path) -> None:
+    sensor = SensorSize(height=20, width=16)
+    ev = biased_events(sensor, 60_000, 800_000, seed=5)  # under one period: no update
+    cam = CameraState("lab/eo", offe_period_us=1_000_000)
+    out = []
+    for seq, chunk in enumerate(np.array_split(ev, 8)):
+        out += cam.on_events(_events_msg(chunk, sensor, seq), 100, now_s=0.0)
+    assert not [o for o in out if isinstance(o, CalibrationUpdate)]
+    # the stream stops: the worker's idle call publishes what came
+    idle = cam.on_idle(now_s=1.0)
+    assert len(idle) == 1
+    assert isinstance(idle[0], CalibrationUpdate)
+    assert idle[0].t_us == int(ev["t_us"][-1])
+    assert_same_maps(idle[0].calibration, offe(Recording(sensor, ev, None)))
+    assert cam.on_idle(now_s=2.0) == []  # nothing new
+    # a snapshot keeps the events-only sums; the restored camera goes on from them
+    path = atomic_savez(tmp_path / "cam.npz", cam.state_arrays() or {})
+    with path.open("rb") as f:
+        arrays = read_snapshot(f)
+    assert any(k.startswith("offe__") for k in arrays)
+    back = CameraState("lab/eo", offe_period_us=1_000_000)
+    back.restore(arrays)
+    assert back.events_only is not None
+    more = biased_events(sensor, 5_000, 100_000, seed=6)
+    more["t_us"] += int(ev["t_us"][-1]) - int(more["t_us"][0]) + 1
+    for c in (cam, back):
+        c.on_events(_events_msg(more, sensor, 8), 100, now_s=3.0)
+    assert_same_maps(cam.on_idle(now_s=4.0)[0].calibration,
+                     back.on_idle(now_s=4.0)[0].calibration)
+
+
+def test_snapshot_with_a_wrong_events_only_field_is_refused(tmp_path: Path) -> None:
+    sensor = SensorSize(height=8, width=8)
+    cam = CameraState("lab/eo2")
+    cam.on_events(_events_msg(biased_events(sensor, 500, 100_000, 1), sensor, 0), 1,
+                  now_s=0.0)
+    arrays = cam.state_arrays() or {}
+    arrays["offe__sums"] = arrays["offe__sums"][:10]
+    path = atomic_savez(tmp_path / "bad.npz", arrays)
+    with path.open("rb") as f, pytest.raises(StateError, match=r"offe__sums is float64 "
+                                                               r"\(10, 5\), expected float64"):
+        read_snapshot(f)
+    del arrays["offe__sums"]
+    path = atomic_savez(tmp_path / "bad2.npz", arrays)
+    with path.open("rb") as f, pytest.raises(StateError, match="events-only state has"):
+        read_snapshot(f)
+
+
+# ----------------------------------------------------------------------------- end to end
+
+
+def write_evt3(path: Path, events: np.ndarray, sensor: SensorSize) -> Path:
+    """A Prophesee RAW EVT 3.0 file (``encoding_formats/evt3``): per event TIME_HIGH (8),
+    TIME_LOW (6), ADDR_Y (0), ADDR_X (2, polarity in bit 11); times from 0 µs, < 2^24."""
+    t = events["t_us"] - events["t_us"][0]
+    if t.size and int(t[-1]) >= 1 << 24:
+        raise ValueError("this small writer does not wrap the 24-bit time")
+    words = np.empty((events.size, 4), "<u2")
+    words[:, 0] = (8 << 12) | ((t >> 12) & 0xFFF)
+    words[:, 1] = (6 << 12) | (t & 0xFFF)
+    words[:, 2] = events["y"]
+    words[:, 3] = (2 << 12) | events["x"] | ((events["p"] > 0).astype(np.uint16) << 11)
+    head = (f"% evt 3.0\n% format EVT3;width={sensor.width};height={sensor.height}\n"
+            "% end\n").encode()
+    path.write_bytes(head + words.tobytes())
+    return path
+
+
+def _evt3_files() -> list[Path]:
+    if not DATA.exists():
+        return []
+    out = []
+    for p in sorted(DATA.rglob("*.raw")):
+        with p.open("rb") as f:
+            head = f.read(4096)
+        if b"EVT3" in head or b"evt 3.0" in head:
+            out.append(p)
+    return out
+
+
+@pytest.fixture(scope="module")
+def service(tmp_path_factory):
+    pytest.importorskip("zenoh")
+    from evcal.service.transport import Transport, ZenohOptions  # noqa: PLC0415
+    from evcal.testing import ServiceProcess, endpoint, free_port, wait_for  # noqa: PLC0415
+
+    d = tmp_path_factory.mktemp("service")
+    ep = endpoint(free_port())
+    args = ["--listen", ep, "--no-multicast-scouting", "--on-full", "block",
+            "--n-small", "15000", "--n-large", "10000000", "--log-offset", "30",
+            "--status-period", "0.2", "-v"]
+    with ServiceProcess(args, log_path=d / "service.log") as sp:
+        with Transport(ZenohOptions.loopback(connect=[ep])) as t:
+            wait_for(lambda: t.alive("evcal/@service/*", timeout_s=1.0), timeout_s=60,
+                     what="the service's liveliness token")
+            yield {"ep": ep, "t": t, "proc": sp, "dir": d}
+        if sp.alive():
+            assert sp.stop() == 0, sp.log_text()
+
+
+def _replay(service, path: Path, camera: str, *extra: str) -> None:
+    from evcal.testing import run_client  # noqa: PLC0415
+
+    res = run_client("replay", [str(path), "--camera", camera, "--connect", service["ep"],
+                                "--no-multicast-scouting", *extra])
+    assert res.returncode == 0, res.stderr
+
+
+def _live_calibration(service, camera: str, n_events: int):
+    """The published calibration once it holds every replayed event (``evcal query``)."""
+    from evcal.io import load_calibration  # noqa: PLC0415
+    from evcal.testing import run_client, wait_for  # noqa: PLC0415
+
+    out = service["dir"] / f"{camera.replace('/', '_')}.npz"
+
+    def ready():
+        res = run_client("query", ["--camera", camera, "--connect", service["ep"],
+                                   "--no-multicast-scouting", "--out", str(out),
+                                   "--timeout", "5"])
+        if res.returncode != 0:
+            return None
+        cal = load_calibration(out)
+        return cal if int(cal.n_events.sum()) >= n_events else None
+
+    return wait_for(ready, timeout_s=90, interval_s=0.5,
+                    what=f"{camera}'s events-only calibration of all {n_events} events")
+
+
+def _check_against_offline(path: Path, live) -> None:
+    from evcal.io import open_recording  # noqa: PLC0415
+
+    # `evcal calibrate --method offe`, the offline reference
+    out = path.with_suffix(".offe.npz")
+    res = subprocess.run([sys.executable, "-m", "evcal", "calibrate", str(path), "--method",
+                          "offe", "--out", str(out)], capture_output=True, text=True,
+                         timeout=300)
+    assert res.returncode == 0, res.stderr
+    from evcal.io import load_calibration  # noqa: PLC0415
+
+    ref = load_calibration(out)
+    assert live.method == "offe"
+    assert live.shape == open_recording(path).sensor.shape
+    both = live.valid & ref.valid
+    assert both.sum() > 100
+    r = float(np.corrcoef(live.bias[both], ref.bias[both])[0, 1])
+    assert r > 0.95, r
+    # the same events, the same sums: the maps agree to float tolerance
+    np.testing.assert_allclose(live.bias, ref.bias, atol=1e-6)
+    np.testing.assert_array_equal(live.valid, ref.valid)
+
+
+@pytest.mark.timeout(300)
+def test_real_dvs_events_as_evt3_replayed_live_match_offline_offe(service, tmp_path: Path
+                                                                  ) -> None:
+    """Real sensor events (the shared DAVIS346 ROS 2 bag, 571 k events over 1 s, no
+    frames) written as EVT 3.0, replayed live."""
+    bag = DATA / "ros2_event_packet_mcap"
+    if not bag.exists():
+        pytest.skip(f"{bag} is absent (shared real recordings)")
+    from evcal.io import open_recording  # noqa: PLC0415
+
+    rec = open_recording(bag / "test_events_2_0.mcap")
+    path = write_evt3(tmp_path / "davis346.raw", rec.events, rec.sensor)
+    back = open_recording(path)
+    assert back.n_events == rec.n_events
+    _replay(service, path, "lab/evt3/cam0", "--max-rate")
+    live = _live_calibration(service, "lab/evt3/cam0", int(offe(back).n_events.sum()))
+    _check_against_offline(path, live)
+
+
+@pytest.mark.timeout(600)
+@pytest.mark.parametrize("path", _evt3_files() or [None])
+def test_prophesee_evt3_recording_replayed_live_matches_offline_offe(service, path) -> None:
+    if path is None:
+        pytest.skip(f"no Prophesee EVT 3.0 recording (*.raw) under {DATA}")
+    from evcal.io import open_recording  # noqa: PLC0415
+
+    rec = open_recording(path)
+    cam = "lab/prophesee/" + path.stem.replace(".", "_")
+    _replay(service, path, cam, "--max-rate")
+    live = _live_calibration(service, cam, int(offe(rec).n_events.sum()))
+    _check_against_offline(path, live)
+
+
+@pytest.mark.timeout(300)
+def test_camera_whose_frames_start_later_moves_to_onei(service, tmp_path: Path) -> None:
+    from evcal.io import write_recording  # noqa: PLC0415
+
+    sim = simulate_ideal(SimConfig(height=36, width=48, duration_s=4.0, seed=4))
+    rec = sim.recording
+    late = rec.frames.t_us >= int(rec.events["t_us"][0]) + 2_000_000
+    path = write_recording(Recording(rec.sensor, rec.events, Frames(
+        rec.frames.t_us[late], rec.frames.images[late], rec.frames.exposure_us[late])),
+        tmp_path / "late_frames.npz")
+    cam = "lab/late/cam0"
+    proc = subprocess.Popen([sys.executable, "-m", "evcal.clients.replay", str(path),
+                             "--camera", cam, "--connect", service["ep"],
+                             "--no-multicast-scouting", "--speed", "1"],
+                            stderr=subprocess.PIPE, text=True)
+    seen: list[tuple[str, int]] = []
+    deadline = time.monotonic() + 90
+    while time.monotonic() < deadline:
+        replies = service["t"].get(f"evcal/{cam}/calibration", timeout_s=2.0)
+        if replies and replies[0].ok:
+            _, meta = decode_calibration(replies[0].payload)
+            if not seen or seen[-1] != (meta["method"], meta["seq"]):
+                seen.append((meta["method"], meta["seq"]))
+            if meta["method"] == "onei" and proc.poll() is not None:
+                break
+        time.sleep(0.1)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err
+    methods = [m for m, _ in seen]
+    assert "offe" in methods, seen
+    assert methods[-1] == "onei", seen
+    assert methods.index("onei") > methods.index("offe"), seen
+
