@@ -245,3 +245,30 @@ def test_live_viewer_sink_beside_the_file(tmp_path):
     finally:
         log.close()
     assert read_entities(path)["/cameras/cam0/maps/contrast"] == 1
+
+
+def test_the_log_says_which_method_calibrated_an_events_only_camera(tmp_path):
+    """An events-only camera is calibrated by OffE until frames come, then by OnEI: the log
+    of the .rrd says so when the method changes (not for a camera on OnEI from the start)."""
+    from rerun.chunk import RrdReader
+
+    cal = Calibration.uniform((12, 16), 0.1, 0.0, log_offset=30.0)
+    path = tmp_path / "m.rrd"
+    log = RrdLogger(path, map_period_s=0.0, scalar_period_s=0.0)
+    log.updated("cam0", cal, 1_000_000, {"method": "offe"})
+    log.updated("cam0", cal, 2_000_000, {"method": "offe"})
+    log.updated("cam0", cal, 3_000_000, {"method": "onei"})
+    log.updated("cam1", cal, 3_000_000, {"method": "onei"})
+    log.close()
+    texts: dict[str, list[str]] = {}
+    reader = RrdReader(str(path))
+    for store in reader.recordings():
+        for chunk in reader.stream(store=store).collect().stream():
+            rb = chunk.to_record_batch()
+            if "TextLog:text" in rb.schema.names:
+                texts.setdefault(str(chunk.entity_path), []).extend(
+                    t[0] for t in rb.column("TextLog:text").to_pylist() if t)
+    cam0 = [t for t in texts.get("/cameras/cam0/log", []) if t.startswith("calibration by")]
+    assert cam0 == ["calibration by offe (events only: c relative, median 0.1)",
+                    "calibration by onei"]
+    assert not [t for t in texts.get("/cameras/cam1/log", []) if t.startswith("calibration by")]

@@ -144,6 +144,7 @@ class _CameraLog:
     last_map_t_us: int | None = None
     last_scalar_t_us: int | None = None
     last_events_t_us: int | None = None  # the last events image
+    method: str | None = None  # of the last calibration logged (offe, then onei)
     event_counts: np.ndarray | None = None  # [2, pixels] ON, OFF of the open interval
 
 
@@ -815,6 +816,16 @@ class RrdLogger:
         cl = self._camera(camera, cal.shape)
         cl.evaluator.calibration(cal)
         self._set_time(t_us)
+        method = status.get("method")
+        if isinstance(method, str) and method != cl.method:
+            # an events-only camera is calibrated by OffE (c relative to its median) until
+            # its first frame moves it to OnEI: the review must say which maps it sees
+            if cl.method is not None or method != "onei":
+                self.rec.log(entity(camera, "log"), rr.TextLog(
+                    f"calibration by {method}" + (" (events only: c relative, median 0.1)"
+                                                  if method == "offe" else ""),
+                    level="INFO"))
+            cl.method = method
         if cl.last_scalar_t_us is None or t_us - cl.last_scalar_t_us >= self.scalar_period_us:
             cl.last_scalar_t_us = t_us
             lat = status.get("latency_ms", {}).get("last")
