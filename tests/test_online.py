@@ -261,8 +261,10 @@ def test_the_forgotten_history_holds_what_left_the_buffer_with_its_weights(monke
         t = np.sort(rng.integers(t_f[k] - 40_000 + 1, t_f[k], pix.size))
         chunks.append(make_events(t, pix % sensor.width, pix // sensor.width,
                                   rng.choice([-1, 1], pix.size)))
+    from evcal.onei.equations import NormalSums
+
     history = 0.2
-    monkeypatch.setattr(OnlineCalibrator, "HISTORY_RENORMALISE", 20.0)  # passed on the way
+    monkeypatch.setattr(NormalSums, "HISTORY_RENORMALISE", 20.0)  # passed on the way
     base_cfg = OnEIConfig(n_small=3 * n, n_large=12 * n, window_frames=3, log_offset=10.0,
                           rebuild_every=10**6)
     small = OnlineCalibrator(sensor, replace(base_cfg, max_buffer_frames=20, history=history))
@@ -342,16 +344,17 @@ def test_open_interval_counts_survive_a_restart():
 def test_residual_lambda_blocks_cover_small_sensors_and_spread_over_large_ones():
     """lam is estimated on every pixel up to LAMBDA_BLOCKS blocks, else on that many blocks
     spread from the first to the last (a 1280x720 sensor has 113)."""
-    from evcal._onei_kernels import BLOCK
+    from evcal.onei.kernels import BLOCK
+    from evcal.onei.solve import LAMBDA_BLOCKS, lambda_block_list
 
-    small = OnlineCalibrator(SensorSize(260, 346))
-    np.testing.assert_array_equal(small._lambda_block_list(), np.arange(small._n_blocks))
-    hd = OnlineCalibrator(SensorSize(720, 1280))
-    blocks = hd._lambda_block_list()
-    assert hd._n_blocks == -(-720 * 1280 // BLOCK) > OnlineCalibrator.LAMBDA_BLOCKS
-    assert blocks.size == OnlineCalibrator.LAMBDA_BLOCKS == np.unique(blocks).size
+    small = OnlineCalibrator(SensorSize(260, 346)).buffer.sums.n_blocks
+    np.testing.assert_array_equal(lambda_block_list(small), np.arange(small))
+    hd = OnlineCalibrator(SensorSize(720, 1280)).buffer.sums.n_blocks
+    blocks = lambda_block_list(hd)
+    assert hd == -(-720 * 1280 // BLOCK) > LAMBDA_BLOCKS
+    assert blocks.size == LAMBDA_BLOCKS == np.unique(blocks).size
     assert blocks[0] == 0
-    assert blocks[-1] == hd._n_blocks - 1
+    assert blocks[-1] == hd - 1
 
 
 def test_a_live_calibrator_never_waits_for_the_offset_criterion(monkeypatch):
@@ -360,16 +363,16 @@ def test_a_live_calibrator_never_waits_for_the_offset_criterion(monkeypatch):
     between frames (poll_offset)."""
     import threading
 
-    import evcal.online as online_mod
+    from evcal.onei import offset as offset_mod
 
     release = threading.Event()
-    real = online_mod._offset_criterion
+    real = offset_mod.offset_criterion
 
     def slow(*args):
         assert release.wait(30), "the test never released the criterion"
         return real(*args)
 
-    monkeypatch.setattr(online_mod, "_offset_criterion", slow)
+    monkeypatch.setattr(offset_mod, "offset_criterion", slow)
     rec = random_recording(SENSOR, 60 * SENSOR.n_pixels, 60, seed=4)
     cal = OnlineCalibrator(SENSOR, OnEIConfig(log_offset="auto", n_small=2 * SENSOR.n_pixels,
                                               offset_wait=False))
@@ -382,7 +385,7 @@ def test_a_live_calibrator_never_waits_for_the_offset_criterion(monkeypatch):
     assert cal.n_updates == 0
     assert not cal.poll_offset()
     release.set()
-    cal._offset_job[1].result(timeout=30)
+    cal.offset.job[1].result(timeout=30)
     # the stream has stopped: between frames the estimate is taken and solved at once
     assert cal.poll_offset()
     assert np.isfinite(cal.log_offset)
@@ -450,14 +453,15 @@ def test_the_re_solve_gives_the_same_result_on_any_number_of_threads(monkeypatch
     (OnEIConfig.threads): every figure is the same with 1, 2 or 3 threads, with the history's
     combination and a residual correction estimated on blocks spread over a sensor of more
     than LAMBDA_BLOCKS blocks."""
-    import evcal.online
-    from evcal._onei_kernels import BLOCK
+    from evcal.onei import executor as executor_mod
+    from evcal.onei.kernels import BLOCK
+    from evcal.onei.solve import LAMBDA_BLOCKS
 
     # every per-frame pass split too (at the default only from 262,144 pixels)
-    monkeypatch.setattr(evcal.online, "PIXELS_PER_THREAD", 1000)
+    monkeypatch.setattr(executor_mod, "PIXELS_PER_THREAD", 1000)
 
     sensor = SensorSize(300, 480)
-    assert -(-sensor.n_pixels // BLOCK) > OnlineCalibrator.LAMBDA_BLOCKS
+    assert -(-sensor.n_pixels // BLOCK) > LAMBDA_BLOCKS
     n = sensor.n_pixels
     rec = random_recording(sensor, 2 * n * 16, 16, seed=4)
     cfg = OnEIConfig(n_small=3 * n, n_large=10 * n, log_offset=30.0, history=1.0)
@@ -518,6 +522,78 @@ def test_a_forked_child_re_solves_on_threads_of_its_own():
     with multiprocessing.get_context("fork").Pool(1) as pool:
         got = pool.apply_async(_contrast_in_child, (rec, cfg)).get(timeout=120)
     np.testing.assert_array_equal(got, want)
+
+
+_SHARED: dict = {}
+
+
+def _contrast_on_the_parents_executor(rec, cfg):
+    with OnlineCalibrator(rec.sensor, cfg, executor=_SHARED["executor"]) as cal:
+        for k, chunk in frame_intervals(rec.events, rec.frames.t_us):
+            cal.feed_events(chunk)
+            cal.feed_frame(int(rec.frames.t_us[k]), rec.frames.images[k])
+        return cal.calibration().contrast
+
+
+def test_an_executor_used_before_a_fork_works_in_the_child():
+    """The executor object itself is safe across fork: in the child it forgets the parent's
+    pool threads (which do not exist there) and starts its own."""
+    import multiprocessing
+
+    from evcal.online import OnEIExecutor
+
+    sensor = SensorSize(100, 100)  # two blocks: a threaded re-solve
+    n = sensor.n_pixels
+    rec = random_recording(sensor, 2 * n * 12, 12, seed=7)
+    cfg = OnEIConfig(n_small=3 * n, n_large=10 * n, log_offset=30.0)
+    with OnEIExecutor(2) as executor:
+        _SHARED["executor"] = executor
+        try:
+            want = _contrast_on_the_parents_executor(rec, cfg)  # its pool has threads now
+            assert executor._solve is not None
+            with multiprocessing.get_context("fork").Pool(1) as pool:
+                got = pool.apply_async(_contrast_on_the_parents_executor,
+                                       (rec, cfg)).get(timeout=120)
+        finally:
+            _SHARED.clear()
+    np.testing.assert_array_equal(got, want)
+
+
+def test_a_calibrator_closes_its_own_threads_and_never_a_callers():
+    """A calibrator's own executor is shut down with it (``close`` or ``with``); one passed in
+    stays the caller's, may serve several calibrators, and gives the same figures. A closed
+    calibrator still answers, on the caller's thread."""
+    from evcal.online import OnEIExecutor
+
+    sensor = SensorSize(100, 100)  # two blocks: a threaded re-solve
+    n = sensor.n_pixels
+    rec = random_recording(sensor, 2 * n * 30, 30, seed=8)
+    cfg = OnEIConfig(n_small=3 * n, n_large=30 * n, log_offset="auto", threads=2)
+
+    def run(cal: OnlineCalibrator) -> np.ndarray:
+        for k, chunk in frame_intervals(rec.events, rec.frames.t_us):
+            cal.feed_events(chunk)
+            cal.feed_frame(int(rec.frames.t_us[k]), rec.frames.images[k])
+        return cal.calibration().contrast
+
+    with OnlineCalibrator(sensor, cfg) as own:
+        want = run(own)
+        assert own.n_updates >= 1
+        pools = [own.executor._solve, own.executor._offset]
+        assert all(p is not None for p in pools)
+    assert own.executor.closed
+    assert not any(t.is_alive() for p in pools for t in p._threads)
+    np.testing.assert_array_equal(own.calibration().contrast, want)  # on this thread
+
+    with OnEIExecutor(2) as shared:
+        cals = [OnlineCalibrator(sensor, cfg, executor=shared) for _ in range(2)]
+        for cal in cals:
+            np.testing.assert_array_equal(run(cal), want)
+            cal.close()
+            assert not shared.closed
+        resumed = OnlineCalibrator.from_state(cals[0].state_dict(), executor=shared)
+        assert resumed.executor is shared
+    assert shared.closed
 
 
 def test_the_status_says_why_no_offset_was_estimated():
@@ -583,8 +659,8 @@ def test_events_counted_ahead_of_their_frame_give_the_same_equations():
     saved: list[dict] = []
 
     def watch(cal: OnlineCalibrator) -> None:
-        ahead.append(cal._n_ahead)
-        if cal._n_ahead > 1000 and cal.n_refolds and not saved:
+        ahead.append(cal.buffer.intake.n_ahead)
+        if cal.buffer.intake.n_ahead > 1000 and cal.n_refolds and not saved:
             saved.append(cal.state_dict())
 
     got = OnlineCalibrator(SENSOR, cfg)
@@ -627,7 +703,7 @@ def test_a_new_time_base_forgets_the_events_counted_ahead():
         cal = OnlineCalibrator(SENSOR, cfg)
         cal.AHEAD_FRACTION = fraction
         _fed_in_chunks(cal, rec.events[:half], t_fr[:15], images[:15], chunk=200, delay_us=0)
-        assert (cal._n_ahead > 0) == (fraction > 0)
+        assert (cal.buffer.intake.n_ahead > 0) == (fraction > 0)
         cal.new_session()  # the same recording again, from its start
         assert cal.status()["pending_events"] == 0
         _fed_in_chunks(cal, rec.events, t_fr, images, chunk=200, delay_us=5000)

@@ -13,8 +13,8 @@ import pytest
 
 from evcal.brandli import brandli
 from evcal.calibration import Calibration, Reason
-from evcal.offline import OffEIConfig, estimate_log_offset, offei
 from evcal.offe import offe
+from evcal.offline import OffEIConfig, estimate_log_offset, offei
 from evcal.online import OnEIConfig, OnlineCalibrator, onei
 from evcal.reconstruct import evaluate
 from evcal.recording import Frames, Recording
@@ -193,7 +193,8 @@ def test_onei_tracks_a_change_of_thresholds(small_sims):
     # measured: 0.0105 after the first; then 0.0156 (c) and 0.0058 (b) against the second
     # truth, 0.073 against the first; mean c 0.263 for a true mean near 0.27
     assert after_first < 0.02
-    assert c_to_2 < 0.02 and b_to_2 < 0.01, (c_to_2, b_to_2)
+    assert c_to_2 < 0.02, (c_to_2, b_to_2)
+    assert b_to_2 < 0.01, (c_to_2, b_to_2)
     assert c_to_1 > 3 * c_to_2
     assert abs(moved - float(np.mean(two.truth["contrast"][c_est.valid]))) < 0.015
 

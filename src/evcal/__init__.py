@@ -51,7 +51,7 @@ from .io import (
 )
 from .offe import OffEConfig, offe
 from .offline import OffEIConfig, estimate_log_offset, offei
-from .online import OnEIConfig, OnlineCalibrator, onei
+from .onei import OnEIConfig, OnEIExecutor, OnlineCalibrator, onei
 from .reconstruct import EvaluationError, EvaluationResult, StreamingEvaluator, evaluate
 from .recording import Frames, Recording, RecordingError
 from .sim import simulate
@@ -84,6 +84,7 @@ __all__ = [
     "OffEConfig",
     "OffEIConfig",
     "OnEIConfig",
+    "OnEIExecutor",
     "OnlineCalibrator",
     "Reason",
     "Recording",

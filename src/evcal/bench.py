@@ -109,9 +109,9 @@ def bench_onei(sensor: SensorSize, n_frames: int, events_per_frame: int,
     buffer and drops the oldest interval, and every ``n_small`` events the system is re-solved.
     ``frame_s_mean`` is the mean over all timed frames, updates included, of the frame's whole
     cost: its interval's events fed (already validated: counted as they come up to the
-    horizon of :meth:`OnlineCalibrator._fold_ahead`) and the frame; ``path_s_mean`` the mean
-    of the frame's call alone (what a service waits for after a frame), ``update_s_median``
-    the median of that call at the frames that re-solved. The floor of a
+    horizon of :meth:`evcal.onei.intake.EventIntake.fold_ahead`) and the frame;
+    ``path_s_mean`` the mean of the frame's call alone (what a service waits for after a
+    frame), ``update_s_median`` the median of that call at the frames that re-solved. The floor of a
     frame is what any implementation must at least do: count the frame's events per pixel
     (``np.bincount`` of their pixel indices, computed from x and y) and move one frame's worth
     of per-pixel state, a copy of the normal equations (16 float64 per pixel).
@@ -240,7 +240,9 @@ def run_bench(*, quick: bool = False, progress: bool = True) -> dict[str, Any]:
         out[f"onei_memory_MiB_per_megapixel ({sensor}, buffer and state)"] = round(
             r["state_MiB_per_Mpx"], 1)
         out[f"onei_feed_Mev_per_s ({sensor})"] = round(r["feed_events_per_s"] / 1e6, 1)
-    n_eo = 2_000_000 if quick else 20_000_000
+    # enough events for OffE's 20 per pixel somewhere, also in the quick run (about 11 and 22
+    # a pixel on average)
+    n_eo = 10_000_000 if quick else 20_000_000
     say(f"streaming OffE (events-only cameras) at {hd}, {n_eo} events")
     r_eo = bench_streaming_offe(hd, n_eo)
     out[f"offe_streaming_Mev_per_s ({hd}, 100k-event chunks)"] = round(

@@ -135,7 +135,7 @@ STREAMING_FORMAT = "evcal.offe.streaming.v1"
 
 
 # (untyped decorator: evcal.offe is not yet in pyproject's list of numba modules)
-@numba.njit(cache=True, nogil=True)  # type: ignore[untyped-decorator]
+@numba.njit(cache=True, nogil=True)
 def _fold(t: Any, x: Any, y: Any, p: Any, width: int, t0: int, step: int, sums: Any,
           counts: Any) -> None:  # pragma: no cover - compiled
     # one pass in time order: each event's weights need its pixel's count and polarity sum

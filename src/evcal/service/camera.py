@@ -27,7 +27,7 @@ from ..errors import CalibrationError, ErrorReason, EvcalError, StateError
 from ..events import SensorSize
 from ..io.wire import encode_calibration
 from ..offe import OffEConfig, StreamingOffE
-from ..online import OnEIConfig, OnlineCalibrator
+from ..online import OnEIConfig, OnEIExecutor, OnlineCalibrator
 from ..stream import DuplicateMessage, LateMessage, StreamGuard
 
 log = logging.getLogger("evcal.service")
@@ -152,9 +152,13 @@ class CameraState:
 
     def __init__(self, camera_id: str, *, onei: OnEIConfig | None = None,
                  max_pixels: int | None = None, observe: bool = False,
-                 offe: OffEConfig | None = None, offe_period_us: int = 1_000_000) -> None:
+                 offe: OffEConfig | None = None, offe_period_us: int = 1_000_000,
+                 executor: OnEIExecutor | None = None) -> None:
         self.id = camera_id
         self.onei = onei or OnEIConfig()
+        # OnEI's threads, shared by the service's cameras and closed by the service (None:
+        # each calibrator makes and closes its own)
+        self.executor = executor
         # events-only cameras: streaming OffE until the camera's first frame (then OnEI),
         # an update every offe_period_us of sensor time
         self.offe_config = offe or OffEConfig()
@@ -229,7 +233,8 @@ class CameraState:
                 self.calibration = self.calibration_msg = None
                 c.restarts[kind] += 1
             # live: the online log offset is taken when it is ready, no frame waits for it
-            self.calibrator = OnlineCalibrator(sensor, replace(self.onei, offset_wait=False))
+            self.calibrator = OnlineCalibrator(sensor, replace(self.onei, offset_wait=False),
+                                               executor=self.executor)
             self.frame_dtype = None
             self._start_events_only(sensor)
             log.info("camera %s: %s sensor", self.id, sensor)
@@ -476,7 +481,7 @@ class CameraState:
                                                             and h * w > limit):
                 raise StateError(f"the snapshot's {w}x{h} sensor exceeds the limit of "
                                  f"{limit} pixels (--max-pixels) or 65535x65535")
-            calibrator = OnlineCalibrator.from_state(est)
+            calibrator = OnlineCalibrator.from_state(est, executor=self.executor)
             if "guard" in meta:
                 guard = StreamGuard.from_state(meta["guard"], max_pixels=self.guard.max_pixels)
             else:  # snapshots written before the guard was saved

@@ -48,7 +48,7 @@ from ..calibration import Calibration
 from ..errors import ConfigError, ErrorReason, EvcalError
 from ..jsonable import strict_dumps
 from ..offe import OffEConfig
-from ..online import OnEIConfig
+from ..online import OnEIConfig, OnEIExecutor
 from . import keys
 from .camera import LATENCY_PARTS, CalibrationUpdate, CameraState, Observed, Output, Rejected
 from .camera import Rejection as Rejection
@@ -217,6 +217,9 @@ class Service:
         # camera ids refused a slot or displaced, newest last, at most refused_memory
         self.refused: OrderedDict[str, Refusal] = OrderedDict()
         self._limiter = ErrorLimiter(config.error_rate_hz)  # refusals not of one camera
+        # one set of OnEI threads for every camera (a pool per camera would hold
+        # max_cameras x threads idle threads); closed with the service
+        self.executor = OnEIExecutor(config.onei.threads)
         self._lock = threading.Lock()
         self.rejected_cameras = 0
         self.invalid_camera_ids = 0
@@ -329,7 +332,8 @@ class Service:
     def _new_camera(self, camera_id: str, *, observe: bool) -> Camera:
         cfg = self.config
         state = CameraState(camera_id, onei=cfg.onei, max_pixels=cfg.max_pixels,
-                            observe=observe, offe=cfg.offe, offe_period_us=cfg.offe_period_us)
+                            observe=observe, offe=cfg.offe, offe_period_us=cfg.offe_period_us,
+                            executor=self.executor)
         cam = Camera(state, emit=self._emit, queue_bytes=cfg.queue_bytes,
                      max_message_bytes=cfg.max_message_bytes, block=cfg.on_full == "block")
         cam.limiter = ErrorLimiter(cfg.error_rate_hz)
@@ -695,3 +699,4 @@ class Service:
         if self._observer_thread is not None:
             self._observer_thread.close()  # the recorder finishes what the cameras handed it
         self.tick(force=True)
+        self.executor.close()  # after the last snapshot: what runs later runs inline

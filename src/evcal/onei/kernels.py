@@ -1,4 +1,4 @@
-"""Compiled kernels of OnEI (:mod:`evcal.online`): packed event counts, sliding sums of frame
+"""Compiled kernels of OnEI (:mod:`evcal.onei`): packed event counts, sliding sums of frame
 intervals and the blocked per-pixel normal equations. Pure numpy + numba, no state here.
 
 **Packed counts.** The events of the open frame interval are counted in one byte per pixel:
@@ -42,6 +42,17 @@ def _jit(fn: F) -> F:
     """``numba.njit`` with OnEI's options, typed for mypy (the kernels keep their signatures)."""
     jitted: F = numba.njit(cache=True, nogil=True, error_model="numpy")(fn)
     return jitted
+
+
+def jit(**options: Any) -> Callable[[F], F]:
+    """``numba.njit(cache=True, nogil=True, **options)``, typed for mypy (the kernels keep
+    their signatures)."""
+
+    def wrap(fn: F) -> F:
+        jitted: F = numba.njit(cache=True, nogil=True, **options)(fn)
+        return jitted
+
+    return wrap
 
 
 # ----------------------------------------------------------------------------------------

@@ -1,0 +1,366 @@
+"""The OnEI facade: :class:`OnlineCalibrator` (feed events and frames, read the calibration)
+and :func:`onei` (the calibrator over a whole recording)."""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import replace
+from types import TracebackType
+from typing import Any
+
+import numpy as np
+
+from ..calibration import Calibration, Diagnostics, OnEIDiagnostics
+from ..errors import CalibrationError, ErrorReason
+from ..events import SensorSize
+from ..recording import Recording
+from ..stream import StreamError, StreamGuard, frame_intervals
+from . import state as state_format
+from .buffer import LargeBuffer
+from .config import OnEIConfig
+from .estimate import LowPassEstimate
+from .executor import OnEIExecutor
+from .offset import OnlineOffset
+from .solve import resolve
+
+
+class OnlineCalibrator:
+    """Per-camera OnEI state: feed events and frames in time order, read the calibration.
+
+    Its threads are an :class:`OnEIExecutor`: the caller's when one is passed (the caller
+    closes it), else the calibrator's own, shut down by :meth:`close` or at the end of a
+    ``with`` block (a closed calibrator still works, on the caller's thread).
+    """
+
+    # events are counted ahead of their frame up to this fraction of the shortest recent
+    # frame interval after the latest frame (EventIntake.fold_ahead)
+    AHEAD_FRACTION = 0.75
+
+    def __init__(self, sensor: SensorSize, config: OnEIConfig | None = None, *,
+                 executor: OnEIExecutor | None = None) -> None:
+        self.sensor = sensor
+        self.config = config or OnEIConfig()
+        self.n_small, self.n_large = self.config.sizes(sensor)
+        self._owns_executor = executor is None
+        self.executor = executor if executor is not None else OnEIExecutor(
+            self.config.threads)
+        self.buffer = LargeBuffer(sensor, self.config, self.n_small, self.n_large,
+                                  self.executor)
+        # normal equations that fit in the last-level cache (16 blocks, 16.8 MB; 346x260 has
+        # 11) take the queued equations at every frame: as cheap as in batches there, and an
+        # update frame is not left the queue of the frames before it; larger ones batch them
+        # (PENDING_SLOTS), each pass over the sums costing a pass through memory
+        eager = self.config.eager
+        self._eager = self.buffer.sums.n_blocks <= 16 if eager is None else bool(eager)
+        self.estimate = LowPassEstimate(sensor.n_pixels)  # what calibration() reports
+        self.offset = OnlineOffset(self.config.log_offset)
+        self.lam = 0.0
+        self.n_updates = 0
+        self.n_events = 0
+        self.n_frames = 0
+        self.n_gaps = 0
+        self.n_folded_late = 0  # events folded without their frame (pending overflow)
+        self.n_refolds = 0  # frames earlier than events folded ahead (counted again)
+        self.n_late_events = 0  # events that arrived after the frame that ends their interval
+        self.n_sessions = 0  # discontinuities of the stream's time base (new_session)
+        self._guard = StreamGuard(sensor)  # time order of this calibrator's input
+
+    # -- lifecycle ----------------------------------------------------------------------------
+
+    def __enter__(self) -> OnlineCalibrator:
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Shut down the calibrator's own threads (not a caller's executor). Idempotent."""
+        if self._owns_executor:
+            self.executor.close()
+
+    def new_session(self) -> None:
+        """The stream's time base changed (a camera restarted, a recording replayed again).
+
+        The rule: no equation may span the discontinuity, so the large buffer, the pending
+        events and the normal equations are emptied; the smoothed estimate (and so the
+        published calibration) is kept and goes on being refined by the new session. A
+        change of sensor needs a new calibrator instead.
+        """
+        self.buffer.reset()
+        self._guard = StreamGuard(self.sensor)
+        self.n_sessions += 1
+        self.buffer.holds_all = False
+
+    def _start_session_keeping_guard(self) -> None:
+        guard = self._guard
+        self.new_session()
+        self._guard = guard  # it already accepted the message that started the session
+
+    # -- the parts' figures -------------------------------------------------------------------
+
+    @property
+    def log_offset(self) -> float:
+        """The offset of ``log(I + offset)`` in DN; NaN until estimated (``"auto"``)."""
+        return self.offset.log_offset
+
+    @property
+    def offset_info(self) -> dict[str, Any]:
+        return self.offset.info
+
+    @property
+    def offset_state(self) -> str:
+        """Where the online offset estimate stands, for an operator."""
+        return self.offset.state
+
+    @property
+    def n_equations(self) -> int:
+        """Small buffers in the normal equations now."""
+        return self.buffer.n_equations
+
+    @property
+    def last_event_t_us(self) -> int | None:
+        """Time of the latest event fed (None before the first)."""
+        return self._guard.last_event_t_us
+
+    @property
+    def last_frame_t_us(self) -> int | None:
+        """Time of the latest frame fed (None before the first)."""
+        return self._guard.last_frame_t_us
+
+    @property
+    def buffer_events(self) -> int:
+        return self.buffer.n_events
+
+    @property
+    def buffer_bytes(self) -> int:
+        """Bytes held by the large buffer (frames, last polarities, sparse interval counts)."""
+        return self.buffer.nbytes
+
+    @property
+    def state_bytes(self) -> int:
+        """Bytes of all the calibrator holds: the large buffer and the per-pixel state (normal
+        equations, queued equations, sliding sums, open interval, counts, estimate)."""
+        arrays = [*self.buffer.arrays(), *self.estimate.state().values()]
+        return self.buffer_bytes + int(sum(a.nbytes for a in arrays))
+
+    # -- input --------------------------------------------------------------------------------
+
+    def feed_events(self, events: np.ndarray, *, checked: bool = False) -> None:
+        """Add a sorted chunk of events (raises :class:`~evcal.events.EventError`).
+
+        ``checked=True`` is for callers whose own :class:`~evcal.stream.StreamGuard` accepted
+        the chunk against this sensor (the service does, and a :class:`Recording`'s events are
+        validated whole): nothing is checked again.
+        """
+        if checked:
+            self._guard.note_events(events)
+        elif self._guard.accept_events(events, what="events").new_session:
+            self._start_session_keeping_guard()
+        if events.size == 0:
+            return
+        self.n_events += int(events.size)
+        if self.last_frame_t_us is not None and int(events["t_us"][0]) < self.last_frame_t_us:
+            # their frame came first: they are counted in the next interval
+            self.n_late_events += int(np.searchsorted(events["t_us"], self.last_frame_t_us))
+        intake = self.buffer.intake
+        intake.add(events)
+        self.n_folded_late += intake.shed(self.config.max_pending_events)
+        intake.fold_ahead(self.last_frame_t_us, self.AHEAD_FRACTION)
+
+    def mark_gap(self) -> None:
+        """Events were lost since the latest frame: no small buffer will span this interval."""
+        self.buffer.gap = True
+        self.n_gaps += 1
+
+    def feed_frame(self, t_us: int, image: np.ndarray, exposure_us: int = 0) -> bool:
+        """Close the frame interval ending at ``t_us``; True when the estimate was re-solved."""
+        t_us = int(t_us)
+        img = self._checked_frame(t_us, image)
+        previous = self.last_frame_t_us
+        if self._guard.accept_frame(t_us, what=f"frame at t_us={t_us}").new_session:
+            self._start_session_keeping_guard()
+            previous = None
+        buffer, offset = self.buffer, self.offset
+        if buffer.intake.fold_pending_before(t_us):
+            self.n_refolds += 1
+        buffer.intake.frame_came(t_us, previous)
+        self.n_frames += 1
+        if buffer.frame_cap is None:
+            buffer.frame_cap = self.config.frame_cap(self.sensor, img.dtype.itemsize)
+        buffer.push(t_us, img.ravel().copy())
+        first_formed = False  # the first offset estimate formed the buffer's equations
+        if offset.ready(self.n_frames, self.config.offset_wait):
+            first_formed = self._apply_offset()
+        if offset.due(self.n_frames):
+            offset.start(buffer, self.sensor.n_pixels, self.n_frames, self.executor)
+        formed = offset.known and (buffer.close_small_buffers(self.log_offset)
+                                   or first_formed)
+        buffer.drop_overflow(self.log_offset)
+        if buffer.sums.removals >= self.config.rebuild_every:
+            buffer.rebuild(self.log_offset)
+        if formed and buffer.since_resolve >= self.n_small:
+            self._resolve()
+            return True
+        if self._eager:
+            # the next update (the frame a service waits on) then adds only its own equations
+            buffer.sums.apply_queued()
+        return False
+
+    def _checked_frame(self, t_us: int, image: np.ndarray) -> np.ndarray:
+        """``image`` as an array of this sensor's shape and finite numbers (or StreamError)."""
+        img = np.asarray(image)
+        if img.shape != self.sensor.shape:
+            raise StreamError(
+                f"frame at t_us={t_us} has shape {img.shape}, the camera is {self.sensor} "
+                f"(expected {self.sensor.shape})", ErrorReason.MALFORMED)
+        if img.dtype.kind not in "uif":
+            raise StreamError(f"frame at t_us={t_us} has dtype {img.dtype}, expected numbers",
+                              ErrorReason.MALFORMED)
+        if img.dtype.kind == "f" and not np.isfinite(img).all():
+            raise StreamError(f"frame at t_us={t_us} contains NaN or infinite values",
+                              ErrorReason.BAD_VALUES)
+        return img
+
+    # -- the log offset, online ---------------------------------------------------------------
+
+    def poll_offset(self) -> bool:
+        """Between frames: take an online offset estimate that has finished (only with
+        ``offset_wait=False``; a stream that stops would otherwise never see it). True when
+        the estimate was re-solved: read :meth:`calibration`."""
+        if self.config.offset_wait or not self.offset.ready(self.n_frames, False):
+            return False
+        before = self.n_updates
+        if self._apply_offset() and self.buffer.since_resolve >= self.n_small:
+            self._resolve()
+        return self.n_updates > before
+
+    def _apply_offset(self) -> bool:
+        """Take the started estimate; True when it was the first and formed equations (the
+        caller re-solves as after any new equation). A changed estimate (by more than 10 % in
+        ``log(1 + o)``) rebuilds the equations from the buffer's raw frames, restarts the
+        smoothed estimate and re-solves: the solutions folded so far were fitted to log
+        changes at the wrong offset, and averaging them with the new ones would keep their
+        bias for ``1 / smoothing`` re-solves."""
+        first = not self.offset.known
+        found = self.offset.take(self.n_frames)
+        if found is None:
+            return False
+        o, info = found
+        if first:
+            self.offset.log_offset = o
+            self.buffer.form_all(o)
+            return self.n_equations > 0
+        if abs(math.log1p(o) - math.log1p(self.log_offset)) > 0.1:
+            self.offset.log_offset = o
+            self.buffer.rebuild(o)
+            self.buffer.sums.reset_history()  # its log changes were at the old offset
+            self.estimate = LowPassEstimate(self.sensor.n_pixels)
+            self._resolve()  # at once, from the rebuilt buffer
+            info["estimate_restarted"] = True
+        return False
+
+    def _resolve(self) -> None:
+        """Re-solve every pixel and fold the solution into the estimate (:func:`resolve`)."""
+        buffer = self.buffer
+        # consecutive small buffers share their events: divide the degrees of freedom by
+        # the number of small buffers each event lies in
+        overlap = max(1.0, self.n_equations * self.n_small / max(self.buffer_events, 1))
+        # while the buffer holds the whole stream, every solution so far came from a subset
+        # of the buffer this one is solved from: it replaces them (averaging in the early,
+        # short-buffer solutions with equal weights would only add their noise)
+        self.lam = resolve(buffer.sums, self.estimate, self.config, left=buffer.left,
+                           overlap=float(overlap), replace=buffer.holds_all)
+        self.n_updates += 1
+        buffer.since_resolve = 0
+
+    # -- output -------------------------------------------------------------------------------
+
+    def calibration(self) -> Calibration:
+        """The current smoothed estimate (defaults where no valid solution was seen yet).
+
+        The maps are copies: the result does not change when the calibrator goes on.
+        """
+        shape = self.sensor.shape
+        return Calibration(
+            **self.estimate.maps(shape, self.executor.on_pixels),
+            log_offset=self.log_offset,
+            method="onei",
+            n_events=self.buffer.sums.counts.reshape(shape).copy(),
+            diagnostics=self.diagnostics(),
+        )
+
+    def diagnostics(self) -> OnEIDiagnostics:
+        """The figures of :meth:`status` and the configuration, as typed diagnostics."""
+        return OnEIDiagnostics(config=json.loads(self.config.to_json()),
+                               log_offset_estimation=dict(self.offset_info), **self.status())
+
+    def status(self) -> dict[str, Any]:
+        return {
+            "n_updates": self.n_updates,
+            "n_events": self.n_events,
+            "n_frames": self.n_frames,
+            "buffer_events": self.buffer_events,
+            "buffer_frames": len(self.buffer.frames),
+            "buffer_equations": self.n_equations,
+            "buffer_bytes": self.buffer_bytes,
+            "pending_events": self.buffer.intake.n_waiting,
+            "refolds": self.n_refolds,
+            "folded_late_events": self.n_folded_late,
+            "late_events": self.n_late_events,
+            "gaps": self.n_gaps,
+            "sessions": self.n_sessions,
+            "residual_lambda": self.lam,
+            "n_small": self.n_small,
+            "n_large": self.n_large,
+            "last_frame_t_us": self.last_frame_t_us,
+            "log_offset": self.log_offset,
+            "log_offset_state": self.offset_state,
+        }
+
+    # -- persistence (the format: evcal.onei.state) ------------------------------------------
+
+    def state_dict(self) -> dict[str, np.ndarray]:
+        """Everything needed to resume, as numpy arrays (``np.savez``-able)."""
+        return state_format.state_dict(self)
+
+    @classmethod
+    def from_state(cls, state: dict[str, np.ndarray], *,
+                   executor: OnEIExecutor | None = None) -> OnlineCalibrator:
+        """Rebuild a calibrator from :meth:`state_dict` (on ``executor``, else its own).
+
+        Raises :class:`~evcal.errors.StateError` if the state is not one or is inconsistent.
+        """
+        return state_format.from_state(cls, state, executor)
+
+
+def onei(rec: Recording, config: OnEIConfig | None = None, *,
+         history_every: int = 0) -> Calibration:
+    """Run :class:`OnlineCalibrator` over a recording (the path the service uses).
+
+    With ``history_every = n > 0`` the calibration after every n-th update is kept in
+    ``diagnostics.history`` as ``(t_us, contrast, bias, valid)`` tuples (for convergence
+    plots). A run that never updates (fewer events than one small buffer) returns the defaults
+    with a warning saying why.
+    """
+    if len(rec.frames) < 2:
+        raise CalibrationError(f"OnEI needs frames: the recording has {len(rec.frames)}")
+    history: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]] = []
+    with OnlineCalibrator(rec.sensor, config) as state:
+        for k, chunk in frame_intervals(rec.events, rec.frames.t_us):
+            t = int(rec.frames.t_us[k])
+            state.feed_events(chunk, checked=True)  # a Recording's events are validated
+            updated = state.feed_frame(t, rec.frames.images[k])
+            if updated and history_every and state.n_updates % history_every == 0:
+                cur = state.calibration()
+                history.append((t, cur.contrast.copy(), cur.bias.copy(), cur.valid.copy()))
+        cal = state.calibration()
+        diagnostics: Diagnostics = replace(state.diagnostics(), history=tuple(history))
+    if state.n_updates == 0:
+        diagnostics = diagnostics.with_warning(
+            f"OnEI made no update: the recording has {rec.n_events} events between its "
+            f"frames, fewer than one small buffer of {state.n_small} events (the default "
+            "scales the paper's 200 k at 240x180 with the sensor); pass a smaller n_small "
+            "(--n-small, and --n-large) or use OffEI")
+    return cal.replace(diagnostics=diagnostics)
