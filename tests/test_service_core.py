@@ -830,3 +830,21 @@ def test_an_exact_duplicate_is_dropped_and_counted_not_a_restart():
         assert _counts(svc, "cam0")["restarts"]["frames"] == 1
     finally:
         svc.close()
+
+
+def test_input_while_stopping_is_counted_not_queued():
+    """Once close() has begun, messages are neither queued behind the drain (a SIGTERM with
+    cameras still sending would wait the drain out) nor lost silently: they are counted."""
+    svc, _pub = make_service()
+    msgs = stream()
+    feed(svc, "cam0", msgs[:4])
+    settle(svc)
+    with svc._lock:  # noqa: SLF001 - what close() sets first
+        svc._closed = True  # noqa: SLF001
+    feed(svc, "cam0", msgs[4:8])
+    feed(svc, "cam1", msgs[:2])
+    assert svc.refused_while_closing == 6
+    assert "cam1" not in svc.cameras
+    assert not svc.cameras["cam0"].in_flight
+    svc.close()
+    assert svc.cameras_info()["refused_while_closing"] == 6

@@ -147,8 +147,9 @@ def test_worker_command_passes_the_users_options_through():
     given = parser.parse_args(["--workers", "3", "--threads", "5"])
     cmd = worker_command(parser, given, index=0, count=3, endpoint="e", instance="w0")
     assert parser.parse_args(cmd[3:]).threads == 5
+    # not the user's --cfg: the worker's link without shared memory (issue 23)
     assert (worker.mode, worker.connect, worker.listen, worker.cfg) == (
-        "client", ["unixsock-stream//t/r.sock"], [], [])
+        "client", ["unixsock-stream//t/r.sock"], [], ["transport/shared_memory/enabled:false"])
     assert worker.no_multicast_scouting
     assert worker.workers == 1
     assert (worker.shard, worker.instance, worker.rrd, worker.rerun_serve) == (

@@ -4,6 +4,7 @@ sessions on tcp/127.0.0.1, scouting off; what arrives is checked byte for byte."
 from __future__ import annotations
 
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -125,3 +126,43 @@ def _half_free_shm() -> int:
 
     st = os.statvfs("/dev/shm")
     return st.f_bavail * st.f_frsize // 2
+
+
+class _StuckSession:
+    """A zenoh session whose close hangs (a stuck router) or fails."""
+
+    def __init__(self, hang_s: float = 0.0, error: Exception | None = None) -> None:
+        self.hang_s, self.error, self.closed = hang_s, error, threading.Event()
+
+    def close(self) -> None:
+        time.sleep(self.hang_s)
+        if self.error is not None:
+            raise self.error
+        self.closed.set()
+
+
+def test_a_bounded_close_returns_in_time_and_says_why():
+    import zenoh
+
+    t = Transport(ZenohOptions.loopback())
+    t._session = stuck = _StuckSession(hang_s=30.0)
+    t0 = time.monotonic()
+    assert t.close(timeout_s=0.3) is False
+    assert time.monotonic() - t0 < 2.0
+    assert t.close_error == "the zenoh session did not close within 0.3 s"
+    assert not stuck.closed.is_set()
+
+    t = Transport(ZenohOptions.loopback())
+    t._session = _StuckSession(error=zenoh.ZError("close operation timed out!"))
+    assert t.close(timeout_s=2.0) is False  # not raised: reported
+    assert t.close_error == ("closing the zenoh session failed: ZError: close operation "
+                             "timed out!")
+
+    t = Transport(ZenohOptions.loopback())
+    t._session = fine = _StuckSession()
+    assert t.close(timeout_s=2.0) is True
+    assert t.close_error is None
+    assert fine.closed.is_set()
+    t._session = _StuckSession(error=zenoh.ZError("close operation timed out!"))
+    with pytest.raises(zenoh.ZError):  # unbounded, as before: zenoh's error is raised
+        t.close()

@@ -223,6 +223,9 @@ class Service:
         self._lock = threading.Lock()
         self.rejected_cameras = 0
         self.invalid_camera_ids = 0
+        # messages that came while the service was stopping: not queued (the drain would
+        # wait for them), counted and reported in the last cameras document and the log
+        self.refused_while_closing = 0
         self.evicted_cameras = 0
         self.forgotten_cameras = 0
         self.publish_errors = 0
@@ -463,6 +466,10 @@ class Service:
             return
         if not claimed and self.config.cameras != "**" and not self.claims(camera_id):
             return
+        if self._closed:
+            with self._lock:
+                self.refused_while_closing += 1
+            return
         cam = self.camera(camera_id)
         if cam is None:
             if not self._closed:
@@ -541,6 +548,7 @@ class Service:
             "rejected_cameras": self.rejected_cameras,
             "refused_camera_ids": len(self.refused),
             "invalid_camera_ids": self.invalid_camera_ids,
+            "refused_while_closing": self.refused_while_closing,
             "evicted_cameras": self.evicted_cameras,
             "forgotten_cameras": self.forgotten_cameras,
             "bad_snapshots": self.store.bad if self.store is not None else 0,
@@ -700,3 +708,6 @@ class Service:
             self._observer_thread.close()  # the recorder finishes what the cameras handed it
         self.tick(force=True)
         self.executor.close()  # after the last snapshot: what runs later runs inline
+        if self.refused_while_closing:
+            log.warning("%d message(s) came while the service was stopping and were not "
+                        "processed", self.refused_while_closing)

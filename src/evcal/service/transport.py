@@ -31,6 +31,9 @@ import zenoh
 
 log = logging.getLogger("evcal.transport")
 
+# sessions whose bounded close timed out: kept referenced until the process exits
+_LEFT_OPEN: list[Any] = []
+
 MODES = ("peer", "client", "router")
 
 
@@ -305,6 +308,7 @@ class Transport:
         self._entities: list[Any] = []
         self._lock = threading.Lock()
         self.shm = ShmPool(None if shm_pool_mb is None else int(shm_pool_mb * (1 << 20)))
+        self.close_error: str | None = None  # why a bounded close did not finish
 
     def __enter__(self) -> Transport:
         self.open()
@@ -325,7 +329,41 @@ class Transport:
             raise TransportError(f"cannot open a zenoh session ({self.options}): {exc}") \
                 from None
 
-    def close(self) -> None:
+    def close(self, timeout_s: float | None = None) -> bool:
+        """Undeclare what was declared and close the session; True when it closed.
+
+        ``timeout_s`` None waits for zenoh (its errors raised). Otherwise the close is
+        bounded: zenoh's own gives up after 10 s (``ZError: close operation timed out``)
+        and an undeclaration waits without bound behind a stuck router (seen with zenoh
+        1.10.2, docs/SERVICE.md "Scale-out"). After ``timeout_s`` the session is left open
+        for the process's exit, which ends it at once; False, and :attr:`close_error`
+        says why.
+        """
+        if timeout_s is None:
+            self._close_now()
+            return True
+        box: dict[str, BaseException] = {}
+
+        def run() -> None:
+            try:
+                self._close_now()
+            except BaseException as exc:  # reported by the caller's thread, never raised here
+                box["error"] = exc
+
+        th = threading.Thread(target=run, name="evcal-zenoh-close", daemon=True)
+        th.start()
+        th.join(timeout_s)
+        if th.is_alive():
+            self.close_error = f"the zenoh session did not close within {timeout_s:g} s"
+            _LEFT_OPEN.append(self)  # dropping the last reference would wait as well
+            return False
+        if "error" in box:
+            exc = box["error"]
+            self.close_error = f"closing the zenoh session failed: {type(exc).__name__}: {exc}"
+            return False
+        return True
+
+    def _close_now(self) -> None:
         with self._lock:
             entities, self._entities = self._entities, []
         for e in reversed(entities):
@@ -333,9 +371,9 @@ class Transport:
                 e.undeclare()
             except Exception:  # already gone with the session
                 pass
-        if self._session is not None:
-            self._session.close()
-            self._session = None
+        session, self._session = self._session, None
+        if session is not None:
+            session.close()
 
     @property
     def session(self) -> Any:
@@ -420,7 +458,12 @@ class Transport:
         matching" complete one a router would pick) and turns reply consolidation off, so
         several instances answering on the same key are all seen.
         """
-        kwargs: dict[str, Any] = {"timeout": float(timeout_s)}
+        # Queries travel at a higher priority than the data: each priority has its own queue
+        # (and lock) on every zenoh link, so a query to a service whose link is full of
+        # events (`--on-full block`, serve --workers) does not wait behind them; the replies
+        # take the query's priority.
+        kwargs: dict[str, Any] = {"timeout": float(timeout_s),
+                                  "priority": zenoh.Priority.INTERACTIVE_HIGH}
         if all_replies:
             kwargs["consolidation"] = zenoh.ConsolidationMode.NONE
             kwargs["target"] = zenoh.QueryTarget.ALL

@@ -26,7 +26,8 @@ This process, the supervisor, does not touch the data:
   worker and exits 1;
 - SIGINT or SIGTERM: SIGTERM to every worker, which drains its queues, publishes a last
   status and writes its snapshots and ``.rrd``; after 60 s a worker still running is killed.
-  Then the session closes; exit 0 when every worker stopped cleanly.
+  Then the session closes (bounded: :data:`ROUTER_CLOSE_S`); exit 0 when every worker
+  stopped cleanly.
 
 A worker never outlives the supervisor, however it ends: its stdin reaches end-of-file when
 the supervisor's end of the pipe closes (it then stops as on SIGTERM), and on Linux
@@ -35,12 +36,10 @@ supervisor's socket directory, which a killed supervisor leaves behind.
 
 The data path is zenoh's: every worker subscribes to every camera's keys, the router (Rust
 threads, no GIL) hands each sample to every worker, and a worker leaves another shard's
-sample by its key before copying the payload. Shared memory goes through the router: a
-local publisher's payload reaches each worker as a reference into the publisher's segment,
-not a copy (zenoh's transport maps shared-memory buffers to descriptors for every partner
-that supports them); a remote publisher's payload is sent to each worker once over the local
-socket. Queries reach every worker (a shard's queryables are not "complete") and only the
-owner of a camera answers for it.
+sample by its key before copying the payload. The workers' links carry no shared memory
+(:data:`WORKER_ZENOH_CFG`, why there): every payload, a local publisher's too, is sent to
+each worker over the local socket. Queries reach every worker (a shard's queryables are not
+"complete") and only the owner of a camera answers for it.
 """
 
 from __future__ import annotations
@@ -81,6 +80,18 @@ USAGE_EXIT = 2  # a worker's exit code for bad usage: restarting it cannot help
 # the zenoh options of a worker are the supervisor's, never the user's: these variables
 # would otherwise stand in for the flags a worker is not given (transport.options_from_args)
 ZENOH_ENV = ("EVCAL_CONNECT", "EVCAL_LISTEN", "EVCAL_ZENOH_CONFIG", "EVCAL_MODE")
+
+# A worker's link to the router carries no shared memory: zenoh 1.10.2 deadlocks on it.
+# Its shared-memory handoff (eclipse-zenoh/zenoh#2646) takes a lock per link and priority
+# while it maps a payload for a partner -- under that transport's `links` read lock -- and
+# holds it until the push and `handle_push_result` are done, which reads `links` again. When
+# a writer queues on `links` in between (a link added or removed: a killed worker's, or one
+# reconnecting after zenoh closed it for a push that waited 5 s), the writer-preferring
+# RwLock closes the cycle: the router stops for good (issue 23; gdb thread dumps in
+# docs/SERVICE.md, "Worker deaths under load"). Without shared memory on the link zenoh
+# takes no handoff lock. The cost: the router copies every payload to each worker.
+WORKER_ZENOH_CFG = ("transport/shared_memory/enabled:false",)
+ROUTER_CLOSE_S = 3.0  # the router session's close is bounded (Transport.close)
 
 # options the supervisor sets for each worker instead of passing the user's through
 OWN_OPTIONS = frozenset({"help", "mode", "connect", "listen", "config",
@@ -135,6 +146,7 @@ def worker_command(parser: argparse.ArgumentParser, args: argparse.Namespace, *,
     """The command line of worker ``index`` of ``count`` (see the module's docstring)."""
     cmd = [sys.executable, "-m", "evcal.service", *passthrough_args(parser, args),
            "--mode", "client", "--connect", endpoint, "--no-multicast-scouting",
+           *(f"--cfg={c}" for c in WORKER_ZENOH_CFG),
            "--shard", f"{index}/{count}", "--instance", instance,
            "--supervised", str(os.getpid())]
     if not args.threads:
@@ -302,8 +314,12 @@ class Supervisor:
                 slot.last_exit = describe_exit(code)
                 slot.exit_codes.append(code)
             clean = clean and code == 0
+            took_s = timeout_s - max(0.0, deadline - time.monotonic())
             if code != 0:
-                log.warning("worker %s stopped with %s", slot.instance, slot.last_exit)
+                log.warning("worker %s stopped with %s after %.1f s", slot.instance,
+                            slot.last_exit, took_s)
+            else:
+                log.info("worker %s stopped after %.1f s", slot.instance, took_s)
         for slot in self.slots:  # the pipes of workers that had exited before
             if slot.proc is not None and slot.proc.stdin is not None:
                 slot.proc.stdin.close()
@@ -401,32 +417,44 @@ def serve_workers(parser: argparse.ArgumentParser, args: argparse.Namespace, *,
         return 1
     with tempfile.TemporaryDirectory(prefix=LOCAL_DIR_PREFIX) as tmp:
         endpoint = local_endpoint(tmp)
+        t = Transport(as_router(zenoh, endpoint))
         try:
-            with Transport(as_router(zenoh, endpoint)) as t:
-                name = instance or t.zid
-                names = [f"{name}-w{i}" for i in range(count)]
-                sup = Supervisor(
-                    [worker_command(parser, args, index=i, count=count, endpoint=endpoint,
-                                    instance=n) for i, n in enumerate(names)],
-                    names, env=worker_env())
-                _declare(t, sup, prefix=prefix, name=name, claims=claims, names=names)
-                log.info("supervisor %s: %d workers, local endpoint %s", name, count,
-                         endpoint)
-                try:
-                    ok = sup.poll()
-                    while ok and not stop.wait(poll_s):
-                        ok = sup.poll()
-                finally:  # whatever happened, the workers stop before the router
-                    log.info("stopping %d workers", count)
-                    clean = sup.stop()
+            t.open()
         except TransportError as exc:
             print(f"evcal serve: {exc}", file=sys.stderr)
             return 1
+        try:
+            name = instance or t.zid
+            names = [f"{name}-w{i}" for i in range(count)]
+            sup = Supervisor(
+                [worker_command(parser, args, index=i, count=count, endpoint=endpoint,
+                                instance=n) for i, n in enumerate(names)],
+                names, env=worker_env())
+            _declare(t, sup, prefix=prefix, name=name, claims=claims, names=names)
+            log.info("supervisor %s: %d workers, local endpoint %s", name, count, endpoint)
+            try:
+                ok = sup.poll()
+                while ok and not stop.wait(poll_s):
+                    ok = sup.poll()
+            finally:  # whatever happened, the workers stop before the router
+                log.info("stopping %d workers", count)
+                clean = sup.stop()
+        finally:
+            # bounded: a router that zenoh cannot close (its own close gives up after 10 s
+            # with "close operation timed out") must not hold up the stop; its links end
+            # with this process
+            t0 = time.monotonic()
+            if not t.close(timeout_s=ROUTER_CLOSE_S):
+                log.warning("%s; its links end with this process", t.close_error)
+            else:
+                log.info("router closed in %.1f s", time.monotonic() - t0)
     if sup.failed is not None:
         print(f"evcal serve: {sup.failed}", file=sys.stderr)
         return 1
-    print(f"evcal serve: stopped; {count} workers, {sup.restarts} restart(s)",
-          file=sys.stderr)
+    # the exit code says whether every worker stopped cleanly (drained, state and .rrd
+    # written); the router holds no state, so its close is reported, not counted
+    print(f"evcal serve: stopped; {count} workers, {sup.restarts} restart(s)"
+          + (f"; {t.close_error}" if t.close_error else ""), file=sys.stderr)
     return 0 if clean else 1
 
 
