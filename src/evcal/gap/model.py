@@ -358,42 +358,6 @@ def anchor(model: Model, rec: Recording, meas: Observation, seed: int,
     return model, None
 
 
-def carry_anchor(model: Model, band: Band, before: Model, after: Model,
-                 meas_band: Observation, meas: Observation, *, n_bins: int = 6) -> Model:
-    """``model`` (the whole sensor's) corrected by the curves over pixel activity that
-    :func:`anchor` found on ``band``, from the band's maps ``before`` and ``after``
-    anchoring, so that anchoring it on the whole sensor starts where the band ended.
-
-    The correction is a function of the activity bin (a factor on ``c``, a shift of ``b``
-    after it), read back per bin as the median over the band's pixels and applied to every
-    pixel by its measured event count against the band's bin edges."""
-    if not after.anchored or after is before:
-        return model
-    fm = _fit(meas_band)
-    if fm["ok"].sum() < 20:
-        return model
-    count_band = (meas_band.on + meas_band.off).sum(0).astype(np.float64)
-    edges = np.unique(np.quantile(count_band[fm["ok"]], np.linspace(0, 1, n_bins + 1)))
-    edges[0], edges[-1] = -np.inf, np.inf
-    nb = edges.size - 1
-    bins_band = np.clip(np.searchsorted(edges, count_band, side="right") - 1, 0, nb - 1)
-    log_k = np.log(after.contrast.ravel() / before.contrast.ravel())
-    shift = after.bias.ravel() - before.bias.ravel() * np.exp(log_k)
-    lk = np.zeros(nb)
-    db = np.zeros(nb)
-    for j in range(nb):  # a handful of bins
-        m = bins_band == j
-        if m.any():
-            lk[j] = np.median(log_k[m])
-            db[j] = np.median(shift[m])
-    count = (meas.on + meas.off).sum(0).astype(np.float64)
-    bins = np.clip(np.searchsorted(edges, count, side="right") - 1, 0, nb - 1)
-    k_pix = np.exp(lk[bins]).reshape(model.contrast.shape)
-    c = np.maximum(model.contrast * k_pix, 1e-3)
-    b = np.clip(model.bias * k_pix + db[bins].reshape(model.bias.shape), -0.8 * c, 0.8 * c)
-    return replace(model, contrast=c, bias=b, anchored=True)
-
-
 # ------------------------------------------------------------------------------ candidates
 
 

@@ -41,7 +41,6 @@ from .model import (
     Model,
     SimSettings,
     anchor,
-    carry_anchor,
     estimate_read_noise,
     fit_base,
     fit_candidate,
@@ -133,8 +132,6 @@ class Evaluation:
     # screened on the run's band of rows (GapConfig.screen_rows): its statistics and sims are
     # the band's, ``model`` the whole sensor's (not anchored yet: confirm() evaluates it)
     on_band: bool = False
-    # a screening's model anchored on the band (confirm() carries its correction over)
-    band_model: Model | None = None
 
     @property
     def gap(self) -> float:
@@ -315,11 +312,10 @@ class _Runner:
         """A screened evaluation completed with every seed (on the band: evaluated anew on
         the whole sensor)."""
         if ev.on_band:
-            model = ev.model
-            if ev.band_model is not None and self.band is not None:
-                model = carry_anchor(model, self.band, self.band.model(model), ev.band_model,
-                                     self.meas_band, self.meas)
-            return self.evaluate(model, what)
+            # anchored anew on the whole sensor: started from the band anchor's correction, a
+            # first simulation within tolerance stands with maps less well anchored than the
+            # correction of the whole sensor's own fits gives, and the gaps compared carry it
+            return self.evaluate(ev.model, what)
         return self.extend(ev, len(self.seeds), what) if ev.screened else ev
 
     def _screen_on_band(self, model: Model, spread: Evaluation | None, n: int = 1
@@ -353,7 +349,7 @@ class _Runner:
         disc = discrepancy(self.meas_stats_band, summaries,
                            spread=self.band_spread(spread) if n == 1 and spread is not None
                            else None)
-        return Evaluation(model, sims, disc, summaries, on_band=True, band_model=m_band)
+        return Evaluation(model, sims, disc, summaries, on_band=True)
 
     def band_spread(self, ev: Evaluation) -> Discrepancy:
         """``ev``'s discrepancy on the band (its simulations cut to the band's rows): the
