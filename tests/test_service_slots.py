@@ -126,9 +126,16 @@ def test_a_refused_camera_s_status_says_why():
                  timeout_s=10, what="two cameras past their probation")
         for kind, payload in stream(n_frames=3):
             t.put(keys.camera_key("evcal", "c", kind), payload, ENC[kind], block=True)
-        replies = t.get("evcal/c/status", timeout_s=2.0)
-        assert len(replies) == 1
-        st = json.loads(replies[0].payload)
+
+        def status() -> dict:
+            replies = t.get("evcal/c/status", timeout_s=2.0)
+            assert len(replies) == 1
+            return json.loads(replies[0].payload)
+
+        # queries travel at a higher priority than the data: wait until all 6 are counted
+        wait_for(lambda: (status().get("refused") or {}).get("messages") == 6, timeout_s=10,
+                 what="the 6 refused messages counted")
+        st = status()
         assert st["state"] == "refused"
         assert st["refused"]["reason"] == "too_many_cameras"
         assert st["refused"]["messages"] == 6
