@@ -22,6 +22,7 @@ from .events import SensorSize
 if TYPE_CHECKING:
     from .calibration import Calibration
     from .progress import Progress
+    from .recording import Recording
 
 DESCRIPTION = """\
 evcal: per-pixel calibration of event cameras.
@@ -75,7 +76,8 @@ def _sensor_arg(text: str | None) -> SensorSize | None:
         raise CliError(str(exc)) from None
 
 
-def _open(path: str, sensor: str | None = None, args: argparse.Namespace | None = None):
+def _open(path: str, sensor: str | None = None, args: argparse.Namespace | None = None
+          ) -> Recording:
     from .io import open_recording  # noqa: PLC0415
 
     return open_recording(path, sensor=_sensor_arg(sensor),

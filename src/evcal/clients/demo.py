@@ -193,7 +193,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     return 0
 
 
-def latency_line(status: dict) -> str:
+def latency_line(status: dict[str, Any]) -> str:
     """What the latency figures of a camera's status mean, in one line: frame received to
     calibration published (median, p95), and how much of it was waiting in the queue."""
     lat = status.get("latency_ms") or {}

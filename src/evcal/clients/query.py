@@ -14,6 +14,7 @@ that disagree are refused unless ``--instance`` says which to trust.
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import sys
@@ -225,7 +226,7 @@ def save_npz_bytes(payload: bytes, out: Path) -> Calibration:
     return cal
 
 
-def build_parser():
+def build_parser() -> argparse.ArgumentParser:
     p = base_parser("evcal query", "Fetch a camera's current calibration from the service.")
     p.add_argument("--camera", type=camera_arg, help="camera id, e.g. lab/rig1/cam0")
     p.add_argument("--out", metavar="CALIB.npz", help="write the calibration here")

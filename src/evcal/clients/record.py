@@ -13,6 +13,7 @@ are counted in an ``evcal.record`` metadata record.
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 import threading
@@ -196,7 +197,7 @@ class Recorder:
             return {c: dict(w.counts) for c, w in self.writers.items()}
 
 
-def build_parser():
+def build_parser() -> argparse.ArgumentParser:
     p = base_parser("evcal record", "Record events, frames and calibrations from zenoh to MCAP.")
     p.add_argument("--out", required=True, metavar="FILE.mcap",
                    help="output file; with several cameras include {camera}")

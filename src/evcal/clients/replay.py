@@ -548,7 +548,7 @@ def exit_code_table() -> str:
     return "exit codes (judged in this order; 0 when none applies):\n" + "\n".join(rows)
 
 
-def build_parser():
+def build_parser() -> argparse.ArgumentParser:
     p = base_parser("evcal replay", "Publish a recording onto zenoh in evcal's wire format.")
     p.epilog = exit_code_table()
     p.formatter_class = argparse.RawDescriptionHelpFormatter

@@ -556,7 +556,8 @@ class Service:
             "publish_errors": self.publish_errors,
             "recorder_errors": self.observer_errors,
             "recorder_dropped": self.observer_dropped,
-            "recorder": (self.observer.state() if hasattr(self.observer, "state")
+            "recorder": (self.observer.state()
+                         if self.observer is not None and hasattr(self.observer, "state")
                          else None),
             "gc": self.gc.stats() if self.gc is not None else None,
             "shm": self.shm.stats() if self.shm is not None else None,

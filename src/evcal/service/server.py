@@ -12,6 +12,7 @@ import logging
 import threading
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from ..errors import ErrorReason, EvcalError
 from ..jsonable import strict_dumps
@@ -45,7 +46,7 @@ def run(
     stop: threading.Event,
     state_dir: str | Path | None = None,
     rrd: str | Path | None = None,
-    rrd_options: dict | None = None,
+    rrd_options: dict[str, Any] | None = None,
     ready: Callable[[Service], None] | None = None,
     tick_s: float = 0.1,
     sign_key: str | Path | None = None,

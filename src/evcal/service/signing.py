@@ -113,7 +113,8 @@ class Signer:
             body["key_id"] = self.key_id
             body["sig"] = self.private.sign(_message(self.instance, key, payload))
             body["pub"] = self.public_raw
-        return msgpack.packb(body, use_bin_type=True)
+        packed: bytes = msgpack.packb(body, use_bin_type=True)
+        return packed
 
 
 def read_attachment(attachment: bytes | None) -> dict[str, Any]:

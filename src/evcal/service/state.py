@@ -99,7 +99,8 @@ def atomic_savez(path: Path, arrays: dict[str, np.ndarray]) -> Path:
     tmp = path.with_name(f"{path.name}.tmp-{os.getpid()}-{next(_counter)}")
     try:
         with open(tmp, "wb") as f:
-            np.savez(f, **arrays)
+            members: dict[str, Any] = dict(arrays)  # numpy's stubs: a key could be allow_pickle
+            np.savez(f, **members)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
@@ -327,7 +328,7 @@ def read_snapshot(f: IO[bytes], *, max_pixels: int | None = None) -> dict[str, n
     msg = arrays[MSG_KEY]
     if msg.size:
         try:
-            cal, _ = decode_calibration(memoryview(msg))
+            cal, _ = decode_calibration(msg.data)
         except WireError as exc:
             raise StateError(f"{MSG_KEY} is not a calibration message: {exc}",
                              exc.reason) from None
