@@ -71,7 +71,8 @@ def test_calibrate_offei_then_evaluate_beats_di(small_sim, tmp_path, capsys):
     summary = json.loads(js.read_text())
     assert summary["n_images"] >= 5
     for key in ("rmse", "psnr", "ssim", "psnr_paper", "ssim_paper"):
-        assert key in summary["calibrated"] and key in summary["di"]
+        assert key in summary["calibrated"]
+        assert key in summary["di"]
     assert summary["calibrated"]["psnr"] > summary["di"]["psnr"] + 1.0
     assert "psnr_paper" in capsys.readouterr().out
 
@@ -197,7 +198,8 @@ def test_every_command_takes_q_and_v():
             main([name, "--help"])
         assert exc.value.code == 0, name
         text = out.getvalue()
-        assert "-q, --quiet" in text and "-v, --verbose" in text, name
+        assert "-q, --quiet" in text, name
+        assert "-v, --verbose" in text, name
 
 
 def test_a_low_valid_share_is_explained() -> None:

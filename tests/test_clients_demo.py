@@ -22,7 +22,8 @@ def test_demo_prints_table_and_writes_rrd(tmp_path):
     lines = res.stdout.splitlines()
     assert any(line.startswith("calibration") and "PSNR dB" in line for line in lines)
     rows = {line.split("  ")[0]: line for line in lines}
-    assert "DI (c=0.1, b=0)" in rows and "live OnEI (service)" in rows
+    assert "DI (c=0.1, b=0)" in rows
+    assert "live OnEI (service)" in rows
     live = rows["live OnEI (service)"].split()
     gain_db = float(live[-1])
     assert gain_db > 1.0, res.stdout  # the live calibration beats DI

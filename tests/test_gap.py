@@ -11,7 +11,7 @@ bandwidth 40 Hz, threshold noise 0.15, hot pixels 0.5 % at 40 Hz, dark level 30 
 from __future__ import annotations
 
 import json
-from functools import lru_cache
+from functools import cache
 
 import numpy as np
 import pytest
@@ -59,7 +59,7 @@ def hidden_recording(effects: list[Effect], seed: int) -> Recording:
     return simulate(cfg, effects, source=src).recording
 
 
-@lru_cache(maxsize=None)
+@cache
 def _run(key: str, seed: int, max_effects: int) -> GapResult:
     rec = hidden_recording(list(CASES.get(key, TWO_EFFECTS if key == "two" else [])), seed)
     return run_gap(rec, GapConfig(max_effects=max_effects, n_seeds=3, seed=1))
@@ -119,7 +119,8 @@ def test_screening_on_a_band_of_rows_names_the_hidden_effect(name: str, seed: in
     rec = hidden_recording(CASES[name], seed)
     res = run_gap(rec, GapConfig(max_effects=1, n_seeds=3, seed=1, screen_band_min=1_000_000))
     y0, y1 = res.recording_info["screen_band_rows"]
-    assert y1 - y0 == 16 and 0 <= y0 < y1 <= H  # 16 rows at least (a quarter would be 12)
+    assert y1 - y0 == 16  # 16 rows at least (a quarter would be 12)
+    assert 0 <= y0 < y1 <= H
     assert res.named_effects[:1] == [name], res.steps[0].candidates if res.steps else {}
     assert res.final.gap <= 0.5 * res.initial.gap
     fitted = res.steps[0].effect
@@ -187,20 +188,25 @@ def test_reports_follow_the_schema(tmp_path) -> None:
     assert doc["window"]["frames"] == res.recording_info["n_frames"]
     for item in doc["unexplained"]:  # what the final model leaves, in words
         assert item["statistic"] in {s["name"] for s in doc["statistics"]}
-        assert item["discrepancy"] >= 2.0 and item["sentence"]
+        assert item["discrepancy"] >= 2.0
+        assert item["sentence"]
     step = doc["steps"][0]
     assert set(step) == {"effect", "parameters", "gap_before", "gap_after", "moved_statistics"}
-    assert step["effect"] in EFFECT_NAMES and "dark_dn" in step["parameters"]
+    assert step["effect"] in EFFECT_NAMES
+    assert "dark_dn" in step["parameters"]
     assert len(doc["statistics"]) >= 8
     for s in doc["statistics"]:
         assert set(s) == {"name", "measured", "simulated_initial", "simulated_final",
                           "z_initial", "z_final"}
-        assert np.isfinite(s["z_initial"]) and np.isfinite(s["z_final"])
+        assert np.isfinite(s["z_initial"])
+        assert np.isfinite(s["z_final"])
     md = paths["markdown"].read_text()
-    assert "log_offset" in md and "stats_step1_log_offset.png" in md
+    assert "log_offset" in md
+    assert "stats_step1_log_offset.png" in md
     # the report ends with what the model does not explain (also when that is nothing)
     tail = md.rsplit("## What the model does not explain", 1)
-    assert len(tail) == 2 and tail[1].strip().startswith("Where the final model")
+    assert len(tail) == 2
+    assert tail[1].strip().startswith("Where the final model")
     assert "- " in tail[1]
     assert (tmp_path / "stats_initial.png").stat().st_size > 1000
     assert (tmp_path / "stats_step1_log_offset.png").stat().st_size > 1000
@@ -218,7 +224,8 @@ def test_cli_runs_on_a_file_and_rejects_bad_input(tmp_path, capsys) -> None:
     assert gap_main([str(path), "--out", str(out), "--max-effects", "0", "--n-seeds", "2",
                      "--no-plots", "--no-rrd", "--quiet"]) == 0
     doc = json.loads((out / "report.json").read_text())
-    assert doc["named_effects"] == [] and doc["steps"] == []
+    assert doc["named_effects"] == []
+    assert doc["steps"] == []
     assert "named effects: none" in capsys.readouterr().out
     assert gap_main([str(tmp_path / "missing.npz"), "--out", str(out), "--quiet"]) == 1
     assert "no such file" in capsys.readouterr().err

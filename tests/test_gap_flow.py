@@ -9,7 +9,7 @@ recordings of tests/test_v2e.py check the same on an independent simulator.
 from __future__ import annotations
 
 import json
-from functools import lru_cache
+from functools import cache
 
 import numpy as np
 import pytest
@@ -46,7 +46,7 @@ def scene(seed: int) -> tuple[SimConfig, MovingScene]:
     return cfg, MovingScene(cfg.scene, (H, W), traj, speed=SPEED)
 
 
-@lru_cache(maxsize=None)
+@cache
 def recording(key: str, seed: int) -> SimResult:
     """48x64, 3 s, 25 Hz frames: still, pan, still, fast pan; events from 1 kHz."""
     effects = {"none": [], "refractory": [Refractory(period_us=1000.0)],
@@ -145,8 +145,8 @@ def test_flow_interpolation_follows_the_motion_between_25_hz_frames() -> None:
         truth = np.stack([src(t) for t in tq])[:, 8:-8, 8:-8]
 
         def err(x: np.ndarray) -> float:
-            return float(np.sqrt(np.mean((np.log(x[:, 8:-8, 8:-8] + 1) - np.log(truth + 1))
-                                         ** 2)))
+            return float(np.sqrt(np.mean((np.log(x[:, 8:-8, 8:-8] + 1)
+                                          - np.log(truth + 1)) ** 2)))  # noqa: B023 - called at once
 
         e_flow, e_lin = err(flow.render_block(tq)), err(lin.render_block(tq))
         assert e_flow < 0.6 * e_lin, (seed, e_flow, e_lin)
@@ -159,7 +159,7 @@ def test_flow_interpolation_follows_the_motion_between_25_hz_frames() -> None:
 # ------------------------------------------------------------------ the loop at 25 Hz
 
 
-@lru_cache(maxsize=None)
+@cache
 def gap(key: str, seed: int):
     return run_gap(recording(key, seed).recording, GapConfig(max_effects=2, n_seeds=3, seed=1))
 
@@ -281,4 +281,5 @@ def test_refinement_stops_at_the_edge_of_a_parameter_range() -> None:
     edge = ThresholdNoise(sigma=1.0)
     best = run.evaluate(run.candidate_model(base, edge), "edge")
     eff, ev = run.refine(base, best, edge)
-    assert eff == edge and ev is best
+    assert eff == edge
+    assert ev is best

@@ -40,7 +40,8 @@ def test_a_cached_render_gives_the_same_events(interpolation: str) -> None:
     plain = [simulate_model(model, rec, s, settings).events for s in (1, 2)]
     cache = RenderCache()
     cached = [simulate_model(model, rec, s, settings, cache).events for s in (1, 2)]
-    assert cache.renders == 1 and cache.hits == 1  # rendered once, the second seed read it
+    assert cache.renders == 1  # rendered once, the second seed read it
+    assert cache.hits == 1
     for a, b in zip(plain, cached, strict=True):
         np.testing.assert_array_equal(a, b)
     # float16 when float32 does not fit: the same events but for a few near-ties
@@ -65,21 +66,25 @@ def test_one_seed_borrows_the_spread_of_an_evaluation() -> None:
     mu = np.array([0.9, 2.9])
     expect = (np.array([1.0, 2.0]) - mu) / np.sqrt(sd**2 * 2 + (0.03 * mu) ** 2)
     np.testing.assert_allclose(one.z["s"], expect)
-    assert one.n_sims == 1 and full.n_sims == 3
+    assert one.n_sims == 1
+    assert full.n_sims == 3
 
 
 def test_a_long_recording_is_cut_to_its_busiest_frames() -> None:
     rec = small_recording(9, [], duration_s=2.0)
     whole, info = working_window(rec, 10**9, 1000.0)
-    assert whole is rec and not info["cut"]
+    assert whole is rec
+    assert not info["cut"]
     budget = H * W * 600  # 0.6 s at 1 kHz
     cut, info = working_window(rec, budget, 1000.0)
-    assert info["cut"] and info["frames"] < info["of_frames"]
+    assert info["cut"]
+    assert info["frames"] < info["of_frames"]
     t0, t1 = cut.frames.t_us[0], cut.frames.t_us[-1]
     assert (t1 - t0) * 1e-6 <= 0.6 + 1e-9
     # the busiest stretch: the scene moves in the last 70 %, so the window lies there
     assert t0 >= rec.frames.t_us[0] + 0.3e6 - 10_000
-    assert cut.n_events == info["events"] and (cut.events["t_us"] >= t0).all()
+    assert cut.n_events == info["events"]
+    assert (cut.events["t_us"] >= t0).all()
     assert (cut.events["t_us"] <= t1).all()
 
 
@@ -117,7 +122,8 @@ def test_the_beam_names_a_pair_together() -> None:
     assert pair is not None
     score, steps = pair
     assert {e.name for e, _ in steps} == {"shot_noise", "log_offset"}
-    assert not steps[1][1].screened and steps[1][1].gap < base.gap
+    assert not steps[1][1].screened
+    assert steps[1][1].gap < base.gap
     assert score == pytest.approx(steps[1][1].gap + 0.1 * sum(e.n_fitted for e, _ in steps))
 
 
@@ -137,7 +143,8 @@ def test_what_remains_is_said_in_words() -> None:
                             v.labels, v.floor) for k, v in st.items()}
     disc = discrepancy(shifted, [st, st])
     items = unexplained(disc)
-    assert items and items[0]["statistic"] == "static_rate_vs_intensity"
+    assert items
+    assert items[0]["statistic"] == "static_rate_vs_intensity"
     assert "more events than the model" in items[0]["sentence"]
     nothing = summary(discrepancy(st, [st, st]))
     assert nothing == ["nothing significant: every statistic within the model's noise "
@@ -172,7 +179,9 @@ def test_one_pass_window_sums_give_the_per_pixel_fit_and_residual() -> None:
     np.testing.assert_allclose(halves[0], window_sums(P[:12], E[:12], dL[:12], w[:12]))
     np.testing.assert_allclose(halves[0] + halves[1], sums, atol=1e-9)
     c, b, ok = fit_pixels(P, E, dL, w)
-    assert ok.all() and abs(np.median(c) - 0.2) < 0.01 and abs(np.median(b) - 0.01) < 0.01
+    assert ok.all()
+    assert abs(np.median(c) - 0.2) < 0.01
+    assert abs(np.median(b) - 0.01) < 0.01
     res = dL - c * P - b * E
     np.testing.assert_allclose(residual_from_sums(sums, c, b), (w * res * res).sum(0),
                                rtol=1e-6, atol=1e-12)
@@ -186,12 +195,15 @@ def test_observations_of_the_same_frames_share_their_frame_arrays() -> None:
     rec = small_recording(6, [])
     meas = observe(rec)
     sim = observe(simulate_model(fit_base(rec), rec, 1, SimSettings(interpolation="linear")))
-    assert sim.log_i is meas.log_i and sim.usable is meas.usable and sim.shared is meas.shared
+    assert sim.log_i is meas.log_i
+    assert sim.usable is meas.usable
+    assert sim.shared is meas.shared
     assert not meas.log_i.flags.writeable  # shared: nobody may write into them
     # a sample of rows: the same per-pixel arrays and events of those rows
     sub = every_nth_row(meas, 3)
     rows = np.arange(0, H, 3)
-    assert sub.shape == (rows.size, W) and sub.n_pixels == rows.size * W
+    assert sub.shape == (rows.size, W)
+    assert sub.n_pixels == rows.size * W
     keep = np.isin(meas.pix // W, rows)
     assert sub.t_us.size == keep.sum()
     np.testing.assert_array_equal(sub.on.sum(), meas.on.reshape(-1, H, W)[:, rows].sum())
@@ -215,7 +227,8 @@ def test_progress_without_a_terminal_prints_lines_with_the_time_left(capsys,
     assert len(lines) == 2
     assert lines[0].startswith("evcal gap: 0.2 of 10.0 simulations planned")
     assert lines[0].endswith("about ? left")  # no rate from the first simulation alone
-    assert "1.2 of 6.0 simulations planned" in lines[1] and "left" in lines[1]
+    assert "1.2 of 6.0 simulations planned" in lines[1]
+    assert "left" in lines[1]
     quiet = Progress(10.0, "gap", unit="simulations planned", quiet=True, tty=False)
     quiet.update(1.0)
     assert capsys.readouterr().err == ""

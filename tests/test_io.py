@@ -70,7 +70,8 @@ def _same(a: Recording, b: Recording, *, frames_exact: bool = True) -> None:
     assert a.sensor == b.sensor
     assert a.events.dtype == b.events.dtype == EVENTS_DTYPE
     np.testing.assert_array_equal(a.events, b.events)
-    assert a.frames is not None and b.frames is not None
+    assert a.frames is not None
+    assert b.frames is not None
     np.testing.assert_array_equal(a.frames.t_us, b.frames.t_us)
     if frames_exact:
         assert a.frames.images.dtype == b.frames.images.dtype
@@ -131,7 +132,9 @@ def test_mcap_layout_is_plain_mcap(tmp_path: Path) -> None:
 def test_mcap_empty_recording(tmp_path: Path) -> None:
     rec = Recording(SENSOR)
     back = read_mcap(write_mcap(rec, tmp_path / "empty.mcap"))
-    assert back.sensor == SENSOR and back.n_events == 0 and len(back.frames) == 0
+    assert back.sensor == SENSOR
+    assert back.n_events == 0
+    assert len(back.frames) == 0
 
 
 def test_mcap_sensor_argument_must_agree(tmp_path: Path) -> None:
@@ -267,9 +270,11 @@ def test_wire_frame_round_trip(frame: tuple[int, np.ndarray, int, int]) -> None:
     t_us, image, exposure_us, seq = frame
     t, e, out, header = decode_frame(encode_frame(t_us, image, exposure_us=exposure_us, seq=seq))
     assert (t, e) == (t_us, exposure_us)
-    assert out.dtype == image.dtype and out.shape == image.shape
+    assert out.dtype == image.dtype
+    assert out.shape == image.shape
     np.testing.assert_array_equal(out, image)
-    assert header["seq"] == seq and header["dtype"] == str(image.dtype)
+    assert header["seq"] == seq
+    assert header["dtype"] == str(image.dtype)
 
 
 def _decode_any(buf: bytes) -> None:
@@ -411,7 +416,8 @@ def test_calibration_round_trip(tmp_path: Path) -> None:
     path = save_calibration(cal, tmp_path / "cal.npz")
     with np.load(path, allow_pickle=False) as z:
         assert set(z.files) == CALIBRATION_KEYS
-        assert z["contrast"].dtype == np.float32 and z["n_events"].dtype == np.int64
+        assert z["contrast"].dtype == np.float32
+        assert z["n_events"].dtype == np.int64
     back = load_calibration(path)
     for key in ("contrast", "bias", "valid", "reason", "stderr_contrast", "stderr_bias",
                 "special", "n_events"):
@@ -457,7 +463,8 @@ def test_write_csv(tmp_path: Path) -> None:
     scale, bias = write_csv(cal, tmp_path / "csv")
     assert (scale.name, bias.name) == ("scale.csv", "bias.csv")
     lines = scale.read_text().splitlines()
-    assert len(lines) == 30 and len(lines[0].split(",")) == 40
+    assert len(lines) == 30
+    assert len(lines[0].split(",")) == 40
     assert lines[0].split(",")[0] == f"{cal.contrast[0, 0]:.6f}"
     np.testing.assert_allclose(np.loadtxt(bias, delimiter=","), cal.bias, atol=5e-7)
 
@@ -485,7 +492,8 @@ def test_real_ecd_first_events(shared_data: Path) -> None:
 def test_real_slider_depth_frames(shared_data: Path) -> None:
     rec = open_recording(shared_data / "ecd_slider_depth_frames")
     assert rec.sensor == SensorSize(height=180, width=240)
-    assert len(rec.frames) == 87 and rec.frames.images.dtype == np.uint8
+    assert len(rec.frames) == 87
+    assert rec.frames.images.dtype == np.uint8
     assert rec.n_events == 0
     assert rec.frames.t_us[1] == 38_766
     assert 3.3 < rec.duration_s < 3.4
@@ -496,7 +504,8 @@ def test_real_aedat4(shared_data: Path, tmp_path: Path) -> None:
     rec = open_recording(path)
     assert rec.sensor == SensorSize(height=260, width=346)
     assert rec.n_events == 78_830
-    assert len(rec.frames) == 59 and rec.frames.shape == (260, 346)
+    assert len(rec.frames) == 59
+    assert rec.frames.shape == (260, 346)
     assert (rec.frames.exposure_us == 500).all()
     assert rec.frames.t_us[0] == (1589163147364965 + 1589163147365465) // 2
     assert rec.metadata["reordered_events"] == 0
@@ -618,7 +627,8 @@ def test_ecd_errors_in_later_blocks_name_the_right_line(tmp_path: Path) -> None:
     lines[1999] = "0.001999000 1 1 1"
     path.write_text("\n".join(lines) + "\n")
     ev = read_events_txt(path, SensorSize(180, 240), block_bytes=4096)
-    assert ev.shape == (n,) and ev["t_us"].tolist() == list(range(n))
+    assert ev.shape == (n,)
+    assert ev["t_us"].tolist() == list(range(n))
 
 
 def test_ecd_sensor_unknown(tmp_path: Path) -> None:
@@ -639,7 +649,8 @@ def _ecd_with_frames(tmp_path: Path, shapes: list[tuple[int, int]]) -> Path:
 
 def test_ecd_frames(tmp_path: Path) -> None:
     rec = read_ecd(_ecd_with_frames(tmp_path, [(30, 40)] * 3))
-    assert rec.sensor == SENSOR and len(rec.frames) == 3
+    assert rec.sensor == SENSOR
+    assert len(rec.frames) == 3
     assert rec.frames.t_us.tolist() == [0, 40_000, 80_000]
 
 

@@ -60,7 +60,9 @@ def test_identical_images() -> None:
     assert ssim_paper(img, img) == pytest.approx(1.0, abs=1e-12)
     m = image_metrics(img, img.copy())
     assert set(m) == {"rmse", "psnr", "ssim", "psnr_paper", "ssim_paper"}
-    assert m["rmse"] == 0.0 and m["psnr"] == math.inf and m["ssim"] == pytest.approx(1.0)
+    assert m["rmse"] == 0.0
+    assert m["psnr"] == math.inf
+    assert m["ssim"] == pytest.approx(1.0)
 
 
 def test_ssim_is_skimage_uniform_7x7_window() -> None:

@@ -7,9 +7,7 @@ import pytest
 
 from evcal.calibration import Calibration
 from evcal.events import EventError, SensorSize, empty_events, make_events
-from evcal.solver import log_intensity
 from evcal.metrics import image_metrics
-from evcal.recording import Frames, Recording
 from evcal.reconstruct import (
     FALLBACK_LOG_OFFSET,
     EvaluationError,
@@ -18,7 +16,9 @@ from evcal.reconstruct import (
     select_pairs,
     to_intensity,
 )
+from evcal.recording import Frames, Recording
 from evcal.sim.ideal import SimConfig, SimResult, simulate_ideal
+from evcal.solver import log_intensity
 
 SHAPE = (48, 64)
 
@@ -131,7 +131,7 @@ def test_select_pairs_events_per_image() -> None:
         counts = lambda k, j: int(((ev >= FT[k]) & (ev < FT[j])).sum())  # noqa: E731
         assert pairs, need
         assert pairs[0][0] == 0
-        for (k, j), nxt in zip(pairs, pairs[1:] + [None]):
+        for (k, j), nxt in zip(pairs, pairs[1:] + [None], strict=False):
             assert j > k
             assert counts(k, j) >= need  # enough events ...
             assert counts(k, j - 1) < need or j - 1 == k  # ... at the first frame that has them
@@ -195,7 +195,7 @@ def test_evaluate_per_image_matches_manual(sim: SimResult) -> None:
     assert f is not None
     res = evaluate(rec, cal, events_per_image=30_000, skip_s=0.5)
     assert res.per_image[0]["t_start_us"] >= f.t_us[0] + 500_000
-    for prev, item in zip(res.per_image, res.per_image[1:]):
+    for prev, item in zip(res.per_image, res.per_image[1:], strict=False):
         assert item["k"] == prev["j"]
     item = res.per_image[1]
     k, j = item["k"], item["j"]
@@ -265,7 +265,8 @@ def test_evaluate_errors(sim: SimResult) -> None:
                                                          rec.frames.exposure_us[:1]))
     with pytest.raises(EvaluationError, match="1 frames .* frames_per_image=1"):
         evaluate(one_frame, cal, frames_per_image=1)
-    with pytest.raises(EvaluationError, match="calibration is 3x2, the recording's sensor is 64x48"):
+    with pytest.raises(EvaluationError,
+                       match="calibration is 3x2, the recording's sensor is 64x48"):
         evaluate(rec, Calibration.uniform((2, 3)), frames_per_image=1)
     with pytest.raises(ValueError, match="log_offset=-1.0 must be"):
         evaluate(rec, cal, frames_per_image=1, log_offset=-1.0)

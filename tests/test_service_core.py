@@ -54,7 +54,8 @@ def random_calibration(rng: np.random.Generator, h: int, w: int) -> Calibration:
 def test_calibration_roundtrip(h, w, seed, t_us, seq):
     cal = random_calibration(np.random.default_rng(seed), h, w)
     out, header = decode_calibration(encode_calibration(cal, t_us=t_us, seq=seq))
-    assert header["t_us"] == t_us and header["seq"] == seq
+    assert header["t_us"] == t_us
+    assert header["seq"] == seq
     assert header["n_events_used"] == int(cal.n_events.sum())
     for name in CALIBRATION_MAP_DTYPES:
         np.testing.assert_array_equal(getattr(out, name), getattr(cal, name))
@@ -138,7 +139,8 @@ def test_camera_discovery_and_outputs():
         feed(svc, "lab/rig1/cam0", stream())
         settle(svc)
         cam = svc.cameras["lab/rig1/cam0"]
-        assert cam.counters.frames == 12 and cam.counters.events == 12 * 200
+        assert cam.counters.frames == 12
+        assert cam.counters.events == 12 * 200
         assert cam.counters.updates >= 1
         cals = pub.on("evcal/lab/rig1/cam0/calibration")
         cal, header = decode_calibration(cals[-1])
@@ -147,10 +149,12 @@ def test_camera_discovery_and_outputs():
 
         assert read_attachment(pub.attachments["evcal/lab/rig1/cam0/calibration"]) == {
             "v": 1, "instance": svc.instance}
-        assert cal.shape == (6, 8) and header["seq"] == len(cals) - 1
+        assert cal.shape == (6, 8)
+        assert header["seq"] == len(cals) - 1
         svc.tick(force=True)
         status = json.loads(pub.on("evcal/lab/rig1/cam0/status")[-1])
-        assert status["sensor"] == "8x6" and status["errors_total"] == 0
+        assert status["sensor"] == "8x6"
+        assert status["errors_total"] == 0
         assert status["latency_ms"]["max"] is not None
         replies = svc.query_calibration("evcal/**/calibration", {"format": "npz"})
         assert [k for k, _, _ in replies] == ["evcal/lab/rig1/cam0/calibration"]
@@ -222,7 +226,8 @@ def test_errors_are_rate_limited():
         settle(svc)
         c = svc.cameras["c"].counters
         assert c.errors["not_msgpack"] == 200
-        assert c.errors_published <= 10 and c.errors_suppressed >= 190
+        assert c.errors_published <= 10
+        assert c.errors_suppressed >= 190
         assert len(pub.on("evcal/c/errors")) == c.errors_published
     finally:
         svc.close()
@@ -251,7 +256,8 @@ def test_drop_counts_when_the_worker_is_slow():
             assert dropped > 0
         settle(svc)
         svc.tick(force=True)
-        assert svc.status(cam)["dropped"]["events"] + svc.status(cam)["dropped"]["frames"] == dropped
+        counted = svc.status(cam)["dropped"]
+        assert counted["events"] + counted["frames"] == dropped
     finally:
         svc.close()
 
@@ -262,7 +268,8 @@ def test_too_many_cameras():
         for cam in ("a", "b", "c"):
             feed(svc, cam, stream()[:2])
         settle(svc)
-        assert sorted(svc.cameras) == ["a", "b"] and svc.rejected_cameras == 2
+        assert sorted(svc.cameras) == ["a", "b"]
+        assert svc.rejected_cameras == 2
         assert json.loads(pub.on("evcal/c/errors")[0])["reason"] == "too_many_cameras"
     finally:
         svc.close()
@@ -619,10 +626,13 @@ def test_gc_policy_freezes_and_measures_collections() -> None:
         gc.collect(0)
         gc.collect(2)
         st = pol.stats()
-        assert st["collections"][0] >= 1 and st["collections"][2] >= 1
-        assert st["max_pause_ms"] > 0 and st["pause_ms"][2] > 0
+        assert st["collections"][0] >= 1
+        assert st["collections"][2] >= 1
+        assert st["max_pause_ms"] > 0
+        assert st["pause_ms"][2] > 0
         pol.freeze()
-        assert pol.stats()["freezes"] == 1 and gc.get_freeze_count() > before
+        assert pol.stats()["freezes"] == 1
+        assert gc.get_freeze_count() > before
     finally:
         pol.uninstall()
         gc.unfreeze()
@@ -688,7 +698,8 @@ def test_no_calibration_yet_says_why_and_what_to_do():
         settle(svc)
         msg = no_calibration_message(svc.cameras["cam0"].state)
         assert "3 frames, 600 events received" in msg
-        assert "small buffer of 1,000 events" in msg and "--n-small" in msg
+        assert "small buffer of 1,000 events" in msg
+        assert "--n-small" in msg
         with pytest.raises(Exception, match="small buffer of 1,000 events") as info:
             svc.query_calibration("evcal/cam0/calibration", {})
         from evcal.errors import ErrorReason

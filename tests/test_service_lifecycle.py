@@ -14,8 +14,7 @@ import pytest
 from test_service_core import Collector, feed, make_service, settle, stream
 
 from evcal.errors import EvcalError
-from evcal.events import SensorSize
-from evcal.events import make_events
+from evcal.events import SensorSize, make_events
 from evcal.io.wire import encode_events, encode_frame
 from evcal.online import OnEIConfig
 from evcal.service import keys
@@ -373,13 +372,12 @@ def test_block_mode_is_lossless_across_a_stall_longer_than_zenoh_s_5_s(tmp_path)
     import threading
 
     pytest.importorskip("zenoh")
+    # far more than the socket and zenoh buffers hold (~50 MB), so the publisher must block
+    from evcal.bench import random_recording
     from evcal.clients.replay import replay
     from evcal.service.server import run
     from evcal.service.transport import Transport, ZenohOptions
     from evcal.testing import endpoint, free_port
-
-    # far more than the socket and zenoh buffers hold (~50 MB), so the publisher must block
-    from evcal.bench import random_recording
 
     rec = random_recording(SensorSize(48, 64), 4_000_000, 40)
     ep = endpoint(free_port())

@@ -10,6 +10,8 @@ import pytest
 pytest.importorskip("zenoh")
 
 from evcal.io import write_recording  # noqa: E402
+from evcal.service.transport import Transport, ZenohOptions, router_session  # noqa: E402
+from evcal.sim.ideal import SimConfig, simulate_ideal  # noqa: E402
 from evcal.testing import (  # noqa: E402
     ServiceProcess,
     endpoint,
@@ -17,8 +19,6 @@ from evcal.testing import (  # noqa: E402
     run_client,
     wait_for,
 )
-from evcal.service.transport import Transport, ZenohOptions, router_session  # noqa: E402
-from evcal.sim.ideal import SimConfig, simulate_ideal  # noqa: E402
 
 pytestmark = pytest.mark.timeout(240)
 
@@ -78,6 +78,7 @@ def test_two_instances_behind_a_router_and_takeover(tmp_path):
             wait_for(lambda: "three" in cameras_of(t), timeout_s=60, what="instance three")
             assert cameras_of(t) == {"two": ["lab/rig2/cam0"], "three": ["lab/rig1/cam0"]}
             after = t.get("evcal/lab/rig1/cam0/calibration", timeout_s=3.0)
-            assert len(after) == 1 and after[0].payload == before[0].payload
+            assert len(after) == 1
+            assert after[0].payload == before[0].payload
             assert three.stop() == 0
         assert two.stop() == 0

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-from functools import lru_cache
+from functools import cache
 from pathlib import Path
 
 import numpy as np
@@ -26,7 +26,7 @@ MANIFEST = json.loads((DATA / "manifest.json").read_text())
 SCENES = tuple(MANIFEST["scenes"])
 
 
-@lru_cache(maxsize=None)
+@cache
 def load(case: str, scene: str) -> tuple[Recording, np.ndarray, np.ndarray]:
     path = DATA / f"{case}_{scene}.npz"
     rec = open_recording(path)
@@ -84,7 +84,8 @@ def test_unknown_offset_is_not_zero() -> None:
     rec, tc, _ = load("none", SCENES[0])
     unknown = Calibration.uniform(tc.shape, 0.2, 0.0, method="di", log_offset=float("nan"))
     r = evaluate(rec, unknown)
-    assert r.log_offset == 30.0 and "nan" in r.log_offset_note
+    assert r.log_offset == 30.0
+    assert "nan" in r.log_offset_note
     zero = Calibration.uniform(tc.shape, 0.2, 0.0, method="di", log_offset=0.0)
     assert evaluate(rec, zero).log_offset == 0.0
 
@@ -99,7 +100,8 @@ def test_onei_on_v2e(scene: str) -> None:
 
     rec, tc, _ = load("none", scene)
     auto = onei(rec, OnEIConfig(log_offset="auto"))
-    assert np.isfinite(auto.log_offset) and auto.log_offset >= 0
+    assert np.isfinite(auto.log_offset)
+    assert auto.log_offset >= 0
     given = onei(rec, OnEIConfig(log_offset=0.0))
     v = given.valid
     assert v.mean() > 0.8
@@ -129,7 +131,8 @@ def test_service_defaults_on_v2e_at_offset_zero() -> None:
                          (replace(ServiceConfig().onei, history=1.0), with_history)):
             live = onei(rec, cfg)
             v = live.valid & off.valid
-            assert live.valid.mean() > 0.9 and v.mean() > 0.8
+            assert live.valid.mean() > 0.9
+            assert v.mean() > 0.8
             est = live.diagnostics.log_offset_estimation
             assert est["method"] == "auto"
             assert est["pixels"] >= 0.05 * tc.size
@@ -182,7 +185,7 @@ def test_model_corrected_offei_under_v2e_shot_noise() -> None:
     assert all(r < p for r, p in zip(ratios, plain, strict=True)), (ratios, plain)
 
 
-@lru_cache(maxsize=None)
+@cache
 def gap_run(case: str, scene: str):  # noqa: ANN201 - a GapResult
     from evcal.gap.workflow import GapConfig, run_gap  # noqa: PLC0415
 
@@ -197,7 +200,8 @@ def test_gap_names_v2e_timestamp_scheme_and_nothing_else_when_nothing_is_hidden(
     res = gap_run("none", "camera")
     assert res.named_effects == ["timestamp_quantisation"]
     q = res.steps[0].effect.parameters()
-    assert q["step_us"] == 500.0 and q["phase_us"] == 270.0
+    assert q["step_us"] == 500.0
+    assert q["phase_us"] == 270.0
     assert res.final.gap <= 3.0
 
 
