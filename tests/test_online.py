@@ -436,7 +436,7 @@ def test_the_first_offset_estimate_waits_for_enough_busy_pixels():
     assert first_at > 25
     # the operator's status says what the estimate waits for
     assert states[0] == "waiting for 11 buffered frames"
-    assert states[20] == "waiting for busy pixels: 30 of 100, or for 32 frames"
+    assert states[20] == "waiting for busy pixels: 30 of 100"
     assert states[first_at] == f"estimated at frame {first_at + 1}"
     assert info["pixels"] >= 0.05 * n
     # a full large buffer does not wait for busy pixels: what it holds is all there is
