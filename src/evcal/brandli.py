@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .calibration import DEFAULT_BIAS, DEFAULT_CONTRAST, BrandliDiagnostics, Calibration, Reason
-from .errors import CalibrationError
+from .errors import CalibrationError, ConfigError
 from .recording import Recording
 from .solver import log_intensity, usable
 from .special import classify
@@ -48,9 +48,9 @@ class BrandliConfig:
 
     def __post_init__(self) -> None:
         if not 0 < self.eta <= 1:
-            raise ValueError(f"eta={self.eta} must be in (0, 1]")
+            raise ConfigError(f"eta={self.eta} must be in (0, 1]")
         if self.log_offset < 0:
-            raise ValueError(f"log_offset={self.log_offset} must be >= 0")
+            raise ConfigError(f"log_offset={self.log_offset} must be >= 0")
 
 
 def brandli(rec: Recording, config: BrandliConfig | None = None) -> Calibration:

@@ -33,6 +33,7 @@ from typing import Any
 import numba
 import numpy as np
 
+from .errors import ConfigError
 from .events import SensorSize
 from .recording import Frames
 from .stream import event_windows
@@ -78,9 +79,9 @@ def background_activity_filter(events: np.ndarray, sensor: SensorSize, window_us
     ``events`` are evcal's (sorted by time, inside ``sensor``); ``window_us`` > 0.
     """
     if int(window_us) <= 0:
-        raise ValueError(f"window_us={window_us} must be > 0")
+        raise ConfigError(f"window_us={window_us} must be > 0")
     if int(radius) < 1:
-        raise ValueError(f"radius={radius} must be >= 1")
+        raise ConfigError(f"radius={radius} must be >= 1")
     if events.size == 0:
         return np.zeros(0, bool)
     args = (np.ascontiguousarray(events["t_us"], np.int64),
@@ -101,7 +102,7 @@ def still_interval_mask(events: np.ndarray, frames: Frames, sensor: SensorSize,
     intensity ``log(I + log_offset)`` changes by less than ``max_dl`` between the frames
     that bracket it (events before the first or after the last frame are kept)."""
     if not max_dl > 0:
-        raise ValueError(f"max_dl={max_dl} must be > 0")
+        raise ConfigError(f"max_dl={max_dl} must be > 0")
     n_f = len(frames)
     if events.size == 0 or n_f < 2:
         return np.ones(events.size, bool)

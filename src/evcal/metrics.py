@@ -19,10 +19,16 @@ import math
 
 import numpy as np
 
+from .errors import ConfigError, ErrorReason, EvcalError
+
 PAPER_DATA_RANGE = 255.0
 SSIM_K1 = 0.01
 SSIM_K2 = 0.03
 SSIM_WIN_SIZE = 7  # scikit-image's default window side (uniform, not Gaussian)
+
+
+class ImageError(EvcalError):
+    """Two images that cannot be compared (shapes differ, empty, NaN or infinite values)."""
 
 
 def _pair(a: np.ndarray, b: np.ndarray, what: str) -> tuple[np.ndarray, np.ndarray]:
@@ -30,23 +36,22 @@ def _pair(a: np.ndarray, b: np.ndarray, what: str) -> tuple[np.ndarray, np.ndarr
     a = np.asarray(a, np.float64)
     b = np.asarray(b, np.float64)
     if a.shape != b.shape:
-        raise ValueError(f"{what}: images have shapes {a.shape} and {b.shape}, expected equal")
+        raise ImageError(f"{what}: images have shapes {a.shape} and {b.shape}, expected equal")
     if a.size == 0:
-        raise ValueError(f"{what}: images are empty (shape {a.shape})")
+        raise ImageError(f"{what}: images are empty (shape {a.shape})")
     for name, img in (("first", a), ("second", b)):
         bad = ~np.isfinite(img)
         if bad.any():
-            raise ValueError(
+            raise ImageError(
                 f"{what}: the {name} image has {int(bad.sum())} NaN or infinite values, "
-                "expected finite intensities"
-            )
+                "expected finite intensities", ErrorReason.BAD_VALUES)
     return a, b
 
 
 def _check_range(data_range: float, what: str) -> float:
     r = float(data_range)
     if not (math.isfinite(r) and r > 0):
-        raise ValueError(f"{what}: data_range={data_range!r} must be a finite number > 0")
+        raise ConfigError(f"{what}: data_range={data_range!r} must be a finite number > 0")
     return r
 
 
@@ -96,7 +101,7 @@ def ssim(a: np.ndarray, b: np.ndarray, data_range: float = 255.0) -> float:
     a, b = _pair(a, b, "ssim")
     r = _check_range(data_range, "ssim")
     if a.ndim != 2 or min(a.shape) < SSIM_WIN_SIZE:
-        raise ValueError(
+        raise ImageError(
             f"ssim: images have shape {a.shape}, expected 2-D images of at least "
             f"{SSIM_WIN_SIZE}x{SSIM_WIN_SIZE} (the SSIM window)"
         )
@@ -131,7 +136,7 @@ def ssim_paper(a: np.ndarray, b: np.ndarray) -> float:
     a, b = _pair(a, b, "ssim_paper")
     n = a.size
     if n < 2:
-        raise ValueError("ssim_paper: images have 1 pixel, a sample variance needs at least 2")
+        raise ImageError("ssim_paper: images have 1 pixel, a sample variance needs at least 2")
     c1 = (SSIM_K1 * PAPER_DATA_RANGE) ** 2
     c2 = (SSIM_K2 * PAPER_DATA_RANGE) ** 2
     mu_a = float(a.mean())

@@ -23,7 +23,7 @@ import numpy as np
 
 from .accumulate import Accumulator
 from .calibration import DEFAULT_BIAS, DEFAULT_CONTRAST, Calibration, OffEDiagnostics, Reason
-from .errors import CalibrationError, StateError
+from .errors import CalibrationError, ConfigError, StateError
 from .events import SensorSize
 from .recording import Recording
 from .special import classify
@@ -43,9 +43,9 @@ class OffEConfig:
 
     def __post_init__(self) -> None:
         if self.step_us <= 0:
-            raise ValueError(f"step_us={self.step_us} must be > 0")
+            raise ConfigError(f"step_us={self.step_us} must be > 0")
         if not self.c0 > 0:
-            raise ValueError(f"c0={self.c0} must be > 0")
+            raise ConfigError(f"c0={self.c0} must be > 0")
 
 
 def offe(rec: Recording, config: OffEConfig | None = None) -> Calibration:

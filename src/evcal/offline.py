@@ -39,7 +39,7 @@ import numpy as np
 
 from .accumulate import Accumulator, Snapshot, frame_snapshots
 from .calibration import Calibration, OffEIDiagnostics, Reason
-from .errors import CalibrationError
+from .errors import CalibrationError, ConfigError
 from .events import SensorSize
 from .recording import Frames, Recording, RecordingError, concat_events
 from .solver import (
@@ -76,13 +76,13 @@ class OffEIConfig:
 
     def __post_init__(self) -> None:
         if int(self.window_frames) < 1:
-            raise ValueError(f"window_frames={self.window_frames} must be >= 1")
+            raise ConfigError(f"window_frames={self.window_frames} must be >= 1")
         rc = self.residual_correction
         if not (rc in ("auto", "off") or (isinstance(rc, (int, float)) and 0 <= rc <= 1)):
-            raise ValueError(f"residual_correction={rc!r} must be 'auto', 'off' or in [0, 1]")
+            raise ConfigError(f"residual_correction={rc!r} must be 'auto', 'off' or in [0, 1]")
         if not (self.log_offset == "auto" or (isinstance(self.log_offset, (int, float))
                                               and self.log_offset >= 0)):
-            raise ValueError(f"log_offset={self.log_offset!r} must be 'auto' or a number >= 0")
+            raise ConfigError(f"log_offset={self.log_offset!r} must be 'auto' or a number >= 0")
 
 
 def _window_terms(s_j: Snapshot, s_k: Snapshot

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from .calibration import DEFAULT_CONTRAST, Calibration
-from .errors import EvcalError
+from .errors import ConfigError, ErrorReason, EvcalError
 from .events import SensorSize, empty_events, validate_events
 from .metrics import METRIC_NAMES, image_metrics, psnr
 from .recording import Recording
@@ -86,7 +86,7 @@ def integrate(log_start: np.ndarray, events: np.ndarray, cal: Calibration) -> np
     """
     log_start = np.asarray(log_start, np.float64)
     if log_start.shape != cal.shape:
-        raise ValueError(
+        raise EvaluationError(
             f"log_start has shape {log_start.shape}, the calibration maps have {cal.shape}"
         )
     h, w = cal.shape
@@ -142,19 +142,19 @@ def select_pairs(
     ft = np.asarray(frames_t_us, np.int64)
     et = np.asarray(event_t_us, np.int64)
     if ft.ndim != 1 or et.ndim != 1:
-        raise ValueError(f"frame times {ft.shape} and event times {et.shape} must be 1-D")
+        raise EvaluationError(f"frame times {ft.shape} and event times {et.shape} must be 1-D")
     if ft.size > 1 and (np.diff(ft) <= 0).any():
-        raise ValueError("frame times must increase")
+        raise EvaluationError("frame times must increase", ErrorReason.UNSORTED)
     if et.size > 1 and (np.diff(et) < 0).any():
-        raise ValueError("event times must be sorted (non-decreasing)")
+        raise EvaluationError("event times must be sorted (non-decreasing)", ErrorReason.UNSORTED)
     if not (math.isfinite(skip_s) and skip_s >= 0):
-        raise ValueError(f"skip_s={skip_s!r} must be a number of seconds >= 0")
+        raise ConfigError(f"skip_s={skip_s!r} must be a number of seconds >= 0")
     if frames_per_image is None and events_per_image is None:
-        raise ValueError("give events_per_image or frames_per_image")
+        raise ConfigError("give events_per_image or frames_per_image")
     if frames_per_image is not None and int(frames_per_image) < 1:
-        raise ValueError(f"frames_per_image={frames_per_image} must be >= 1")
+        raise ConfigError(f"frames_per_image={frames_per_image} must be >= 1")
     if frames_per_image is None and events_per_image is not None and int(events_per_image) < 1:
-        raise ValueError(f"events_per_image={events_per_image} must be >= 1")
+        raise ConfigError(f"events_per_image={events_per_image} must be >= 1")
     n = int(ft.size)
     if n < 2:
         return []
@@ -220,7 +220,7 @@ def _resolve_offset(log_offset: float | None, cal: Calibration) -> tuple[float, 
     if log_offset is not None:
         off = float(log_offset)
         if not (math.isfinite(off) and off >= 0):
-            raise ValueError(f"log_offset={log_offset!r} must be a finite number >= 0 (DN)")
+            raise ConfigError(f"log_offset={log_offset!r} must be a finite number >= 0 (DN)")
         return off, "given"
     off = float(cal.log_offset)
     if math.isfinite(off) and off >= 0:
@@ -274,7 +274,7 @@ def evaluate(
         h, w = cal.shape
         raise EvaluationError(f"calibration is {w}x{h}, the recording's sensor is {rec.sensor}")
     if not (math.isfinite(di_contrast) and di_contrast > 0):
-        raise ValueError(f"di_contrast={di_contrast!r} must be a number > 0")
+        raise ConfigError(f"di_contrast={di_contrast!r} must be a number > 0")
     if len(frames) == 0:
         raise EvaluationError(
             f"the recording has no frames ({rec.n_events} events): nothing to compare against"
@@ -382,8 +382,8 @@ class StreamingEvaluator:
                  window_frames: int = 5, max_events: int = 5_000_000,
                  di_contrast: float = DEFAULT_CONTRAST) -> None:
         if window_frames < 1 or period_us < 0 or max_events < 1:
-            raise ValueError(f"window_frames={window_frames} must be >= 1, period_us="
-                             f"{period_us} >= 0, max_events={max_events} >= 1")
+            raise ConfigError(f"window_frames={window_frames} must be >= 1, period_us="
+                              f"{period_us} >= 0, max_events={max_events} >= 1")
         self.shape = (int(shape[0]), int(shape[1]))
         self.period_us = int(period_us)
         self.window_frames = int(window_frames)
@@ -400,7 +400,7 @@ class StreamingEvaluator:
 
     def calibration(self, cal: Calibration) -> None:
         if cal.shape != self.shape:
-            raise ValueError(f"calibration is {cal.shape}, the stream is {self.shape}")
+            raise EvaluationError(f"calibration is {cal.shape}, the stream is {self.shape}")
         self._cal = cal
 
     def events(self, events: np.ndarray) -> None:

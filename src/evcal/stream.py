@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from .errors import ErrorReason
+from .errors import ConfigError, ErrorReason
 from .events import EVENTS_DTYPE, EventError, SensorSize, validate_events
 
 STREAM_KINDS = ("events", "frames")
@@ -132,8 +132,8 @@ class StreamPolicy:
 
     def __post_init__(self) -> None:
         if self.jump_us < 0 or self.max_forward_us < 1 or self.confirm_messages < 1:
-            raise ValueError(f"{self}: jump_us >= 0, max_forward_us >= 1 and "
-                             "confirm_messages >= 1 expected")
+            raise ConfigError(f"{self}: jump_us >= 0, max_forward_us >= 1 and "
+                              "confirm_messages >= 1 expected")
 
 
 @dataclass(frozen=True)

@@ -57,7 +57,7 @@ def _gray(pixels: np.ndarray) -> np.ndarray:
         return result
     if pixels.ndim == 3 and pixels.shape[2] == 2:  # gray + alpha
         return np.asarray(pixels[:, :, 0], np.uint8)
-    raise ValueError(f"pixels of shape {pixels.shape} are not an image")
+    raise RecordingError(f"pixels of shape {pixels.shape} are not an image")
 
 
 def _frame_time(frame: dict[str, Any]) -> tuple[int, int]:

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import ErrorReason
+from ..errors import ConfigError, ErrorReason
 from ..stream import frame_cuts
 from ._evcodecs import PayloadError
 
@@ -125,7 +125,7 @@ def packets(events: np.ndarray, frame_t_us: np.ndarray | None = None, *,
     frame after the events before it.
     """
     if packet_us < 1 or max_events < 1:
-        raise ValueError(f"packet_us={packet_us} and max_events={max_events} must be >= 1")
+        raise ConfigError(f"packet_us={packet_us} and max_events={max_events} must be >= 1")
     t = events["t_us"]
     bounds = [0, t.size]
     if frame_t_us is not None and len(frame_t_us):

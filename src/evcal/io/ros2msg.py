@@ -25,7 +25,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ..recording import Recording
+from ..errors import ConfigError
+from ..recording import Recording, RecordingError
 from .evencode import packets
 from .mcap_rec import McapFileWriter
 from .rosbag import EVENT_PACKET, IMAGE, typestore
@@ -65,12 +66,12 @@ def image_cdr(image: np.ndarray, *, t_ns: int, frame_id: str, encoding: str) -> 
     """The CDR of a ``sensor_msgs/msg/Image`` of a ``[y, x]`` array (``mono8`` uint8,
     ``mono16`` uint16, ``32FC1`` float32; little-endian, rows unpadded)."""
     if encoding not in IMAGE_ENCODINGS:
-        raise ValueError(f"image encoding {encoding!r} is not one evcal writes "
-                         f"({', '.join(IMAGE_ENCODINGS)})")
+        raise ConfigError(f"image encoding {encoding!r} is not one evcal writes "
+                          f"({', '.join(IMAGE_ENCODINGS)})")
     dt = IMAGE_ENCODINGS[encoding]
     arr = np.ascontiguousarray(image, dtype=dt)
     if arr.ndim != 2:
-        raise ValueError(f"an image is [y, x], got shape {arr.shape}")
+        raise RecordingError(f"an image is [y, x], got shape {arr.shape}")
     h, w = arr.shape
     store = ros2_store()
     msg = store.types[IMAGE](header=_header(t_ns, frame_id), height=h, width=w,
@@ -97,9 +98,9 @@ def message_definition(msgtype: str) -> str:
     type)."""
     store = ros2_store()
     if msgtype not in store.types:
-        raise ValueError(f"message type {msgtype!r} is not known to evcal's typestore (ROS 2 "
-                         "standard types and event_camera_msgs, dvs_msgs, "
-                         "prophesee_event_msgs)")
+        raise RecordingError(f"message type {msgtype!r} is not known to evcal's typestore (ROS 2 "
+                             "standard types and event_camera_msgs, dvs_msgs, "
+                             "prophesee_event_msgs)")
     return str(store.generate_msgdef(msgtype, ros_version=2)[0])
 
 
@@ -128,7 +129,7 @@ class Ros2McapWriter(McapFileWriter):
         known = self._channels.get(topic)
         if known is not None:
             if known[1] != msgtype:
-                raise ValueError(f"topic {topic} carries {known[1]}, not {msgtype}")
+                raise RecordingError(f"topic {topic} carries {known[1]}, not {msgtype}")
             return known[0]
         sid = self._schemas.get(msgtype)
         if sid is None:

@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import hashlib
 
+from ..errors import ConfigError, EvcalError
+
 INPUT_KINDS = ("events", "frames")
 OUTPUT_KINDS = ("calibration", "status", "errors")
 
@@ -62,20 +64,24 @@ def split_camera_key(prefix: str, key: str) -> tuple[str, str] | None:
 MAX_CAMERA_ID = 200  # characters
 
 
+class CameraIdError(EvcalError):
+    """A camera id that cannot name a camera (too long, empty chunks, wildcards)."""
+
+
 def check_camera_id(camera: str) -> str:
     """A camera id: at most :data:`MAX_CAMERA_ID` characters in non-empty ``/``-separated
     chunks of printable characters, no wildcards, no ``@`` chunk, no ``.`` or ``..`` chunk."""
     if len(camera) > MAX_CAMERA_ID:
-        raise ValueError(f"camera id of {len(camera)} characters is longer than "
-                         f"{MAX_CAMERA_ID}: {camera[:40]!r}...")
+        raise CameraIdError(f"camera id of {len(camera)} characters is longer than "
+                            f"{MAX_CAMERA_ID}: {camera[:40]!r}...")
     chunks = camera.split("/")
     bad = (not camera or any(not c for c in chunks) or any(c.startswith("@") for c in chunks)
            or any(c in (".", "..") for c in chunks)
            or any(ch in camera for ch in "*$?#\\") or not camera.isprintable())
     if bad:
-        raise ValueError(f"camera id {camera!r} is not valid: expected '/'-separated non-empty "
-                         "chunks of printable characters without '*', '$', '?', '#', '\\', "
-                         "a leading '@' or a '.'/'..' chunk, e.g. 'lab/rig1/cam0'")
+        raise CameraIdError(f"camera id {camera!r} is not valid: expected '/'-separated non-empty "
+                            "chunks of printable characters without '*', '$', '?', '#', '\\', "
+                            "a leading '@' or a '.'/'..' chunk, e.g. 'lab/rig1/cam0'")
     return camera
 
 
@@ -109,7 +115,7 @@ def shard_of(camera: str, n_shards: int) -> int:
     Not CRC-32: it is linear, and ids that differ in one character (``cam0`` .. ``cam3``)
     share their low bits, hence their shard."""
     if n_shards < 1:
-        raise ValueError(f"n_shards={n_shards} must be >= 1")
+        raise ConfigError(f"n_shards={n_shards} must be >= 1")
     digest = hashlib.blake2b(camera.encode("utf-8", "surrogatepass"), digest_size=8).digest()
     return int.from_bytes(digest, "big") % n_shards
 
@@ -122,5 +128,5 @@ def parse_shard(text: str) -> tuple[int, int]:
     except ValueError:
         i = n = -1
     if not sep or n < 1 or not 0 <= i < n:
-        raise ValueError(f"shard {text!r} is not I/N with 0 <= I < N, e.g. 0/2")
+        raise ConfigError(f"shard {text!r} is not I/N with 0 <= I < N, e.g. 0/2")
     return i, n

@@ -61,6 +61,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from ..errors import ConfigError
 from ..jsonable import strict_dumps
 from ..online import usable_cores
 from ..signals import SignalRelay
@@ -217,7 +218,7 @@ class Supervisor:
                  max_backoff_s: float = RESTART_MAX_S, stable_s: float = STABLE_S,
                  max_quick_failures: int = MAX_QUICK_FAILURES) -> None:
         if len(commands) != len(instances) or not commands:
-            raise ValueError(f"{len(commands)} commands for {len(instances)} instances")
+            raise ConfigError(f"{len(commands)} commands for {len(instances)} instances")
         self.slots = [WorkerSlot(i, name, list(cmd))
                       for i, (cmd, name) in enumerate(zip(commands, instances, strict=True))]
         self.env = dict(env) if env is not None else None
