@@ -186,9 +186,12 @@ class Recorder:
                   file=sys.stderr, flush=True)
 
     def subscribe(self, t: Transport) -> None:
+        # calibrations with history: a recording started after the last update still
+        # begins with each camera's last calibration (the service latches them)
         for cam in self.cameras:
             for kind in ("events", "frames", "calibration"):
-                t.subscribe(f"{self.prefix}/{cam}/{kind}", self.on_sample)
+                t.subscribe(f"{self.prefix}/{cam}/{kind}", self.on_sample,
+                            history=kind == "calibration")
 
     def close(self) -> dict[str, dict[str, int]]:
         with self._lock:

@@ -45,7 +45,6 @@ A camera's calibration goes out on ``/<camera>/calibration/contrast`` and ``.../
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import re
 import struct
@@ -53,11 +52,11 @@ import threading
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
-from ..errors import ErrorReason
+from ..errors import ConfigError, ErrorReason
 from ..io._evcodecs import PacketDecoder, PayloadError
 from ..io.ros2msg import image_cdr, ros2_store, type_hash
 from ..io.rosbag import (
@@ -78,10 +77,11 @@ ADMIN_SPACE = "@ros2_lv"
 NODE_NAME = "evcal"
 # rmw_zenoh sets no encoding on its samples (zenoh's default); the payload is CDR
 ENCODING = "zenoh/bytes"
-# the QoS chunk of evcal's tokens: reliable, volatile, keep last 10, no deadline, lifespan
-# or lease, automatic liveliness (rmw enums: RELIABLE 1, VOLATILE 2, KEEP_LAST 1,
-# AUTOMATIC 1), written out in full so that every rmw_zenoh version parses it
-QOS = "1:2:1,10:0,0:0,0:1,0,0"
+# rmw's QoS enums (rmw/types.h), as rmw_zenoh writes them in tokens
+RELIABLE, BEST_EFFORT = 1, 2
+TRANSIENT_LOCAL, VOLATILE = 1, 2
+KEEP_LAST, KEEP_ALL = 1, 2
+NO_TYPE_HASH = "TypeHashNotSupported"  # Humble's hash chunk (no type hashes before Iron)
 INPUT_TYPES = {EVENT_PACKET: "events", IMAGE: "frames"}
 OUTPUT_MAPS = CALIBRATION_IMAGES
 SPECIAL_SCALE = 50  # the special image's value per class code
@@ -143,11 +143,123 @@ def mangle(name: str) -> str:
     return name.replace("/", "%")
 
 
-def encode_attachment(seq: int, t_ns: int, gid: bytes) -> bytes:
-    """The attachment of a sample: sequence number, source timestamp (ns), 16-byte GID."""
+def encode_attachment(seq: int, t_ns: int, gid: bytes, *, named: bool = False) -> bytes:
+    """The attachment of a sample: sequence number, source timestamp (ns), 16-byte GID in
+    zenoh's serialization format (33 bytes); ``named``: each field after its name, the
+    layout of rmw_zenoh 0.1.0-0.1.1 (Humble) and 0.2.0-0.2.3 (Jazzy), 77 bytes."""
     if len(gid) != 16:
-        raise ValueError(f"a GID has 16 bytes, got {len(gid)}")
+        raise ConfigError(f"a GID has 16 bytes, got {len(gid)}")
+    if named:
+        return _NAMED_ATTACHMENT.pack(_NAMES[0], int(seq), _NAMES[1], int(t_ns), _NAMES[2],
+                                      b"\x10" + gid)
     return _ATTACHMENT.pack(int(seq), int(t_ns), 16, gid)
+
+
+def entity_gid(token: str) -> bytes:
+    """The GID rmw_zenoh gives the entity of liveliness ``token``: XXH3-128 of the token's
+    UTF-8 bytes (seed 0), its low then high 64-bit half, each little-endian (``Entity``'s
+    constructor in ``liveliness_utils.cpp``; the GID ``ros2 topic info -v`` reports and the
+    one in the entity's attachments)."""
+    import xxhash  # noqa: PLC0415 - a service dependency, not the core's
+
+    return int(xxhash.xxh3_128_intdigest(token.encode())).to_bytes(16, "little")
+
+
+@dataclass(frozen=True)
+class RosQos:
+    """The QoS of a publisher or subscription, as far as evcal's tokens say it (durations:
+    rmw_zenoh's defaults, infinite)."""
+
+    reliability: int = RELIABLE
+    durability: int = VOLATILE
+    history: int = KEEP_LAST
+    depth: int = 10
+
+
+# evcal's calibration images: latched (a late TRANSIENT_LOCAL subscriber gets the last one)
+OUTPUT_QOS = RosQos(durability=TRANSIENT_LOCAL, depth=1)
+INPUT_QOS = RosQos()  # its subscriptions to the drivers' topics, and replay's publishers
+HEARTBEAT_S = 0.5  # rmw_zenoh's sporadic heartbeat of RELIABLE, TRANSIENT_LOCAL publishers
+
+
+@dataclass(frozen=True)
+class RosDistro:
+    """What one family of rmw_zenoh releases writes on the wire (read from rmw_zenoh_cpp at
+    the release tags of github ros2-gbp/rmw_zenoh-release: ``liveliness_utils.cpp``,
+    ``attachment_helpers.cpp``, ``qos.cpp``, ``rmw_publisher_data.cpp``,
+    ``rmw_subscription_data.cpp``).
+
+    ``type_hash``: RIHS01 hashes in keys and tokens, else ``TypeHashNotSupported``
+    (Humble). ``named_attachment``: each attachment field after its name (77 bytes) instead
+    of the 33-byte layout; a subscriber of one layout throws on the other. ``default_durability``:
+    the durability a token leaves empty (rmw_zenoh writes a QoS field only when it differs
+    from its default: reliable, keep last 42, infinite durations, automatic liveliness, and
+    this durability). ``publication_cache``: TRANSIENT_LOCAL through zenoh's publication
+    cache and querying subscriber (a queryable on ``<zid>/<key>``, queried on ``*/<key>``)
+    as well as through the advanced publisher's cache (0.1.2+ and 0.2.2+ use the latter).
+    """
+
+    name: str
+    releases: str
+    type_hash: bool
+    named_attachment: bool
+    default_durability: int
+    publication_cache: bool
+
+    def hash_of(self, msgtype: str) -> str:
+        """The type hash chunk of ``msgtype`` in this distribution's keys and tokens."""
+        return type_hash(msgtype) if self.type_hash else NO_TYPE_HASH
+
+    def qos_string(self, qos: RosQos) -> str:
+        """The QoS chunk of a token, as rmw_zenoh's ``qos_to_keyexpr`` writes it:
+        ``reliability:durability:history,depth:deadline s,ns:lifespan s,ns:liveliness,lease
+        s,ns``, a field left empty when it is the default (durations always: infinite)."""
+
+        def field_(value: int, default: int) -> str:
+            return "" if value == default else str(int(value))
+
+        return (f"{field_(qos.reliability, RELIABLE)}:"
+                f"{field_(qos.durability, self.default_durability)}:"
+                f"{field_(qos.history, KEEP_LAST)},{field_(qos.depth, 42)}:,:,:,,")
+
+    def attachment(self, seq: int, t_ns: int, gid: bytes) -> bytes:
+        return encode_attachment(seq, t_ns, gid, named=self.named_attachment)
+
+
+
+
+def _current(name: str, releases: str) -> RosDistro:
+    """A profile of the current wire: RIHS01 hashes, 33-byte attachments, VOLATILE default."""
+    return RosDistro(name, releases, type_hash=True, named_attachment=False,
+                     default_durability=VOLATILE, publication_cache=False)
+
+
+DISTROS: dict[str, RosDistro] = {d.name: d for d in (
+    RosDistro("humble", "Humble, rmw_zenoh 0.1.2 and later", type_hash=False,
+              named_attachment=False, default_durability=VOLATILE, publication_cache=False),
+    RosDistro("humble-0.1.1", "Humble, rmw_zenoh 0.1.0-0.1.1", type_hash=False,
+              named_attachment=True, default_durability=TRANSIENT_LOCAL,
+              publication_cache=True),
+    _current("jazzy", "Jazzy, rmw_zenoh 0.2.4 and later"),
+    # 0.2.0-0.2.2 default to TRANSIENT_LOCAL, 0.2.3 to VOLATILE: the tokens of this profile
+    # write both durabilities out, which every one of them reads alike
+    RosDistro("jazzy-0.2.3", "Jazzy, rmw_zenoh 0.2.0-0.2.3", type_hash=True,
+              named_attachment=True, default_durability=VOLATILE, publication_cache=True),
+    _current("kilted", "Kilted, rmw_zenoh 0.6"),
+    _current("rolling", "Rolling, rmw_zenoh 0.6 and later"),
+)}
+DISTRO_CHOICES = ("auto", *DISTROS)
+DEFAULT_DISTRO = DISTROS["jazzy"]
+QOS = DEFAULT_DISTRO.qos_string(OUTPUT_QOS)  # the QoS chunk of evcal's image publishers
+
+
+def distro(name: str) -> RosDistro:
+    """The profile of ``--ros-distro NAME`` (not ``auto``)."""
+    try:
+        return DISTROS[name]
+    except KeyError:
+        raise ConfigError(f"--ros-distro {name!r}: expected one of "
+                          f"{', '.join(DISTRO_CHOICES)}") from None
 
 
 @dataclass(frozen=True)
@@ -198,10 +310,14 @@ class Ros2Options:
 
     domain: int = 0
     topic_map: TopicMap = field(default_factory=lambda: TopicMap())
+    # which rmw_zenoh to speak to (DISTROS), or "auto": from the tokens and attachments seen
+    distro: str = "auto"
 
     def __post_init__(self) -> None:
         if not 0 <= int(self.domain) <= 232:
             raise ValueError(f"ROS domain {self.domain} is not in 0..232")
+        if self.distro != "auto":
+            distro(self.distro)
 
 
 # ----------------------------------------------------------------------------- tokens
@@ -232,29 +348,42 @@ class RosNode:
         """The token that makes the node visible (``ros2 node list``)."""
         return self._head(self.node_id, "NN")
 
-    def entity(self, kind: str, topic: str, msgtype: str, hash_: str | None = None
+    def entity(self, kind: str, topic: str, msgtype: str, hash_: str | None = None, *,
+               qos: RosQos | None = None, distro: RosDistro = DEFAULT_DISTRO
                ) -> tuple[str, bytes]:
-        """``(token, gid)`` of a new publisher (``MP``) or subscription (``MS``) on ``topic``;
-        the GID is the first 16 bytes of the SHA-256 of the token."""
+        """``(token, gid)`` of a new publisher (``MP``) or subscription (``MS``) on ``topic``
+        as ``distro``'s rmw_zenoh writes it (``hash_`` None: the distribution's hash of
+        ``msgtype``; ``qos`` None: :data:`OUTPUT_QOS` for a publisher, :data:`INPUT_QOS` for
+        a subscription); the GID is :func:`entity_gid` of the token."""
         if kind not in ("MP", "MS"):
-            raise ValueError(f"entity kind {kind!r} is not MP or MS")
+            raise ConfigError(f"entity kind {kind!r} is not MP or MS")
+        if qos is None:
+            qos = OUTPUT_QOS if kind == "MP" else INPUT_QOS
         with self._lock:
             eid = self._next_id
             self._next_id += 1
         token = (f"{self._head(eid, kind)}/{mangle('/' + topic.strip('/'))}/"
-                 f"{dds_type(msgtype)}/{hash_ or type_hash(msgtype)}/{QOS}")
-        return token, hashlib.sha256(token.encode()).digest()[:16]
+                 f"{dds_type(msgtype)}/{hash_ or distro.hash_of(msgtype)}/"
+                 f"{distro.qos_string(qos)}")
+        return token, entity_gid(token)
 
 
 class RosPublication:
-    """One topic evcal publishes: its key, token, GID and sequence numbers (thread-safe)."""
+    """One topic evcal publishes, as ``distro``'s rmw_zenoh would: its key, token, GID,
+    QoS and sequence numbers (thread-safe). ``qos`` None: :data:`INPUT_QOS` (a driver's
+    topic, ``evcal replay --ros2``)."""
 
     def __init__(self, node: RosNode, topic: str, msgtype: str,
-                 hash_: str | None = None) -> None:
+                 hash_: str | None = None, *, qos: RosQos | None = None,
+                 distro: RosDistro = DEFAULT_DISTRO) -> None:
         self.topic = topic
         self.msgtype = msgtype
+        self.distro = distro
+        self.qos = qos or INPUT_QOS
+        hash_ = hash_ or distro.hash_of(msgtype)
         self.key = topic_key(node.domain, topic, msgtype, hash_)
-        self.token, self.gid = node.entity("MP", topic, msgtype, hash_)
+        self.token, self.gid = node.entity("MP", topic, msgtype, hash_, qos=self.qos,
+                                           distro=distro)
         self._seq = 0
         self._lock = threading.Lock()
 
@@ -263,7 +392,71 @@ class RosPublication:
         with self._lock:
             self._seq += 1
             seq = self._seq
-        return encode_attachment(seq, time.time_ns(), self.gid)
+        return self.distro.attachment(seq, time.time_ns(), self.gid)
+
+
+class DistroDetector:
+    """Which rmw_zenoh the domain speaks (``--ros-distro auto``), from what evcal sees of it.
+
+    Liveliness tokens of other nodes' publishers and subscriptions tell the type hash style:
+    ``TypeHashNotSupported`` (Humble) or RIHS01 (Jazzy and later); the attachments of the
+    samples evcal takes (the drivers' topics) tell the attachment layout of each style. Tokens
+    do not tell Jazzy 0.2.0-0.2.3 from 0.2.4+ (their subscribers throw on the other layout):
+    until a sample says otherwise, the 33-byte layout of the current releases is assumed.
+
+    :meth:`active` is the profiles to publish for: one per hash style seen (RIHS01 when
+    nothing was seen), so that Humble and Jazzy subscribers on one router are both served
+    (their keys differ). Thread-safe; ``own_zid`` is evcal's session, whose tokens are skipped.
+    """
+
+    def __init__(self, own_zid: str = "") -> None:
+        self.own_zid = own_zid
+        self._hashed: set[bool] = set()  # hash styles seen: True RIHS01, False none
+        self._named: dict[bool, bool] = {}  # style -> the latest sample's layout was named
+        self._lock = threading.Lock()
+        self.version = 0  # counts changes of active()
+
+    def seen_token(self, token: str) -> None:
+        """A liveliness token of the domain (``@ros2_lv/...``) appeared."""
+        chunks = token.split("/")
+        if len(chunks) < 13 or chunks[5] not in ("MP", "MS") or chunks[2] == self.own_zid:
+            return
+        self._seen(chunks[11] != NO_TYPE_HASH, None)
+
+    def seen_sample(self, key: str, attachment: bytes | None) -> None:
+        """A sample on a data key, with its attachment."""
+        hashed = key.rpartition("/")[2] != NO_TYPE_HASH
+        named = attachment_layout(attachment)
+        self._seen(hashed, named)
+
+    def _seen(self, hashed: bool, named: bool | None) -> None:
+        with self._lock:
+            before = (set(self._hashed), dict(self._named))
+            self._hashed.add(hashed)
+            if named is not None:
+                self._named[hashed] = named
+            if before != (self._hashed, self._named):
+                self.version += 1
+
+    def active(self) -> tuple[RosDistro, ...]:
+        with self._lock:
+            styles = sorted(self._hashed or {True}, reverse=True)
+            return tuple(_PROFILE[(h, self._named.get(h, False))] for h in styles)
+
+
+_PROFILE = {(True, False): DISTROS["jazzy"], (True, True): DISTROS["jazzy-0.2.3"],
+            (False, False): DISTROS["humble"], (False, True): DISTROS["humble-0.1.1"]}
+
+
+def attachment_layout(raw: bytes | None) -> bool | None:
+    """True for the named attachment layout, False for the 33-byte one, None for neither."""
+    if raw is None:
+        return None
+    if len(raw) == _ATTACHMENT.size and raw[16] == 16:
+        return False
+    if len(raw) == _NAMED_ATTACHMENT.size and raw.startswith(_NAMES[0]):
+        return True
+    return None
 
 
 # ----------------------------------------------------------------------------- inputs
@@ -351,11 +544,15 @@ class RosRouter:
     MAX_ROUTES = 4096
 
     def __init__(self, node: RosNode, deliver: DeliverFn, topic_map: TopicMap | None = None,
-                 *, owns: Callable[[str], bool] | None = None) -> None:
+                 *, owns: Callable[[str], bool] | None = None,
+                 detector: DistroDetector | None = None,
+                 distro: RosDistro | None = None) -> None:
         self.node = node
         self.deliver = deliver
         self.topic_map = topic_map or TopicMap()
         self._owns = owns
+        self.detector = detector  # told of every sample's attachment (--ros-distro auto)
+        self.distro = distro  # the tokens' profile; None: as the topic's publisher writes
         self._routes: dict[str, tuple[str, str, str, str] | None] = {}
         self._foreign: set[str] = set()  # keys of other shards' cameras (bounded as _routes)
         self.ignored: dict[str, int] = {}
@@ -415,16 +612,20 @@ class RosRouter:
             self.ignored[key] = self.ignored.get(key, 0) + 1
             return
         camera, kind, topic, msgtype = route
+        if self.detector is not None:
+            self.detector.seen_sample(key, attachment)
         att = decode_attachment(attachment)
         self.deliver(camera, kind, RosSample(payload, msgtype, topic,
                                              att.seq if att is not None else None), t_recv)
 
-    def declare_pending(self, declare: Callable[[str], None]) -> int:
+    def declare_pending(self, declare: Callable[[str], Any]) -> int:
         """Declare the subscription tokens of the topics seen since the last call."""
         with self._lock:
             pending, self._pending = self._pending, []
         for topic, msgtype, hash_ in pending:
-            declare(self.node.entity("MS", topic, msgtype, hash_)[0])
+            profile = self.distro or (DISTROS["humble"] if hash_ == NO_TYPE_HASH
+                                      else DEFAULT_DISTRO)
+            declare(self.node.entity("MS", topic, msgtype, hash_, distro=profile)[0])
         return len(pending)
 
 
@@ -530,32 +731,114 @@ def output_topic(camera: str, name: str) -> str:
 PutFn = Callable[..., None]  # put(key, payload, encoding, *, attachment=...)
 
 
-class RosCalibrationPublisher:
-    """Publishes each calibration update as ROS 2 Images (see the module docstring).
+class Declared(Protocol):
+    """Something declared on the session that can be undeclared (a token, a queryable)."""
 
-    Called from the cameras' worker threads (:meth:`publish`); a camera's three publications
-    and their tokens are made with its first update. ``put`` is ``Transport.put`` (congestion
-    control DROP: a slow ROS subscriber never stalls a camera), ``declare`` ``Transport.token``.
+    def undeclare(self) -> None: ...
+
+
+class Latched(Declared, Protocol):
+    """A publisher whose last sample reaches late joiners (``transport.LatchedPublisher``)."""
+
+    def put(self, payload: bytes, *, attachment: bytes | None = None) -> None: ...
+
+
+class RosSession(Protocol):
+    """What the ROS publisher needs of the transport (``transport.Transport`` has it)."""
+
+    def latched(self, key: str, encoding: str, *, depth: int = 1, block: bool = False,
+                heartbeat_s: float | None = None) -> Latched: ...
+
+    def token(self, key: str) -> Declared: ...
+
+    def queryable(self, key: str, callback: Callable[[Any], None], *,
+                  complete: bool = True) -> Declared: ...
+
+
+@dataclass
+class _Output:
+    """One calibration map of one camera as one distribution's publication."""
+
+    pub: RosPublication
+    handles: list[Declared]
+    latched: Latched | None = None
+    last: tuple[bytes, bytes] | None = None  # (CDR, attachment) for publication caches
+
+
+class RosCalibrationPublisher:
+    """Publishes each calibration update as ROS 2 Images (see the module docstring), for each
+    rmw_zenoh profile of ``distros()`` (``--ros-distro``: one; ``auto``:
+    :meth:`DistroDetector.active`).
+
+    Called from the cameras' worker threads (:meth:`publish`); a camera's publications and
+    their tokens are made with its first update, per profile, and undeclared when a profile is
+    no longer active. With ``session`` (a ``Transport``) the images are TRANSIENT_LOCAL as
+    rmw_zenoh makes them: an advanced publisher keeping the last image of each topic for
+    subscribers that join later (and, for the profiles of the releases that had it, a
+    publication cache's queryable on ``<zid>/<key>``); congestion control DROP, so a slow ROS
+    subscriber never stalls a camera. Without it, ``put`` (``Transport.put``) and ``declare``
+    (``Transport.token``) publish plain samples (tests).
     """
 
-    def __init__(self, node: RosNode, put: PutFn, declare: Callable[[str], None]) -> None:
+    def __init__(self, node: RosNode, put: PutFn, declare: Callable[[str], Any], *,
+                 session: RosSession | None = None,
+                 distros: Callable[[], tuple[RosDistro, ...]] | None = None) -> None:
         self.node = node
         self._put = put
         self._declare = declare
-        self._pubs: dict[str, dict[str, RosPublication]] = {}
+        self._session = session
+        self._distros = distros or (lambda: (DEFAULT_DISTRO,))
+        self._outs: dict[str, dict[tuple[str, str], _Output]] = {}  # camera -> (distro, map)
         self._lock = threading.Lock()
         self.published = 0
 
-    def _publications(self, camera: str) -> dict[str, RosPublication]:
+    def _output(self, camera: str, name: str, profile: RosDistro) -> _Output:
+        pub = RosPublication(self.node, output_topic(camera, name), IMAGE, qos=OUTPUT_QOS,
+                             distro=profile)
+        if self._session is None:
+            self._declare(pub.token)
+            return _Output(pub, [])
+        s = self._session
+        latched = s.latched(pub.key, ENCODING, depth=OUTPUT_QOS.depth, heartbeat_s=HEARTBEAT_S)
+        out = _Output(pub, [latched, s.token(pub.token)], latched)
+        if profile.publication_cache:
+            # rmw_zenoh 0.1.0-0.1.1 and 0.2.0-0.2.1: a TRANSIENT_LOCAL subscriber queries
+            # "*/<key>" (and "<zid>/<key>" for each new publisher), accepting replies on any key
+            def answer(req: Any, out: _Output = out) -> None:
+                last = out.last
+                if last is not None:
+                    req.reply(out.pub.key, last[0], ENCODING, attachment=last[1])
+
+            out.handles.append(s.queryable(f"{self.node.zid}/{pub.key}", answer))
+        return out
+
+    def _publications(self, camera: str) -> list[_Output]:
+        profiles = self._distros()
+        want = {(d.name, m) for d in profiles for m in OUTPUT_MAPS}
         with self._lock:
-            pubs = self._pubs.get(camera)
-            if pubs is None:
-                pubs = {name: RosPublication(self.node, output_topic(camera, name), IMAGE)
-                        for name in OUTPUT_MAPS}
-                for p in pubs.values():
-                    self._declare(p.token)
-                self._pubs[camera] = pubs
-        return pubs
+            outs = self._outs.setdefault(camera, {})
+            for gone in [k for k in outs if k not in want]:
+                self._undeclare(outs.pop(gone))
+            for d in profiles:
+                for m in OUTPUT_MAPS:
+                    if (d.name, m) not in outs:
+                        outs[(d.name, m)] = self._output(camera, m, d)
+            return [outs[(d.name, m)] for d in profiles for m in OUTPUT_MAPS]
+
+    @staticmethod
+    def _undeclare(out: _Output) -> None:
+        for h in out.handles:
+            try:
+                h.undeclare()
+            except Exception:  # the session is closing
+                log.debug("undeclaring %s failed", out.pub.key, exc_info=True)
+
+    def forget(self, camera: str) -> None:
+        """Undeclare a camera's publications: late joiners get its images no more."""
+        with self._lock:
+            outs = self._outs.pop(camera, {})
+        for out in outs.values():
+            self._undeclare(out)
 
     def images(self, camera: str, upd: CalibrationUpdate) -> dict[str, bytes]:
         """The CDR of the update's three Images, by map name."""
@@ -571,9 +854,14 @@ class RosCalibrationPublisher:
 
     def publish(self, camera: str, upd: CalibrationUpdate) -> None:
         """Publish one update (raises what the transport raises; the service counts it)."""
-        pubs = self._publications(camera)
-        for name, data in self.images(camera, upd).items():
-            p = pubs[name]
-            self._put(p.key, data, ENCODING, attachment=p.attachment())
+        outs = self._publications(camera)
+        images = self.images(camera, upd)
+        for out in outs:
+            data = images[out.pub.topic.rpartition("/")[2]]
+            att = out.pub.attachment()
+            out.last = (data, att)
+            if out.latched is not None:
+                out.latched.put(data, attachment=att)
+            else:
+                self._put(out.pub.key, data, ENCODING, attachment=att)
         self.published += 1
-

@@ -22,10 +22,12 @@ from .gcpolicy import GcPolicy
 from .outputs import error_reply
 from .ros2 import (
     NODE_NAME,
+    DistroDetector,
     Ros2Options,
     RosCalibrationPublisher,
     RosNode,
     RosRouter,
+    distro,
     subscription_keys,
 )
 from .signing import Signer
@@ -56,6 +58,11 @@ def run(
 
     With ``ros2`` the service is also a ROS 2 node over rmw_zenoh (:mod:`.ros2`): it takes
     EventPacket and Image topics as camera input and publishes each update as Images.
+
+    Each camera's last calibration reaches late joiners: it is put on
+    ``<prefix>/<camera>/calibration`` through a latched publisher (zenoh's advanced publisher
+    cache; an advanced subscriber with history gets it when it joins, as ``evcal record``
+    does), restored calibrations included, and its ROS 2 images are TRANSIENT_LOCAL.
     """
     store = StateStore(state_dir, max_pixels=config.max_pixels) if state_dir else None
     observer = None
@@ -68,22 +75,45 @@ def run(
         with Transport(zenoh) as t:
             instance = config.instance or t.zid
             signer = Signer.from_file(instance, sign_key)
-            node = ros_out = None
+            node = ros_out = detector = None
             shard = config.shard
             if ros2 is not None:
                 # the workers of `serve --workers N` are nodes /evcal_w0, /evcal_w1, ...
                 node = RosNode(zid=t.zid, domain=ros2.domain,
                                name=(NODE_NAME if shard is None else f"{NODE_NAME}_w{shard[0]}"))
-                ros_out = RosCalibrationPublisher(node, t.put, t.token)
-            service = Service(config, t.put, match=intersects, observer=observer, store=store,
-                              instance=instance, signer=signer,
+                if ros2.distro == "auto":
+                    detector = DistroDetector(own_zid=t.zid)
+                    profiles = detector.active
+                else:
+                    fixed = (distro(ros2.distro),)
+                    profiles = lambda: fixed  # noqa: E731
+                ros_out = RosCalibrationPublisher(node, t.put, t.token, session=t,
+                                                  distros=profiles)
+
+            def publish(key: str, payload: bytes, encoding: str, *,
+                        attachment: bytes | None = None) -> None:
+                # calibrations are latched: a subscriber with history joining later gets the
+                # last one of each camera
+                parsed = keys.split_camera_key(prefix, key)
+                t.put(key, payload, encoding, attachment=attachment,
+                      latest=parsed is not None and parsed[1] == "calibration")
+
+            service = Service(config, publish, match=intersects, observer=observer,
+                              store=store, instance=instance, signer=signer,
                               on_update=ros_out.publish if ros_out is not None else None)
             service.shm = t.shm
             restored = service.restore()
+            claim = f"{prefix}/{config.cameras}"
             if restored:
                 log.info("restored %d camera(s) from %s: %s", len(restored), state_dir,
                          ", ".join(restored))
-            claim = f"{prefix}/{config.cameras}"
+                try:  # their calibrations into the latched publishers, for late joiners
+                    for key, payload, enc in service.query_calibration(
+                            f"{claim}/calibration", {}):
+                        service.publish(key, payload, enc,
+                                        attachment=service.attachment(key, payload))
+                except EvcalError:
+                    pass  # no restored camera had a calibration yet
 
             def on_calibration(req: Request) -> None:
                 try:
@@ -112,6 +142,10 @@ def run(
                 if not service.owns(parsed[0]):
                     return  # another shard's camera: its owner answers (and removes the file)
                 found = service.forget(parsed[0])
+                # nor do late joiners get its last calibration any more
+                t.drop_latest(service.key(parsed[0], "calibration"))
+                if ros_out is not None:
+                    ros_out.forget(parsed[0])
                 req.reply(req.key, strict_dumps({"camera": parsed[0], "forgotten": found,
                                                  "instance": service.instance}).encode(),
                           keys.ENC_STATUS)
@@ -129,13 +163,24 @@ def run(
             router = None
             if ros2 is not None and node is not None:
                 router = RosRouter(node, service.deliver, ros2.topic_map,
-                                   owns=service.owns if shard is not None else None)
+                                   owns=service.owns if shard is not None else None,
+                                   detector=detector,
+                                   distro=None if detector is not None else fixed[0])
                 for key in subscription_keys(ros2.domain):
                     t.subscribe(key, router.on_sample, attachment=True,
                                 accept=router.accepts if shard is not None else None)
+                if detector is not None:
+                    det = detector
+
+                    def on_token(key: str, alive: bool) -> None:
+                        if alive:
+                            det.seen_token(key)
+
+                    t.watch_alive(f"@ros2_lv/{ros2.domain}/**", on_token)
                 t.token(node.node_token())
                 log.info("ROS 2 node /%s in domain %d: EventPacket and Image topics in, "
-                         "calibration images out", node.name, ros2.domain)
+                         "calibration images out (rmw_zenoh of %s)", node.name, ros2.domain,
+                         ros2.distro if detector is None else "the tokens and samples seen")
             t.token(keys.service_token_key(prefix, instance.replace("/", "_")))
             log.info("evcal service %s up: prefix %s, cameras %s%s, on_full=%s", instance,
                      prefix, config.cameras,

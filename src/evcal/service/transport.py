@@ -211,6 +211,39 @@ class Publisher:
         return bool(getattr(status, "matching", status))
 
 
+class Declared:
+    """A token or queryable of a :class:`Transport`: ``undeclare()`` ends it before the
+    session closes (which ends it anyway)."""
+
+    def __init__(self, transport: Transport, entity: Any) -> None:
+        self._transport = transport
+        self._entity = entity
+
+    def undeclare(self) -> None:
+        self._transport._forget(self._entity)
+        try:
+            self._entity.undeclare()
+        except Exception:  # already gone with the session
+            pass
+
+
+class LatchedPublisher(Declared):
+    """A publisher whose last ``depth`` samples also reach subscribers that join later:
+    zenoh's advanced publisher with a cache and publisher detection (a liveliness token under
+    ``<key>/@adv/pub/...``), answered by an advanced subscriber with history
+    (:meth:`Transport.subscribe` ``history=True``; rmw_zenoh's TRANSIENT_LOCAL subscriptions
+    are such subscribers). A plain subscriber gets its samples as from a plain put. The cached
+    sample keeps its payload, encoding and attachment; ``undeclare()`` stops serving it.
+    """
+
+    def __init__(self, transport: Transport, pub: Any, key: str) -> None:
+        super().__init__(transport, pub)
+        self.key = key
+
+    def put(self, payload: bytes, *, attachment: bytes | None = None) -> None:
+        self._entity.put(self._transport.shm.payload(payload), attachment=attachment)
+
+
 class ShmPool:
     """Large payloads put through a zenoh shared-memory provider, for subscribers on this host.
 
@@ -307,6 +340,7 @@ class Transport:
         self._session: Any = None
         self._entities: list[Any] = []
         self._lock = threading.Lock()
+        self._latched: dict[str, LatchedPublisher] = {}  # put(..., latest=True) by key
         self.shm = ShmPool(None if shm_pool_mb is None else int(shm_pool_mb * (1 << 20)))
         self.close_error: str | None = None  # why a bounded close did not finish
 
@@ -366,6 +400,7 @@ class Transport:
     def _close_now(self) -> None:
         with self._lock:
             entities, self._entities = self._entities, []
+            self._latched.clear()
         for e in reversed(entities):
             try:
                 e.undeclare()
@@ -390,13 +425,22 @@ class Transport:
             self._entities.append(entity)
         return entity
 
+    def _forget(self, entity: Any) -> None:
+        with self._lock:
+            self._entities = [e for e in self._entities if e is not entity]
+
     def subscribe(self, key: str, callback: Callable[..., None], *,
-                  attachment: bool = False, accept: Callable[[str], bool] | None = None
-                  ) -> None:
+                  attachment: bool = False, accept: Callable[[str], bool] | None = None,
+                  history: bool = False) -> None:
         """Call ``callback(key, payload, encoding)`` for every sample on ``key`` (a glob);
         with ``attachment``, ``callback(key, payload, encoding, attachment)`` (the sample's
         attachment bytes, or None). ``accept(sample_key)`` False skips a sample before its
-        payload is copied (another shard's camera costs a key comparison, not a copy)."""
+        payload is copied (another shard's camera costs a key comparison, not a copy).
+
+        ``history``: also the last sample of every key of ``key`` that a
+        :class:`LatchedPublisher` published before this subscriber joined (zenoh's advanced
+        subscriber, detecting publishers that come later too), then live samples as usual.
+        """
 
         def on_sample(sample: Any) -> None:
             try:
@@ -411,11 +455,18 @@ class Transport:
             except Exception:
                 log.exception("subscriber callback on %s failed", key)
 
-        self._keep(self.session.declare_subscriber(
-            key, zenoh.handlers.Callback(on_sample, indirect=False)))
+        handler = zenoh.handlers.Callback(on_sample, indirect=False)
+        if history:
+            from zenoh import ext  # noqa: PLC0415
+
+            self._keep(ext.declare_advanced_subscriber(
+                self.session, key, handler,
+                history=ext.HistoryConfig(detect_late_publishers=True, max_samples=1)))
+            return
+        self._keep(self.session.declare_subscriber(key, handler))
 
     def queryable(self, key: str, callback: Callable[[Request], None], *,
-                  complete: bool = True) -> None:
+                  complete: bool = True) -> Declared:
         """Call ``callback(request)`` for every query intersecting ``key``. ``complete``
         says this queryable has every answer for ``key``: a query with zenoh's default target
         (best matching) is then sent to it alone; a shard holds only some cameras of ``key``
@@ -434,8 +485,8 @@ class Transport:
                     except Exception:
                         pass
 
-        self._keep(self.session.declare_queryable(
-            key, zenoh.handlers.Callback(on_query, indirect=False), complete=complete))
+        return Declared(self, self._keep(self.session.declare_queryable(
+            key, zenoh.handlers.Callback(on_query, indirect=False), complete=complete)))
 
     def publisher(self, key: str, encoding: str, *, block: bool = False,
                   express: bool = False) -> Publisher:
@@ -445,10 +496,52 @@ class Transport:
             key, encoding=zenoh.Encoding(encoding), congestion_control=cc, express=express)))
 
     def put(self, key: str, payload: bytes, encoding: str, *, block: bool = False,
-            attachment: bytes | None = None) -> None:
+            attachment: bytes | None = None, latest: bool = False) -> None:
+        """Put one sample on ``key``. ``latest``: through the key's :class:`LatchedPublisher`
+        (declared on its first such put, with this ``encoding`` and ``block``), so that a
+        subscriber with history that joins later still gets the last sample."""
+        if latest:
+            with self._lock:
+                pub = self._latched.get(key)
+            if pub is None:
+                pub = self.latched(key, encoding, block=block)
+                with self._lock:
+                    pub = self._latched.setdefault(key, pub)
+            pub.put(payload, attachment=attachment)
+            return
         cc = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
         self.session.put(key, self.shm.payload(payload), encoding=zenoh.Encoding(encoding),
                          congestion_control=cc, attachment=attachment)
+
+    def latched(self, key: str, encoding: str, *, depth: int = 1, block: bool = False,
+                heartbeat_s: float | None = None) -> LatchedPublisher:
+        """Declare a :class:`LatchedPublisher` on the concrete ``key`` keeping its last
+        ``depth`` samples for late joiners. ``heartbeat_s``: also announce the last sequence
+        number every so often when it changed (zenoh's sporadic heartbeat), so that a
+        subscriber with recovery asks for a last sample it missed (rmw_zenoh's RELIABLE,
+        TRANSIENT_LOCAL publishers do, every 0.5 s)."""
+        from zenoh import ext  # noqa: PLC0415
+
+        cc = zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP
+        # miss detection numbers the samples: without it the cache needs zenoh's timestamping
+        # (off by default; zenoh refuses the publisher then)
+        miss = ext.MissDetectionConfig(
+            heartbeat=None, sporadic_heartbeat=float(heartbeat_s) if heartbeat_s else None)
+        pub = ext.declare_advanced_publisher(
+            self.session, key, encoding=zenoh.Encoding(encoding), congestion_control=cc,
+            cache=ext.CacheConfig(max_samples=int(depth)), publisher_detection=True,
+            sample_miss_detection=miss)
+        return LatchedPublisher(self, self._keep(pub), key)
+
+    def drop_latest(self, key: str) -> bool:
+        """Undeclare the :class:`LatchedPublisher` of ``put(key, ..., latest=True)``: late
+        joiners no longer get its last sample (a camera forgotten). True when there was one."""
+        with self._lock:
+            pub = self._latched.pop(key, None)
+        if pub is None:
+            return False
+        pub.undeclare()
+        return True
 
     def get(self, selector: str, *, timeout_s: float = 5.0, all_replies: bool = True
             ) -> list[Reply]:
@@ -493,9 +586,10 @@ class Transport:
         time.sleep(linger_s)
         return False
 
-    def token(self, key: str) -> None:
-        """Declare a liveliness token (gone when the session closes or the process dies)."""
-        self._keep(self.session.liveliness().declare_token(key))
+    def token(self, key: str) -> Declared:
+        """Declare a liveliness token (gone when undeclared, the session closes or the
+        process dies)."""
+        return Declared(self, self._keep(self.session.liveliness().declare_token(key)))
 
     def alive(self, key: str, *, timeout_s: float = 2.0) -> list[str]:
         """Keys of the liveliness tokens matching ``key``."""
