@@ -21,6 +21,7 @@ import zenoh, rerun or matplotlib.
 """
 
 from importlib.metadata import PackageNotFoundError, version
+from typing import TYPE_CHECKING
 
 from .brandli import BrandliConfig, brandli
 from .calibration import (
@@ -51,7 +52,10 @@ from .io import (
 )
 from .offe import OffEConfig, offe
 from .offline import OffEIConfig, estimate_log_offset, offei
-from .onei import OnEIConfig, OnEIExecutor, OnlineCalibrator, onei
+from .onei import OnEIConfig, OnEIExecutor, OnlineCalibrator
+
+if TYPE_CHECKING:  # the function; at run time the package itself, callable as the function
+    from .onei import onei
 from .reconstruct import EvaluationError, EvaluationResult, StreamingEvaluator, evaluate
 from .recording import Frames, Recording, RecordingError
 from .sim import simulate

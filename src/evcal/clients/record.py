@@ -22,7 +22,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from evcal.errors import ErrorReason, EvcalError
+from evcal.errors import ConfigError, ErrorReason, EvcalError
 from evcal.io.mcap_rec import McapWriter
 from evcal.io.wire import (
     decode_calibration_maps,
@@ -140,8 +140,8 @@ class Recorder:
         self.cameras = cameras
         single = len(cameras) == 1 and not any(ch in cameras[0] for ch in "*$")
         if not single and "{camera}" not in out:
-            raise ValueError(f"--out {out!r}: several cameras may be recorded ({cameras}); put "
-                             "{camera} in the path, e.g. --out 'rec-{camera}.mcap'")
+            raise ConfigError(f"--out {out!r}: several cameras may be recorded ({cameras}); put "
+                              "{camera} in the path, e.g. --out 'rec-{camera}.mcap'")
         self.out = out
         self.single = single
         self.writers: dict[str, CameraWriter] = {}

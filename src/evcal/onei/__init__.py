@@ -9,9 +9,10 @@ maps), ``offset`` (the online log offset), ``state`` (the state format), ``kerne
 compiled per-pixel loops) and ``calibrator`` (the :class:`OnlineCalibrator` facade and
 :func:`onei`).
 
-The attribute ``evcal.onei`` is the function :func:`onei` (the package-level API), not this
-package: reach a module of it with ``from evcal.onei import offset`` or ``from
-evcal.onei.offset import ...``, never as ``evcal.onei.offset``.
+``evcal.onei`` is this package, and calling it calls the function :func:`onei`:
+``evcal.onei(rec)`` (the package-level API, like ``evcal.offei(rec)``) and
+``evcal.onei.offset`` (a module) both work, and so do ``from evcal import onei`` (the package,
+callable), ``from evcal.onei import onei`` and ``from evcal.online import onei`` (the function).
 
 The stream is cut at frame times into *frame intervals*. The **large buffer** is the sliding
 set of the most recent whole frame intervals holding at most ``n_large`` events; when a new
@@ -69,6 +70,10 @@ frame wait in a bounded pending buffer until the frame that closes their interva
 :meth:`OnlineCalibrator.mark_gap` says events were lost: no small buffer spans the loss.
 """
 
+import inspect
+import sys
+import types
+
 from .calibrator import OnlineCalibrator, onei
 from .config import MAX_SOLVE_THREADS, OnEIConfig, usable_cores
 from .equations import PENDING_SLOTS
@@ -89,3 +94,15 @@ __all__ = [
     "onei",
     "usable_cores",
 ]
+
+
+class _CallablePackage(types.ModuleType):
+    """The class of this package's module: ``evcal.onei(...)`` is :func:`onei` (``evcal.onei``
+    names both the package and the function, and the package must stay reachable as an
+    attribute for ``evcal.onei.offset``, ``import evcal.onei as m`` and ``mock.patch``)."""
+
+    __call__ = staticmethod(onei)
+    __signature__ = inspect.signature(onei)  # help() and inspect see onei's parameters
+
+
+sys.modules[__name__].__class__ = _CallablePackage
