@@ -51,7 +51,7 @@ from .solver import (
     solve_normal_equations,
     usable,
 )
-from .stream import frame_intervals
+from .stream import frame_cut, frame_intervals
 
 # ----------------------------------------------------------------------------------------
 # OffEI
@@ -271,7 +271,7 @@ def offei_file(path: str | os.PathLike[str], config: OffEIConfig | None = None, 
             pending.append(payload)
             continue
         ev = concat_events(pending)
-        cut = int(np.searchsorted(ev["t_us"], t_us, side="left"))
+        cut = frame_cut(ev["t_us"], t_us)
         before, pending = ev[:cut], [ev[cut:]]
         last_frame_t = t_us
         if acc is None:

@@ -74,6 +74,18 @@ def frame_cuts(event_t_us: np.ndarray, frame_t_us: np.ndarray) -> np.ndarray:
                            side="left").astype(np.int64)
 
 
+def frame_cut(event_t_us: np.ndarray, frame_t_us: int) -> int:
+    """:func:`frame_cuts` of one frame: the index of the first event at or after
+    ``frame_t_us``, so that ``events[:cut]`` come before the frame.
+
+    Examples
+    --------
+    >>> frame_cut(np.array([0, 5, 10, 10, 12]), 10)
+    2
+    """
+    return int(np.searchsorted(event_t_us, frame_t_us, side="left"))
+
+
 def event_windows(event_t_us: np.ndarray, frame_t_us: np.ndarray) -> np.ndarray:
     """The frame interval of each event: ``k`` with ``t_k <= t < t_{k+1}`` (int64; -1
     before the first frame, the last frame's index at or after it), the per-event view of

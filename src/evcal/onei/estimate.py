@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from ..calibration import DEFAULT_BIAS, DEFAULT_CONTRAST, Reason, Special
+from ..calibration import CALIBRATION_MAPS, DEFAULT_BIAS, DEFAULT_CONTRAST, Reason, Special
 from ..errors import StateError
 from ..solver import PixelSolution
 from ..special import K_POPULATION, Z_MEASUREMENT, label_one, population_limits
@@ -108,10 +108,9 @@ class LowPassEstimate:
         n = self.c.size
         limits = population_limits(self.c, self.b, self.seen, K_POPULATION,
                                    self.POPULATION_SAMPLE)
-        out = {"contrast": np.empty(n, np.float32), "bias": np.empty(n, np.float32),
-               "valid": np.empty(n, bool), "reason": np.empty(n, np.uint8),
-               "stderr_contrast": np.empty(n, np.float32),
-               "stderr_bias": np.empty(n, np.float32), "special": np.empty(n, np.uint8)}
+        # every map of the schema but the counts of events used (the calibrator's)
+        out = {spec.name: np.empty(n, spec.dtype) for spec in CALIBRATION_MAPS
+               if spec.name != "n_events"}
 
         def work(_i: int, lo: int, hi: int) -> None:
             _estimate_maps(lo, hi, self.c, self.b, self.se_c, self.se_b, self.seen,

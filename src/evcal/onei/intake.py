@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from ..stream import frame_cut
 from .kernels import COUNT_BITS, COUNT_MAX, LAST_SHIFT, close_interval, fold_events
 
 AHEAD_INTERVALS = 8  # recent frame intervals the horizon of folding ahead is taken from
@@ -99,7 +100,7 @@ class EventIntake:
         while self.pending:
             chunk = self.pending[0]
             t = chunk["t_us"]
-            cut = t.size if int(t[-1]) < t_us else int(np.searchsorted(t, t_us, side="left"))
+            cut = t.size if int(t[-1]) < t_us else frame_cut(t, t_us)
             if cut:
                 taken.append(chunk[:cut])
                 self.n_pending -= cut
