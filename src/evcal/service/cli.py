@@ -15,7 +15,7 @@ from ..online import OnEIConfig
 from ..signals import STOP_SIGNALS, SignalRelay
 from . import keys
 from .core import ON_FULL, ServiceConfig
-from .ros2 import Ros2Options, TopicMap, default_domain
+from .ros2 import DISTRO_CHOICES, Ros2Options, TopicMap, default_domain
 from .signing import SignatureError
 from .transport import TransportError, add_zenoh_arguments, check_key, options_from_args
 
@@ -97,6 +97,10 @@ def build_parser(prog: str = "evcal serve") -> argparse.ArgumentParser:
                    help="feed camera CAMERA from TOPIC, or from every topic below a "
                         "namespace, e.g. /dvs/events=lab/rig1/cam0 or /dvs=lab/rig1/cam0 "
                         "(repeatable)")
+    g.add_argument("--ros-distro", choices=DISTRO_CHOICES, default="auto",
+                   help="the rmw_zenoh to speak to: humble (rmw_zenoh 0.1.2+), humble-0.1.1, "
+                        "jazzy (0.2.4+), jazzy-0.2.3 (0.2.0-0.2.3), kilted, rolling; auto "
+                        "(default): from the tokens and attachments seen on the domain")
     g = p.add_argument_group("OnEI estimator")
     g.add_argument("--n-small", type=int, default=None,
                    help="events per equation (default: scaled with the sensor)")
@@ -205,7 +209,8 @@ def ros2_from_args(args: argparse.Namespace) -> Ros2Options | None:
         if args.ros_domain is not None or args.ros_topic_map:
             raise ValueError("--ros-domain and --ros-topic-map go with --ros2")
         return None
-    return Ros2Options(domain=ros_domain(args), topic_map=TopicMap.parse(args.ros_topic_map))
+    return Ros2Options(domain=ros_domain(args), topic_map=TopicMap.parse(args.ros_topic_map),
+                       distro=args.ros_distro)
 
 
 def setup_logging(verbose: int, quiet: bool = False, *, tag: str = "") -> None:

@@ -2,35 +2,47 @@
 uses, and the CDR in (EventPacket, Image) and out (calibration maps as Images).
 
 No zenoh here (the session is :mod:`evcal.service.transport`'s): this module makes strings
-and bytes. The facts it relies on are rmw_zenoh_cpp's (github ros2/rmw_zenoh,
-``rmw_zenoh_cpp/src/detail/liveliness_utils.cpp``, ``attachment_helpers.cpp``,
-``rmw_publisher_data.cpp``, ``type_support_common.cpp``; the layout of rmw_zenoh 0.2+, the
-Jazzy and Rolling releases):
+and bytes. The facts it relies on are rmw_zenoh_cpp's, read at the release tags of each
+distribution (github ros2-gbp/rmw_zenoh-release, ``release/<distro>/rmw_zenoh_cpp/<v>-1``:
+``liveliness_utils.cpp``, ``attachment_helpers.cpp``, ``qos.cpp``,
+``rmw_publisher_data.cpp``, ``rmw_subscription_data.cpp``); what differs between releases
+is a :class:`RosDistro` (``--ros-distro``, or ``auto``: :class:`DistroDetector`):
 
 - A topic's data key is ``<domain>/<topic without its leading and trailing '/'>/<dds
   type>/<type hash>``, e.g. ``0/event_camera/events/event_camera_msgs::msg::dds_::
   EventPacket_/RIHS01_d6fa...``; the dds type of ``pkg/msg/Name`` is
   ``pkg::msg::dds_::Name_``, the hash the type's RIHS01 hash (REP 2011) as
-  ``rosidl_stringify_type_hash`` writes it: ``RIHS01_`` and 64 hex digits. Payloads are CDR
-  (4-byte encapsulation header, then the message).
-- Every sample carries an attachment in zenoh's serialization format: the publisher's
-  sequence number (int64, from 1), the source timestamp (int64 ns) and the publisher's GID
-  (16 bytes, a sequence: LEB128 length 0x10 then the bytes) -- 33 bytes. rmw_zenoh's first
-  zenoh-1.0 releases put each field after its name (``"sequence_number"``,
-  ``"source_timestamp"``, ``"source_gid"`` as strings): evcal reads both and writes the
-  current one.
+  ``rosidl_stringify_type_hash`` writes it (Jazzy and later), ``TypeHashNotSupported`` on
+  Humble. A subscriber declares its own exact key, so a publisher with the other hash never
+  reaches it. Payloads are CDR (4-byte encapsulation header, then the message).
+- Every sample carries an attachment in zenoh's serialization format (a subscriber drops a
+  sample without one): the publisher's sequence number (int64, from 1), the source
+  timestamp (int64 ns) and the publisher's GID (``std::array<uint8_t, 16>``: LEB128 length
+  0x10 then the bytes) -- 33 bytes, from rmw_zenoh 0.1.2 (Humble), 0.2.4 (Jazzy), 0.6
+  (Rolling, Kilted). Before, each field came after its name (``"sequence_number"``,
+  ``"source_timestamp"``, ``"source_gid"`` as strings), 77 bytes. Each release's
+  ``AttachmentData`` throws on the other layout: evcal reads both and writes the one of the
+  profile.
 - A ROS entity exists for ``ros2 node list`` / ``ros2 topic list`` through a liveliness token
   ``@ros2_lv/<domain>/<zid>/<node id>/<entity id>/<NN|MP|MS>/<enclave>/<namespace>/<node>``,
   followed for a publisher (MP) or subscription (MS) by ``/<topic>/<dds type>/<type
   hash>/<qos>``; names in a token have ``/`` replaced by ``%`` (the root namespace and the
   default enclave are ``%``), the QoS is
   ``<reliability>:<durability>:<history>,<depth>:<deadline s>,<ns>:<lifespan s>,<ns>:
-  <liveliness>,<lease s>,<ns>`` (rmw enum values; an empty field is the default).
+  <liveliness>,<lease s>,<ns>`` (rmw enum values), a field left empty when it is the
+  release's default (reliable, keep last 42, infinite durations, automatic liveliness;
+  durability TRANSIENT_LOCAL before 0.1.2 and 0.2.3, VOLATILE since). The entity's GID is
+  XXH3-128 of its token (:func:`entity_gid`).
+- TRANSIENT_LOCAL: a publisher keeps its last ``depth`` samples in zenoh's advanced
+  publisher cache, with publisher detection (and, RELIABLE, a 0.5 s sporadic heartbeat); a
+  subscription is an advanced subscriber with history that detects late publishers. The
+  releases before 0.1.2 and 0.2.2 used zenoh's publication cache (a queryable on
+  ``<zid>/<key>``) and a querying subscriber (``*/<key>``, replies on any key).
 
-evcal subscribes with the hash chunk ``*``: any version of a type is received (rmw_zenoh
-builds without type hashes put ``TypeHashNotSupported`` there) and the CDR is decoded with
-evcal's registered definitions (:mod:`evcal.io.rosbag`), which name a message that does not
-decode. It publishes the hashes :func:`evcal.io.ros2msg.type_hash` computes.
+evcal subscribes with the hash chunk ``*``: any version of a type is received, Humble's
+included, and the CDR is decoded with evcal's registered definitions
+(:mod:`evcal.io.rosbag`), which name a message that does not decode. It publishes its
+calibration images TRANSIENT_LOCAL (depth 1), for each profile active.
 
 Cameras: an EventPacket topic belongs to the camera named by its namespace
 (``/lab/rig1/cam0/events`` -> ``lab/rig1/cam0``), an Image topic too when its last name
