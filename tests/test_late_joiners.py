@@ -260,22 +260,34 @@ def test_a_restarted_service_serves_its_restored_calibration_to_late_joiners(
         status = stream_until_settled(first.ep)
     finally:
         first.close()  # snapshots written at shutdown
-    second = Served(state)
+    second = Served(state, ros2=Ros2Options(distro="humble"))
+    ros_key = topic_key(0, output_topic(CAMERA, "contrast"), IMAGE, "TypeHashNotSupported")
     try:
         with Transport(ZenohOptions.loopback(connect=[second.ep])) as t:
             delay, got = _timed_first(lambda on: t.subscribe(
                 f"evcal/{CAMERA}/calibration", on, history=True))
+            # and as a TRANSIENT_LOCAL image, to a Humble subscriber (rmw_zenoh 0.1.2+)
+            ros_delay, ros_got = _timed_first(lambda on: t.subscribe(
+                ros_key, on, attachment=True, history=True))
             # the latched publisher announces itself (zenoh's publisher detection) ...
             cache = f"evcal/{CAMERA}/calibration/@adv/**"
             assert t.alive(cache)
             # ... until the camera is forgotten: late joiners then get nothing
             forgot = t.get(f"evcal/{CAMERA}/forget", timeout_s=5.0)
             assert json.loads(forgot[0].payload)["forgotten"] is True
-            wait_for(lambda: not t.alive(cache, timeout_s=0.5), timeout_s=10,
-                     what="the forgotten camera's cache undeclared")
+            for gone in (cache, f"{ros_key}/@adv/**"):
+                wait_for(lambda gone=gone: not t.alive(gone, timeout_s=0.5), timeout_s=10,
+                         what=f"the forgotten camera's cache {gone} undeclared")
     finally:
         second.close()
-    print(f"restart: late joiner got the restored calibration in {delay * 1e3:.1f} ms")
+    print(f"restart: late joiner got the restored calibration in {delay * 1e3:.1f} ms, "
+          f"a late Humble TRANSIENT_LOCAL subscriber its image in {ros_delay * 1e3:.1f} ms")
     assert delay < LATE_S
-    _, header = decode_calibration(got[0][1])
+    assert ros_delay < LATE_S
+    cal, header = decode_calibration(got[0][1])
     assert header["seq"] == status["calibration_seq"]
+    _, data, _, att = ros_got[0]
+    assert _rmw_compact_attachment(att)[0] == 1
+    msg = ros2_store().deserialize_cdr(data, IMAGE)
+    img = np.frombuffer(msg.data.tobytes(), "<f4").reshape(msg.height, msg.width)
+    np.testing.assert_array_equal(img, cal.contrast.astype(np.float32))

@@ -68,6 +68,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from ..calibration import Calibration
 from ..errors import ConfigError, ErrorReason
 from ..io._evcodecs import PacketDecoder, PayloadError
 from ..io.ros2msg import image_cdr, ros2_store, type_hash
@@ -854,8 +855,10 @@ class RosCalibrationPublisher:
 
     def images(self, camera: str, upd: CalibrationUpdate) -> dict[str, bytes]:
         """The CDR of the update's three Images, by map name."""
-        cal = upd.calibration
-        t_ns = int(upd.t_us) * 1000
+        return self._images(camera, upd.calibration, upd.t_us)
+
+    def _images(self, camera: str, cal: Calibration, t_us: int) -> dict[str, bytes]:
+        t_ns = int(t_us) * 1000
         frame_id = ros_name(camera).strip("/")
         special = (cal.special.astype(np.uint16) * SPECIAL_SCALE).astype(np.uint8)
         return {
@@ -866,8 +869,13 @@ class RosCalibrationPublisher:
 
     def publish(self, camera: str, upd: CalibrationUpdate) -> None:
         """Publish one update (raises what the transport raises; the service counts it)."""
+        self.publish_calibration(camera, upd.calibration, upd.t_us)
+
+    def publish_calibration(self, camera: str, cal: Calibration, t_us: int) -> None:
+        """Publish ``cal`` (sensor time ``t_us``) as the camera's images: an update's, or a
+        calibration restored from a snapshot, for late joiners."""
         outs = self._publications(camera)
-        images = self.images(camera, upd)
+        images = self._images(camera, cal, t_us)
         for out in outs:
             data = images[out.pub.topic.rpartition("/")[2]]
             att = out.pub.attachment()

@@ -41,6 +41,20 @@ def _reply_error(req: Request, exc: EvcalError) -> None:
     req.reply_err(error_reply(exc))
 
 
+def _publish_restored_images(service: Service, ros_out: RosCalibrationPublisher) -> None:
+    """The restored calibrations as TRANSIENT_LOCAL images, for late ROS 2 subscribers."""
+    for cam in list(service.cameras.values()):
+        with cam.lock:
+            cal, t_us = cam.state.current_calibration(), cam.state.calibration_t_us
+        if cal is None:
+            continue
+        try:
+            ros_out.publish_calibration(cam.id, cal, int(t_us or 0))
+        except Exception as exc:  # a transport hiccup: counted, the start goes on
+            service.publish_errors += 1
+            log.warning("camera %s: cannot publish its restored images: %s", cam.id, exc)
+
+
 def run(
     zenoh: ZenohOptions,
     config: ServiceConfig,
@@ -114,6 +128,8 @@ def run(
                                         attachment=service.attachment(key, payload))
                 except EvcalError:
                     pass  # no restored camera had a calibration yet
+                if ros_out is not None:
+                    _publish_restored_images(service, ros_out)
 
             def on_calibration(req: Request) -> None:
                 try:
