@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import json
 import threading
-import time
 
 import numpy as np
 import pytest
@@ -40,6 +39,7 @@ from evcal.service.ros2 import (
     topic_key,
 )
 from evcal.sim.ideal import SimConfig, simulate_ideal
+from evcal.testing import settle as _settle
 
 IMAGE_HASH = "RIHS01_d31d41a9a4c4bc8eae9be757b0beed306564f7526c88ea6a4588fb9582527d47"
 
@@ -228,13 +228,6 @@ class Puts:
     def on(self, prefix: str) -> list[tuple[str, bytes, bytes | None]]:
         with self.lock:
             return [i for i in self.items if i[0].startswith(prefix)]
-
-
-def _settle(svc: Service, timeout_s: float = 20.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while any(c.in_flight for c in svc.cameras.values()) and time.monotonic() < deadline:
-        time.sleep(0.01)
-    time.sleep(0.05)
 
 
 def _ros_service() -> tuple[Service, RosRouter, RosCalibrationPublisher, Puts]:

@@ -19,6 +19,7 @@ from evcal.events import EVENTS_DTYPE
 from evcal.online import OnEIConfig
 from evcal.service.core import Service, ServiceConfig
 from evcal.service.state import StateStore, load_npz
+from evcal.testing import wait_for
 
 pytestmark = pytest.mark.timeout(240)
 
@@ -26,36 +27,35 @@ WRITER = r"""
 import sys, numpy as np
 from evcal.service.state import StateStore
 store = StateStore(sys.argv[1])
-rng = np.random.default_rng(int(sys.argv[2]))
+k = int(sys.argv[2])
+rng = np.random.default_rng(k)
 i = 0
 while True:
     n = int(rng.integers(1, 400_000))
     a = rng.random(n)
     for cam in ("lab/cam0", "cam1"):
         store.save(cam, {"data": a, "n": np.int64(n), "sum": np.float64(a.sum()),
-                         "i": np.int64(i)})
+                         "i": np.int64(i), "k": np.int64(k)})
     i += 1
 """
 
 
+def _written_by(folder: Path, k: int) -> bool:
+    """Whether writer ``k`` has saved a snapshot in ``folder`` (it is writing now)."""
+    return any(int(load_npz(f)["k"]) == k for f in folder.iterdir() if ".tmp-" not in f.name)
+
+
 def test_snapshots_survive_kill_9_of_the_writer(tmp_path):
     seen = set()
-    start_s = 0.0
     for k in range(8):
-        t0 = time.monotonic()
         p = subprocess.Popen([sys.executable, "-c", WRITER, str(tmp_path), str(k)])
-        if k == 0:
-            # the writer's imports take about a second (more on a busy machine): the kills
-            # must come while it writes, so they wait that long first
-            deadline = t0 + 60
-            while len([f for f in tmp_path.iterdir() if ".tmp-" not in f.name]) < 2:
-                assert time.monotonic() < deadline, "the writer wrote no snapshot in 60 s"
-                assert p.poll() is None, "the writer exited"
-                time.sleep(0.05)
-            start_s = time.monotonic() - t0
-        # seeded: a repeatable run
-        time.sleep(max(0.0, start_s - (time.monotonic() - t0))
-                   + 0.4 + random.Random(k).random() * 0.4)
+        # the kill must come while this writer writes: wait for its first snapshot (its
+        # imports take a second, more on a busy machine), then kill it at a seeded moment
+        # of its following writes
+        wait_for(lambda k=k, p=p: p.poll() is not None or _written_by(tmp_path, k),
+                 timeout_s=60, interval_s=0.02, what=f"a snapshot of writer {k}")
+        assert p.poll() is None, "the writer exited"
+        time.sleep(random.Random(k).random() * 0.4)
         p.kill()
         p.wait(10)
         for f in tmp_path.iterdir():

@@ -201,7 +201,8 @@ def test_gap_names_v2e_timestamp_scheme_and_nothing_else_when_nothing_is_hidden(
     assert res.named_effects == ["timestamp_quantisation"]
     q = res.steps[0].effect.parameters()
     assert q["step_us"] == 500.0
-    assert q["phase_us"] == 270.0
+    # the phase is the most common residue of integer-µs event times: within one tick
+    assert q["phase_us"] == pytest.approx(270.0, abs=1.0)
     assert res.final.gap <= 3.0
 
 

@@ -13,7 +13,10 @@ import sys
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
+
+if TYPE_CHECKING:
+    from .service.core import Service
 
 T = TypeVar("T")
 
@@ -44,6 +47,13 @@ def wait_for(fn: Callable[[], T], *, timeout_s: float = 30.0, interval_s: float 
             raise TimeoutError(f"{what} not reached within {timeout_s:g} s"
                                + (f" (last error: {last_exc})" if last_exc else ""))
         time.sleep(interval_s)
+
+
+def settle(service: Service, timeout_s: float = 20.0) -> None:
+    """Wait until every camera of an in-process ``service`` has processed every message it
+    was given and published what they produced; TimeoutError after ``timeout_s``."""
+    wait_for(lambda: not any(c.in_flight for c in service.cameras.values()),
+             timeout_s=timeout_s, interval_s=0.01, what="every camera's messages processed")
 
 
 def python_env() -> dict[str, str]:
