@@ -11,14 +11,18 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, TypeVar
-
-if TYPE_CHECKING:
-    from .service.core import Service
+from typing import Any, Protocol, TypeVar
 
 T = TypeVar("T")
+
+
+class _Cameras(Protocol):
+    """What :func:`settle` reads of a service (the core never imports the service layer)."""
+
+    @property
+    def cameras(self) -> Mapping[str, Any]: ...
 
 
 def free_port() -> int:
@@ -49,7 +53,7 @@ def wait_for(fn: Callable[[], T], *, timeout_s: float = 30.0, interval_s: float 
         time.sleep(interval_s)
 
 
-def settle(service: Service, timeout_s: float = 20.0) -> None:
+def settle(service: _Cameras, timeout_s: float = 20.0) -> None:
     """Wait until every camera of an in-process ``service`` has processed every message it
     was given and published what they produced; TimeoutError after ``timeout_s``."""
     wait_for(lambda: not any(c.in_flight for c in service.cameras.values()),
