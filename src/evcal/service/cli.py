@@ -17,7 +17,13 @@ from . import keys
 from .core import ON_FULL, ServiceConfig
 from .ros2 import DISTRO_CHOICES, Ros2Options, TopicMap, default_domain
 from .signing import SignatureError
-from .transport import TransportError, add_zenoh_arguments, check_key, options_from_args
+from .transport import (
+    TransportError,
+    ZenohOptions,
+    add_zenoh_arguments,
+    check_key,
+    options_from_args,
+)
 
 
 def build_parser(prog: str = "evcal serve") -> argparse.ArgumentParser:
@@ -26,11 +32,19 @@ def build_parser(prog: str = "evcal serve") -> argparse.ArgumentParser:
         description="Live per-pixel calibration service: subscribes to every camera's events "
                     "and frames on <prefix>/<camera>/events|frames, keeps an online (OnEI) "
                     "calibration per camera, publishes <prefix>/<camera>/calibration|status|"
-                    "errors and answers queries on them.",
-        epilog="Keeping deployments apart: zenoh peers find each other by multicast "
-               "scouting by default, so two services on one host or network ingest each "
-               "other's cameras. Give every process of a deployment --no-multicast-scouting "
-               "and explicit --listen/--connect endpoints, or a --prefix of its own.",
+                    "errors and answers queries on them. Deployments are kept apart by "
+                    "their endpoints: give --listen (clients: --connect) and the service "
+                    "sees only its own processes (see the end of this help).",
+        epilog="Keeping deployments apart: a deployment is the processes that share an "
+               "endpoint. With an endpoint given (--listen/--connect, or EVCAL_LISTEN/"
+               "EVCAL_CONNECT) multicast scouting is off, so a service sees only the "
+               "processes connected to it: two deployments on one host differ by port "
+               "(evcal serve --listen tcp/127.0.0.1:7447, clients --connect the same). "
+               "Without any endpoint zenoh's multicast scouting is on and the service "
+               "ingests the cameras of every evcal process on the local network (it warns "
+               "at start); --prefix NAME/evcal (the same on its clients) separates "
+               "deployments that must share a network. --multicast-scouting turns "
+               "scouting on with endpoints.",
     )
     add_zenoh_arguments(p)
     p.add_argument("--prefix", default="evcal", help="key prefix (default: evcal)")
@@ -232,6 +246,22 @@ def add_verbosity(p: argparse.ArgumentParser) -> None:
                    help="errors only on stderr (no notes, progress or info lines)")
 
 
+def warn_if_scouting(zopts: ZenohOptions, prefix: str) -> bool:
+    """Warn, on stderr, that multicast scouting will join this service to every evcal
+    process of the local network (no endpoint given); True when it did."""
+    try:
+        on = bool(zopts.to_config().get_json("scouting/multicast/enabled").strip() != "false")
+    except Exception:  # noqa: BLE001 - an unreadable value: zenoh's default (on)
+        on = True
+    if on:
+        logging.getLogger("evcal.service").warning(
+            "multicast scouting is on (no --listen/--connect endpoint given): this service "
+            "will ingest the cameras of every evcal process on the local network under "
+            "prefix %r. Keep deployments apart with an endpoint (--listen "
+            "tcp/127.0.0.1:7447, clients --connect it) or a --prefix of their own", prefix)
+    return on
+
+
 SWITCH_INTERVAL_S = 0.001
 
 
@@ -253,6 +283,7 @@ def main_serve(argv: Sequence[str] | None = None) -> int:
     except ValueError as exc:
         print(f"evcal serve: {exc}", file=sys.stderr)
         return 2
+    warn_if_scouting(zopts, config.prefix)
     from .mallocpolicy import keep_freed_memory
     from .server import run
 

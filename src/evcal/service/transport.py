@@ -93,7 +93,12 @@ def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
                    help="endpoint to listen on (repeatable)")
     g.add_argument("--config", "-c", metavar="FILE", help="a zenoh JSON5 configuration file")
     g.add_argument("--no-multicast-scouting", action="store_true",
-                   help="disable multicast scouting (find peers only through --connect)")
+                   help="disable multicast scouting (find peers only through --connect); "
+                        "the default whenever an endpoint is given (--connect, --listen, "
+                        "EVCAL_CONNECT, EVCAL_LISTEN)")
+    g.add_argument("--multicast-scouting", action="store_true",
+                   help="find peers by multicast scouting even with endpoints given (it "
+                        "joins every evcal process of the local network under the prefix)")
     g.add_argument("--cfg", metavar="KEY:VALUE", action="append", default=[],
                    help="any zenoh configuration change, VALUE in JSON5, e.g. "
                         "--cfg='transport/unicast/max_links:2' (repeatable)")
@@ -130,9 +135,22 @@ def options_from_args(args: argparse.Namespace) -> ZenohOptions:
         extra.append((key, value))
     return ZenohOptions(
         mode=mode, connect=connect, listen=listen, config_file=config,
-        multicast_scouting=False if args.no_multicast_scouting else None,
+        # explicit endpoints make a deployment: scouting would join it to every other
+        # evcal process of the host or network (zenoh's default, kept without endpoints)
+        multicast_scouting=_scouting(args, bool(connect or listen)),
         extra=tuple(extra),
     )
+
+
+def _scouting(args: argparse.Namespace, endpoints: bool) -> bool | None:
+    """Multicast scouting of the flags: off with --no-multicast-scouting or with endpoints
+    given, on with --multicast-scouting, else None (zenoh's default, or the config file's)."""
+    if getattr(args, "multicast_scouting", False):
+        if args.no_multicast_scouting:
+            raise ValueError("--multicast-scouting and --no-multicast-scouting contradict "
+                             "each other")
+        return True
+    return False if args.no_multicast_scouting or endpoints else None
 
 
 # ----------------------------------------------------------------------------- key helpers
