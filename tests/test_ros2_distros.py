@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import json
 import struct
-import threading
 from dataclasses import dataclass
 from typing import Any
 
@@ -312,7 +311,7 @@ def test_serve_ros_distro_flag() -> None:
 
 
 def test_serve_ros2_images_decode_for_humble_and_jazzy_023_subscribers() -> None:
-    """The acceptance: a live service (``--ros-distro auto``) fed by a Jazzy 0.2.3 driver
+    """The acceptance: ``evcal serve --ros2`` (``--ros-distro auto``) fed by a Jazzy 0.2.3 driver
     (named attachments) while a Humble rviz2 subscribes to its images: both a Humble-style
     subscriber (TypeHashNotSupported key, 33-byte attachments) and a Jazzy-0.2.3-style one
     (RIHS01 key, named attachments) decode the calibration images, TRANSIENT_LOCAL."""
@@ -320,80 +319,70 @@ def test_serve_ros2_images_decode_for_humble_and_jazzy_023_subscribers() -> None
     from zenoh import ext
 
     from evcal.io.wire import decode_calibration
-    from evcal.online import OnEIConfig
-    from evcal.service.core import ServiceConfig
-    from evcal.service.ros2 import Ros2Options
-    from evcal.service.server import run
     from evcal.service.transport import Transport, ZenohOptions
     from evcal.sim.ideal import SimConfig, simulate_ideal
-    from evcal.testing import endpoint, free_port, wait_for
+    from evcal.testing import ServiceProcess, endpoint, free_port, wait_for
 
     sim = simulate_ideal(SimConfig(height=36, width=48, duration_s=1.5, seed=4))
     ep = endpoint(free_port())
-    stop, ready = threading.Event(), threading.Event()
-    cfg = ServiceConfig(on_full="block", onei=OnEIConfig(n_small=3000, n_large=10**6,
-                                                         log_offset=30.0, window_frames=5))
-    th = threading.Thread(target=run, args=(ZenohOptions.loopback(listen=[ep]), cfg),
-                          kwargs={"stop": stop, "ready": lambda s: ready.set(),
-                                  "ros2": Ros2Options(distro="auto")}, daemon=True)
-    th.start()
+    service = ServiceProcess(["--listen", ep, "--no-multicast-scouting", "--ros2",
+                              "--on-full", "block", "--n-small", "3000", "--n-large",
+                              "1000000", "--log-offset", "30", "--status-period", "0.2"])
     store = ros2_store()
     latest: dict[str, tuple[bytes, bytes]] = {}
-    try:
-        assert ready.wait(60)
-        with Transport(ZenohOptions.loopback(connect=[ep])) as t:
-            # a Humble rviz2 showing the contrast map: its subscription's token
-            t.token(f"@ros2_lv/0/{t.zid}/0/5/MS/%/%/rviz2/%lab%cam0%calibration%contrast/"
-                    f"{IMAGE_DDS}/TypeHashNotSupported/::,10:,:,:,,")
-            subs = []
-            for name in ("humble", "jazzy-0.2.3"):
-                key = f"0/lab/cam0/calibration/contrast/{IMAGE_DDS}/{WIRES[name].hash}"
+    with service, Transport(ZenohOptions.loopback(connect=[ep])) as t:
+        wait_for(lambda: t.alive("@ros2_lv/0/*/0/0/NN/%/%/evcal", timeout_s=1.0),
+                 timeout_s=60, what="the service's ROS 2 node")
+        # a Humble rviz2 showing the contrast map: its subscription's token
+        t.token(f"@ros2_lv/0/{t.zid}/0/5/MS/%/%/rviz2/%lab%cam0%calibration%contrast/"
+                f"{IMAGE_DDS}/TypeHashNotSupported/::,10:,:,:,,")
+        subs = []
+        for name in ("humble", "jazzy-0.2.3"):
+            key = f"0/lab/cam0/calibration/contrast/{IMAGE_DDS}/{WIRES[name].hash}"
 
-                def on(sample: Any, name: str = name) -> None:
-                    latest[name] = (sample.payload.to_bytes(), sample.attachment.to_bytes())
+            def on(sample: Any, name: str = name) -> None:
+                latest[name] = (sample.payload.to_bytes(), sample.attachment.to_bytes())
 
-                # rmw_zenoh 0.1.2+ and 0.2.2+: a TRANSIENT_LOCAL subscription
-                subs.append(ext.declare_advanced_subscriber(
-                    t.session, key, on,
-                    history=ext.HistoryConfig(detect_late_publishers=True, max_samples=10),
-                    subscriber_detection=True))
-            # the Jazzy 0.2.3 driver: its topics, named attachments
-            dds = {EVENT_PACKET: PACKET_DDS, IMAGE: IMAGE_DDS}
-            seqs: dict[str, int] = {}
-            for m in recording_messages(sim.recording, namespace="/lab/cam0"):
-                seqs[m.topic] = seqs.get(m.topic, 0) + 1
-                t.put(f"0{m.topic}/{dds[m.msgtype]}/RIHS01_{'cd' * 32}", m.data, "",
-                      block=True, attachment=encode_attachment(seqs[m.topic], 0, GID,
-                                                               named=True))
+            # rmw_zenoh 0.1.2+ and 0.2.2+: a TRANSIENT_LOCAL subscription
+            subs.append(ext.declare_advanced_subscriber(
+                t.session, key, on,
+                history=ext.HistoryConfig(detect_late_publishers=True, max_samples=10),
+                subscriber_detection=True))
+        # the Jazzy 0.2.3 driver: its topics, named attachments
+        dds = {EVENT_PACKET: PACKET_DDS, IMAGE: IMAGE_DDS}
+        seqs: dict[str, int] = {}
+        for m in recording_messages(sim.recording, namespace="/lab/cam0"):
+            seqs[m.topic] = seqs.get(m.topic, 0) + 1
+            t.put(f"0{m.topic}/{dds[m.msgtype]}/RIHS01_{'cd' * 32}", m.data, "",
+                  block=True, attachment=encode_attachment(seqs[m.topic], 0, GID,
+                                                           named=True))
 
-            def settled() -> bytes | None:
-                st = t.get("evcal/lab/cam0/status", timeout_s=2.0)
-                if not st or not st[0].ok:
-                    return None
-                doc = json.loads(st[0].payload)
-                if doc["in_flight_messages"] or not doc["updates"]:
-                    return None
-                cal = t.get("evcal/lab/cam0/calibration", timeout_s=2.0)
-                return cal[0].payload if cal and cal[0].ok else None
+        def settled() -> bytes | None:
+            st = t.get("evcal/lab/cam0/status", timeout_s=2.0)
+            if not st or not st[0].ok:
+                return None
+            doc = json.loads(st[0].payload)
+            if doc["in_flight_messages"] or not doc["updates"]:
+                return None
+            cal = t.get("evcal/lab/cam0/calibration", timeout_s=2.0)
+            return cal[0].payload if cal and cal[0].ok else None
 
-            payload = wait_for(settled, timeout_s=60, what="the camera's last update")
-            contrast = decode_calibration(payload)[0].contrast.astype(np.float32)
+        payload = wait_for(settled, timeout_s=60, what="the camera's last update")
+        contrast = decode_calibration(payload)[0].contrast.astype(np.float32)
 
-            def image(name: str) -> np.ndarray | None:
-                if name not in latest:
-                    return None
-                msg = store.deserialize_cdr(latest[name][0], IMAGE)
-                return np.frombuffer(msg.data.tobytes(), "<f4").reshape(msg.height, msg.width)
+        def image(name: str) -> np.ndarray | None:
+            if name not in latest:
+                return None
+            msg = store.deserialize_cdr(latest[name][0], IMAGE)
+            return np.frombuffer(msg.data.tobytes(), "<f4").reshape(msg.height, msg.width)
 
-            for name in ("humble", "jazzy-0.2.3"):
-                wait_for(lambda name=name: (img := image(name)) is not None
-                         and np.array_equal(img, contrast), timeout_s=30,
-                         what=f"the {name} subscriber's last image")
-            for s in subs:
-                s.undeclare()
-    finally:
-        stop.set()
-        th.join(60)
+        for name in ("humble", "jazzy-0.2.3"):
+            wait_for(lambda name=name: (img := image(name)) is not None
+                     and np.array_equal(img, contrast), timeout_s=30,
+                     what=f"the {name} subscriber's last image")
+        for s in subs:
+            s.undeclare()
+        assert service.stop() == 0
     for name, (data, att) in latest.items():
         seq, _, gid = rmw_attachment(att, named=WIRES[name].named)
         assert seq >= 1
