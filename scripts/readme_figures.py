@@ -2,7 +2,8 @@
 
     python scripts/readme_figures.py        # ../shared/data or $EVCAL_SHARED_DATA
 
-Prints OffEI (log offset estimated) and OnEI (``--n-small 8000 --n-large 60000``) against DI,
+Prints OffEI (log offset estimated) and OnEI (default sizes: the small buffer fitted to the
+recording, an eighth of its events) against DI,
 reconstructing over 5 frame intervals per image, the same way as
 
     evcal calibrate road.aedat4 --method offei --log-offset auto --out cal.npz
@@ -30,8 +31,8 @@ def main() -> int:
     rec = evcal.open_recording(path)
     print(f"road.aedat4: {rec.sensor}, {rec.n_events:,} events, {len(rec.frames)} frames")
     off = evcal.calibrate(rec, "offei", log_offset="auto")
-    on = evcal.calibrate(rec, "onei", n_small=8000, n_large=60000, log_offset="auto")
-    for name, cal in (("OffEI", off), ("OnEI 8000/60000", on)):
+    on = evcal.calibrate(rec, "onei", log_offset="auto")
+    for name, cal in (("OffEI", off), (f"OnEI n_small {on.diagnostics.n_small:,}", on)):
         s = evcal.evaluate(rec, cal, frames_per_image=5).summary()
         print(f"{name}: log offset {cal.log_offset:.1f}, valid {100 * cal.valid.mean():.1f} %, "
               f"PSNR {s['calibrated']['psnr']:.2f} dB against DI's {s['di']['psnr']:.2f} dB "

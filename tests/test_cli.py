@@ -108,14 +108,18 @@ def test_real_davis346_end_to_end(shared_data, tmp_path, capsys):
     for method in ("offei", "onei", "offe", "brandli", "di"):
         out = tmp_path / f"{method}.npz"
         assert main(["calibrate", str(road), "--method", method, "--out", str(out)]) == 0
-    # 79 k events: the paper's OnEI buffers (416 k at 346x260) never fill, and it says so
-    assert "OnEI made no update" in capsys.readouterr().err
-    assert not load_calibration(tmp_path / "onei.npz").valid.any()
-    assert main(["calibrate", str(road), "--method", "onei", "--n-small", "8000",
-                 "--n-large", "60000", "--out", str(tmp_path / "onei_small.npz")]) == 0
-    assert "no update" not in capsys.readouterr().err
-    onei_small = load_calibration(tmp_path / "onei_small.npz")
-    assert onei_small.valid.sum() > 500
+    # 79 k events: the paper's OnEI buffers (416 k at 346x260) would never fill; the small
+    # buffer is fitted to the recording, and it says so
+    out = capsys.readouterr()
+    assert "small buffer fitted to the recording: 9,853 events" in out.err
+    assert "valid pixels  1.4 %: most pixels saw fewer than 20 events" in out.out
+    assert load_calibration(tmp_path / "onei.npz").valid.sum() > 500
+    # sizes given are kept: the paper's never fill, and it says why
+    assert main(["calibrate", str(road), "--method", "onei", "--n-small", "416481",
+                 "--out", str(tmp_path / "onei_paper.npz")]) == 0
+    assert ("OnEI made no update: 416,481 events needed per small buffer"
+            in capsys.readouterr().err)
+    assert not load_calibration(tmp_path / "onei_paper.npz").valid.any()
     # default options on a recording holding fewer events than events_per_image: adapted,
     # and said
     capsys.readouterr()
@@ -206,7 +210,7 @@ def test_a_low_valid_share_is_explained() -> None:
     import numpy as np
 
     from evcal.calibration import Calibration, Reason
-    from evcal.cli import invalid_reasons
+    from evcal.cli import invalid_reasons, low_valid_headline
 
     cal = Calibration.uniform((10, 10))
     reason = np.full((10, 10), Reason.NO_EVENTS, np.uint8)
@@ -216,5 +220,8 @@ def test_a_low_valid_share_is_explained() -> None:
     low = cal.replace(valid=valid, reason=reason)
     text = invalid_reasons(low)
     assert text.startswith("no events 85.0 %, too few events 10.0 %")
-    assert "too few events (a still camera" in text
-    assert invalid_reasons(cal) == ""  # all valid: nothing to explain
+    assert text.endswith("a longer recording with motion calibrates more of them")
+    assert low_valid_headline(low) == ("most pixels saw fewer than 20 events (a still camera, "
+                                       "a short recording or a dark scene; the others keep "
+                                       "c = 0.1, b = 0)")
+    assert invalid_reasons(cal) == low_valid_headline(cal) == ""  # all valid: nothing to say

@@ -436,7 +436,7 @@ def test_the_first_offset_estimate_waits_for_enough_busy_pixels():
     assert first_at > 25
     # the operator's status says what the estimate waits for
     assert states[0] == "waiting for 11 buffered frames"
-    assert states[20] == "waiting for busy pixels: 30 of 100"
+    assert states[20] == "waiting for busy pixels: 30 of 100, or for 32 frames"
     assert states[first_at] == f"estimated at frame {first_at + 1}"
     assert info["pixels"] >= 0.05 * n
     # a full large buffer does not wait for busy pixels: what it holds is all there is
@@ -713,3 +713,82 @@ def test_a_new_time_base_forgets_the_events_counted_ahead():
     for key, value in ref.items():
         if key != "scalars":
             np.testing.assert_array_equal(got[key], value, err_msg=key)
+
+
+def test_a_growing_small_buffer_calibrates_a_camera_that_sends_few_events():
+    """Sizes not given: the small buffer starts at 1/8 of the events seen (at least 1000)
+    and grows to the paper's scaled size; a stream of fewer events than one scaled small
+    buffer is calibrated, each update replacing the last while the buffer holds it all."""
+    sensor = SensorSize(64, 48)  # the scaled small buffer: 14,222 events
+    rec = random_recording(sensor, 40 * 600, 40, seed=4)  # 24 k events in all
+    cal = OnlineCalibrator(sensor, OnEIConfig(log_offset=30.0, window_frames=5))
+    assert cal.n_small == 14_222
+    assert cal.buffer.n_small == 1000
+    statuses = feed(cal, rec)
+    assert cal.n_updates >= 3
+    sizes = [s["n_small"] for s in statuses]
+    assert sizes == sorted(sizes)
+    assert sizes[-1] == cal.n_events // 8 < cal.n_small
+    assert statuses[-1]["n_small_target"] == 14_222
+    assert statuses[-1]["waiting_for"] is None
+    assert cal.calibration().valid.any()  # random events: bookkeeping, not accuracy
+    # a size given is kept: no update from fewer events than one small buffer, and the
+    # status says what is missing, with the figures
+    fixed = OnlineCalibrator(sensor, OnEIConfig(log_offset=30.0, window_frames=5,
+                                                n_small=50_000))
+    last = feed(fixed, rec)[-1]
+    assert fixed.n_updates == 0
+    assert last["n_small"] == 50_000
+    assert last["waiting_for"].startswith("50,000 events needed per small buffer, ")
+    assert f"({fixed.n_events:,} in all)" in last["waiting_for"]
+
+
+def test_waiting_for_says_what_the_first_update_needs():
+    sensor = SensorSize(20, 30)
+    rec = random_recording(sensor, 20 * 600, 20, seed=5)
+    cal = OnlineCalibrator(sensor, OnEIConfig(log_offset=30.0, window_frames=5))
+    assert cal.waiting_for() == ("OnEI needs frames: 2 at least, 0 received (events between "
+                                 "two frames make an equation)")
+    feed(cal, rec, frames=range(3))
+    assert cal.waiting_for() == ("each equation spans 5 frame intervals: 6 buffered frames "
+                                 "needed, 3 held")
+    auto = OnlineCalibrator(sensor, OnEIConfig(log_offset="auto"))
+    feed(auto, rec, frames=range(3))
+    assert auto.waiting_for().startswith("the log offset is being estimated from the frames "
+                                         "and events (waiting for 11 buffered frames; 3 "
+                                         "frames received)")
+
+
+def test_a_still_scene_gets_its_first_offset_estimate_after_32_frames():
+    """Few busy pixels for ever (a still camera): the first estimate does not wait for 5 %
+    of them past FIRST_PATIENCE_FRAMES frames."""
+    sensor = SensorSize(40, 50)
+    rec = random_recording(sensor, 60 * 2 * sensor.n_pixels, 60, seed=2)
+    ev = rec.events
+    events = ev[(ev["y"] * sensor.width + ev["x"]) < 30]  # 30 busy pixels
+    cal = OnlineCalibrator(sensor, OnEIConfig(log_offset="auto", n_small=100,
+                                              n_large=10**7))
+    cuts = np.searchsorted(events["t_us"], rec.frames.t_us)
+    first_at = None
+    for k in range(60):
+        cal.feed_events(events[cuts[k - 1] if k else 0 : cuts[k]])
+        cal.feed_frame(int(rec.frames.t_us[k]), rec.frames.images[k])
+        if first_at is None and np.isfinite(cal.log_offset):
+            first_at = k
+    assert first_at is not None
+    assert 32 <= first_at <= 32 + 8
+
+
+def test_onei_fits_the_small_buffer_to_a_short_recording():
+    sensor = SensorSize(64, 48)
+    rec = random_recording(sensor, 40 * 600, 40, seed=4)
+    cal = onei(rec, OnEIConfig(log_offset=30.0))
+    d = cal.diagnostics
+    assert d.n_small == rec.n_events // 8
+    assert d.n_updates > 0
+    assert any("fitted to the recording" in w for w in cal.warnings)
+    # given sizes are kept, and a run without an update says why
+    cal = onei(rec, OnEIConfig(log_offset=30.0, n_small=10**6))
+    assert cal.diagnostics.n_small == 10**6
+    assert any(w.startswith("OnEI made no update: 1,000,000 events needed per small "
+                            "buffer") for w in cal.warnings)

@@ -698,9 +698,12 @@ def test_no_calibration_yet_says_why_and_what_to_do():
         settle(svc)
         msg = no_calibration_message(svc.cameras["cam0"].state)
         assert "3 frames, 600 events received" in msg
-        assert "small buffer of 1,000 events" in msg
-        assert "--n-small" in msg
-        with pytest.raises(Exception, match="small buffer of 1,000 events") as info:
+        assert "the log offset is being estimated" in msg
+        assert "--log-offset" in msg
+        # the status says it too
+        status = svc.status(svc.cameras["cam0"])
+        assert status["estimator"]["waiting_for"] in msg
+        with pytest.raises(Exception, match="the log offset is being estimated") as info:
             svc.query_calibration("evcal/cam0/calibration", {})
         from evcal.errors import ErrorReason
 

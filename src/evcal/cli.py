@@ -191,7 +191,9 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     print(f"sensor        {rec.sensor}")
     print(f"log_offset    {cal.log_offset:.3f}"
           + (" (estimated)" if args.log_offset == "auto" and args.method != "offe" else ""))
-    print(f"valid pixels  {s['valid_fraction'] * 100:.1f} %")
+    headline = low_valid_headline(cal)
+    print(f"valid pixels  {s['valid_fraction'] * 100:.1f} %"
+          + (f": {headline}" if headline else ""))
     why = invalid_reasons(cal)
     if why:
         print(f"invalid       {why}")
@@ -250,6 +252,29 @@ def _calibrate_stream(args: argparse.Namespace) -> int:
     return 0
 
 
+def _min_events(cal: Calibration) -> int:
+    """The events a pixel needed to be calibrated (the method's limits; 20 by default)."""
+    config = getattr(cal.diagnostics, "config", None) or {}
+    limits = config.get("limits") if isinstance(config, dict) else None
+    return int((limits or {}).get("min_events", 20))
+
+
+def low_valid_headline(cal: Calibration, below: float = 0.5) -> str:
+    """A few words on why fewer than ``below`` of the pixels are valid, for the line that
+    gives the valid share ("most pixels saw fewer than 20 events: ..."); "" otherwise."""
+    from .calibration import Reason  # noqa: PLC0415
+
+    if float(cal.valid.mean()) >= below:
+        return ""
+    counts = np.bincount(cal.reason.ravel(), minlength=len(Reason))
+    if counts[Reason.NO_EVENTS] + counts[Reason.TOO_FEW_EVENTS] >= 0.5 * cal.reason.size:
+        return (f"most pixels saw fewer than {_min_events(cal)} events (a still camera, a "
+                "short recording or a dark scene; the others keep c = 0.1, b = 0)")
+    if counts[Reason.CONSTANT] >= 0.5 * cal.reason.size:
+        return "most pixels' frames never change (the camera or the scene must move)"
+    return "see the reasons below"
+
+
 def invalid_reasons(cal: Calibration, below: float = 0.5) -> str:
     """Why the pixels of a calibration whose valid share is below ``below`` are invalid:
     each reason's share of the sensor, largest first, with what to do about the commonest
@@ -265,9 +290,7 @@ def invalid_reasons(cal: Calibration, below: float = 0.5) -> str:
     hint = ""
     quiet = counts[Reason.NO_EVENTS] + counts[Reason.TOO_FEW_EVENTS]
     if quiet >= 0.5 * n:
-        hint = ("; most pixels saw too few events (a still camera, a short recording or a "
-                "dark scene): a longer recording with motion calibrates more of them, and "
-                "the invalid ones keep c = 0.1, b = 0")
+        hint = "; a longer recording with motion calibrates more of them"
     elif counts[Reason.CONSTANT] >= 0.5 * n:
         hint = "; most pixels' frames never change: the camera or the scene must move"
     return ", ".join(parts) + hint

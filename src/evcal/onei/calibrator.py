@@ -18,7 +18,7 @@ from ..recording import Recording
 from ..stream import StreamError, StreamGuard, frame_intervals
 from . import state as state_format
 from .buffer import LargeBuffer
-from .config import OnEIConfig
+from .config import GROW_DIVISOR, OnEIConfig
 from .estimate import LowPassEstimate
 from .executor import OnEIExecutor
 from .offset import OnlineOffset
@@ -41,12 +41,13 @@ class OnlineCalibrator:
                  executor: OnEIExecutor | None = None) -> None:
         self.sensor = sensor
         self.config = config or OnEIConfig()
+        # n_small: the size a growing small buffer grows to (buffer.n_small: its size now)
         self.n_small, self.n_large = self.config.sizes(sensor)
         self._owns_executor = executor is None
         self.executor = executor if executor is not None else OnEIExecutor(
             self.config.threads)
-        self.buffer = LargeBuffer(sensor, self.config, self.n_small, self.n_large,
-                                  self.executor)
+        self.buffer = LargeBuffer(sensor, self.config, self.config.small_for(sensor, 0),
+                                  self.n_large, self.executor)
         # normal equations that fit in the last-level cache (16 blocks, 16.8 MB; 346x260 has
         # 11) take the queued equations at every frame: as cheap as in batches there, and an
         # update frame is not left the queue of the frames before it; larger ones batch them
@@ -190,6 +191,7 @@ class OnlineCalibrator:
         if buffer.frame_cap is None:
             buffer.frame_cap = self.config.frame_cap(self.sensor, img.dtype.itemsize)
         buffer.push(t_us, img.ravel().copy())
+        buffer.n_small = self.config.small_for(self.sensor, self.n_events)
         first_formed = False  # the first offset estimate formed the buffer's equations
         if offset.ready(self.n_frames, self.config.offset_wait):
             first_formed = self._apply_offset()
@@ -200,7 +202,7 @@ class OnlineCalibrator:
         buffer.drop_overflow(self.log_offset)
         if buffer.sums.removals >= self.config.rebuild_every:
             buffer.rebuild(self.log_offset)
-        if formed and buffer.since_resolve >= self.n_small:
+        if formed and buffer.since_resolve >= buffer.n_small:
             self._resolve()
             return True
         if self._eager:
@@ -232,7 +234,7 @@ class OnlineCalibrator:
         if self.config.offset_wait or not self.offset.ready(self.n_frames, False):
             return False
         before = self.n_updates
-        if self._apply_offset() and self.buffer.since_resolve >= self.n_small:
+        if self._apply_offset() and self.buffer.since_resolve >= self.buffer.n_small:
             self._resolve()
         return self.n_updates > before
 
@@ -266,7 +268,7 @@ class OnlineCalibrator:
         buffer = self.buffer
         # consecutive small buffers share their events: divide the degrees of freedom by
         # the number of small buffers each event lies in
-        overlap = max(1.0, self.n_equations * self.n_small / max(self.buffer_events, 1))
+        overlap = max(1.0, self.n_equations * buffer.n_small / max(self.buffer_events, 1))
         # while the buffer holds the whole stream, every solution so far came from a subset
         # of the buffer this one is solved from: it replaces them (averaging in the early,
         # short-buffer solutions with equal weights would only add their noise)
@@ -293,8 +295,11 @@ class OnlineCalibrator:
 
     def diagnostics(self) -> OnEIDiagnostics:
         """The figures of :meth:`status` and the configuration, as typed diagnostics."""
+        status = self.status()
+        for live in ("n_small_target", "waiting_for"):  # the service's, not a result's
+            status.pop(live)
         return OnEIDiagnostics(config=json.loads(self.config.to_json()),
-                               log_offset_estimation=dict(self.offset_info), **self.status())
+                               log_offset_estimation=dict(self.offset_info), **status)
 
     def status(self) -> dict[str, Any]:
         return {
@@ -312,12 +317,39 @@ class OnlineCalibrator:
             "gaps": self.n_gaps,
             "sessions": self.n_sessions,
             "residual_lambda": self.lam,
-            "n_small": self.n_small,
+            "n_small": self.buffer.n_small,  # now (a growing small buffer: see the target)
+            "n_small_target": self.n_small,
             "n_large": self.n_large,
+            "waiting_for": self.waiting_for(),
             "last_frame_t_us": self.last_frame_t_us,
             "log_offset": self.log_offset,
             "log_offset_state": self.offset_state,
         }
+
+    def waiting_for(self) -> str | None:
+        """Why there is no calibration yet and what would give one (None after the first
+        update), with the figures, e.g. "2 frames needed, 1 received"."""
+        if self.n_updates:
+            return None
+        buffer, wf = self.buffer, self.config.window_frames
+        if self.n_frames < 2:
+            return (f"OnEI needs frames: 2 at least, {self.n_frames} received (events between "
+                    "two frames make an equation)")
+        if not self.offset.known:
+            return (f"the log offset is being estimated from the frames and events "
+                    f"({self.offset_state}; {self.n_frames} frames received): it needs "
+                    f"{OnlineOffset.FIRST_FRAMES + OnlineOffset.LAG_FRAMES} frames and pixels "
+                    "whose events follow the frames' changes (a moving camera or scene); or "
+                    "give the offset (--log-offset)")
+        if wf and len(buffer.frames) <= wf:
+            return (f"each equation spans {wf} frame intervals: {wf + 1} buffered frames "
+                    f"needed, {len(buffer.frames)} held")
+        grows = (f", growing to {self.n_small:,} with the events received"
+                 if self.config.grows and buffer.n_small < self.n_small else "")
+        return (f"{buffer.n_small:,} events needed per small buffer{grows}, "
+                f"{buffer.since_resolve:,} received between the buffered frames "
+                f"({self.n_events:,} in all): send more events (a moving camera), or a "
+                "smaller --n-small")
 
     # -- persistence (the format: evcal.onei.state) ------------------------------------------
 
@@ -346,8 +378,10 @@ def onei(rec: Recording, config: OnEIConfig | None = None, *,
     """
     if len(rec.frames) < 2:
         raise CalibrationError(f"OnEI needs frames: the recording has {len(rec.frames)}")
+    config = config or OnEIConfig()
+    fitted = config.fitted(rec.sensor, rec.n_events)  # the small buffer sized at once
     history: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]] = []
-    with OnlineCalibrator(rec.sensor, config) as state:
+    with OnlineCalibrator(rec.sensor, fitted) as state:
         for k, chunk in frame_intervals(rec.events, rec.frames.t_us):
             t = int(rec.frames.t_us[k])
             state.feed_events(chunk, checked=True)  # a Recording's events are validated
@@ -357,10 +391,13 @@ def onei(rec: Recording, config: OnEIConfig | None = None, *,
                 history.append((t, cur.contrast.copy(), cur.bias.copy(), cur.valid.copy()))
         cal = state.calibration()
         diagnostics: Diagnostics = replace(state.diagnostics(), history=tuple(history))
+    target = config.sizes(rec.sensor)[0]
+    if fitted.n_small is not None and fitted.n_small < target:
+        diagnostics = diagnostics.with_warning(
+            f"OnEI's small buffer fitted to the recording: {fitted.n_small:,} events (1/"
+            f"{GROW_DIVISOR} of its {rec.n_events:,}); the paper's 200 k at 240x180 scaled "
+            f"to {rec.sensor} is {target:,}, more than the recording holds per buffer")
     if state.n_updates == 0:
         diagnostics = diagnostics.with_warning(
-            f"OnEI made no update: the recording has {rec.n_events} events between its "
-            f"frames, fewer than one small buffer of {state.n_small} events (the default "
-            "scales the paper's 200 k at 240x180 with the sensor); pass a smaller n_small "
-            "(--n-small, and --n-large) or use OffEI")
+            f"OnEI made no update: {state.waiting_for()}; or use OffEI")
     return cal.replace(diagnostics=diagnostics)

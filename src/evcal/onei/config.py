@@ -5,13 +5,16 @@ from __future__ import annotations
 import json
 import math
 import os
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 from ..errors import ConfigError
 from ..events import SensorSize
 from ..solver import SolveLimits
 
 MAX_SOLVE_THREADS = 8  # a re-solve's threads at most (it is memory-bound beyond a few)
+MIN_SMALL = 1000  # events per small buffer at least
+# a growing small buffer holds 1/GROW_DIVISOR of the events seen (OnEIConfig.small_for)
+GROW_DIVISOR = 8
 
 
 def usable_cores() -> int:
@@ -25,7 +28,12 @@ def usable_cores() -> int:
 @dataclass(frozen=True, kw_only=True)
 class OnEIConfig:
     """OnEI parameters. ``None`` sizes scale with the sensor as in the paper at 240x180
-    (200 k and 1.7 M events for 43,200 pixels).
+    (200 k and 1.7 M events for 43,200 pixels), and the small buffer with the events at hand:
+    a calibrator starts with small buffers of ``1 / GROW_DIVISOR`` of the events it has seen
+    (at least ``MIN_SMALL``) and grows them to the scaled size, so that a camera that sends
+    fewer events than the paper's buffers hold (a still camera, a short clip) is calibrated
+    from what it sent; :func:`~evcal.onei.onei` fits them to a recording's events at once
+    (:meth:`fitted`). A size given is kept as given.
 
     ``max_buffer_frames`` caps the frames kept in the large buffer (``None``: as many as
     ``max_buffer_mb`` of frame storage holds, at least 16): with a static scene the event
@@ -100,9 +108,35 @@ class OnEIConfig:
         return max(1, min(self.threads or usable_cores(), MAX_SOLVE_THREADS))
 
     def sizes(self, sensor: SensorSize) -> tuple[int, int]:
-        n_small = self.n_small or max(1000, int(round(200_000 / 43_200 * sensor.n_pixels)))
+        """``(n_small, n_large)``: as given, else the paper's scaled to the sensor (the
+        small buffer's size it grows to)."""
+        n_small = self.n_small or max(MIN_SMALL,
+                                      int(round(200_000 / 43_200 * sensor.n_pixels)))
         n_large = self.n_large or max(n_small, int(round(1_700_000 / 43_200 * sensor.n_pixels)))
         return n_small, n_large
+
+    @property
+    def grows(self) -> bool:
+        """The small buffer grows with the events seen (its size was not given)."""
+        return self.n_small is None
+
+    def small_for(self, sensor: SensorSize, n_events: int) -> int:
+        """Events per small buffer once ``n_events`` were seen: the given size, else
+        ``n_events / GROW_DIVISOR`` between ``MIN_SMALL`` and the scaled size. The large
+        buffer holds about ``GROW_DIVISOR`` small buffers before it first overflows (the
+        paper's holds 8.5), so the size stops growing before the buffer slides."""
+        target = self.sizes(sensor)[0]
+        if not self.grows:
+            return target
+        return min(target, max(MIN_SMALL, int(n_events) // GROW_DIVISOR))
+
+    def fitted(self, sensor: SensorSize, n_events: int) -> OnEIConfig:
+        """This configuration with its small buffer fitted to a recording of ``n_events``
+        events (:meth:`small_for`; unchanged when the size was given)."""
+        if not self.grows:
+            return self
+        n_small = self.small_for(sensor, n_events)
+        return replace(self, n_small=n_small, n_large=self.sizes(sensor)[1])
 
     def frame_cap(self, sensor: SensorSize, image_itemsize: int) -> int:
         if self.max_buffer_frames is not None:

@@ -97,6 +97,9 @@ class OnlineOffset:
     # for the large buffer to be full: a first estimate from a few dozen busy pixels of a
     # scene that begins still can be far off, and stays until the next re-check
     FIRST_BUSY = 0.05
+    # ... but not for ever: after this many frames it takes the busy pixels there are (a
+    # still camera keeps most pixels quiet, and a buffer of the whole stream is never full)
+    FIRST_PATIENCE_FRAMES = 32
     MAX_WINDOWS = 64  # the newest windows of the buffer
 
     def __init__(self, given: float | str) -> None:
@@ -172,8 +175,10 @@ class OnlineOffset:
             self.state = f"waiting for busy pixels: {busy.size} of 10"
             return None
         need = min(self.PIXELS, self.FIRST_BUSY * n_pixels)
-        if not self.known and busy.size < need and buffer.holds_all:
-            self.state = f"waiting for busy pixels: {busy.size} of {need:.0f}"
+        if not self.known and busy.size < need and buffer.holds_all and \
+                len(buffer.frames) < self.FIRST_PATIENCE_FRAMES:
+            self.state = (f"waiting for busy pixels: {busy.size} of {need:.0f}, or for "
+                          f"{self.FIRST_PATIENCE_FRAMES} frames")
             return None
         rng = np.random.default_rng(0)
         pix = np.sort(rng.choice(busy, size=min(self.PIXELS, busy.size), replace=False))

@@ -123,12 +123,7 @@ def no_calibration_message(st: CameraState) -> str:
     cal = st.calibrator
     if cal is None:
         return f"{head}: it needs frames and events"
-    if st.counters.frames < 2:
-        return f"{head}: OnEI needs at least two frames"
-    return (f"{head}: OnEI's first update needs a small buffer of {cal.n_small:,} events "
-            f"between frames ({cal.n_small / max(cal.sensor.n_pixels, 1):.1f} per pixel, "
-            "the paper's 200 k at 240x180 scaled to the sensor); send more, or start the "
-            "service with a smaller --n-small (and --n-large)")
+    return f"{head}: {cal.waiting_for() or 'its first update is being published'}"
 
 
 def calibration_reply(st: CameraState, fmt: str, fields: list[str] | None
