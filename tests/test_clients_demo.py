@@ -28,11 +28,11 @@ def test_demo_prints_table_and_writes_rrd(tmp_path):
     gain_db = float(live[-1])
     assert gain_db > 1.0, res.stdout  # the live calibration beats DI
     # the true maps: nothing wrong in them, and the ceiling of what the events allow
-    truth = rows["true maps (the ceiling)"].split()
-    assert truth[-6:-3] == ["100.0", "0.0000", "0.0%"], rows["true maps (the ceiling)"]
+    truth = rows["true maps (perfect c, b)"].split()
+    assert truth[-6:-3] == ["100.0", "0.0000", "0.0%"], rows["true maps (perfect c, b)"]
     assert float(truth[-1]) >= gain_db - 0.5
     # every column is explained
-    for col in ("valid %", "c MAE", "c med rel", "b MAE", "PSNR dB", "gain dB"):
+    for col in ("valid %", "c MAE", "c med rel", "b MAE", "PSNR dB", "gain dB", "true maps"):
         assert any(line.startswith(col) for line in lines), col
     assert "replayed in real time" in res.stderr
     ents = read_entities(out)
