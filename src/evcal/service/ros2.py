@@ -804,6 +804,7 @@ class RosCalibrationPublisher:
         self._outs: dict[str, dict[tuple[str, str], _Output]] = {}  # camera -> (distro, map)
         self._lock = threading.Lock()
         self.published = 0
+        self.profiles: tuple[str, ...] = ()  # the profiles of the latest publication
 
     def _output(self, camera: str, name: str, profile: RosDistro) -> _Output:
         pub = RosPublication(self.node, output_topic(camera, name), IMAGE, qos=OUTPUT_QOS,
@@ -829,6 +830,11 @@ class RosCalibrationPublisher:
         profiles = self._distros()
         want = {(d.name, m) for d in profiles for m in OUTPUT_MAPS}
         with self._lock:
+            names = tuple(d.name for d in profiles)
+            if names != self.profiles:
+                log.info("ROS 2 calibration images as rmw_zenoh of %s",
+                         ", ".join(f"{d.name} ({d.releases})" for d in profiles))
+                self.profiles = names
             outs = self._outs.setdefault(camera, {})
             for gone in [k for k in outs if k not in want]:
                 self._undeclare(outs.pop(gone))
