@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import threading
-import time
 
 import msgpack
 import numpy as np
@@ -33,6 +32,7 @@ from evcal.service.core import (
     ServiceConfig,
 )
 from evcal.service.state import StateStore
+from evcal.testing import settle
 
 # ----------------------------------------------------------------------------- wire
 
@@ -124,13 +124,6 @@ def stream(h=6, w=8, n_frames=12, seed=0, t0=0):
 def feed(svc: Service, camera: str, msgs) -> None:
     for kind, payload in msgs:
         svc.on_sample(f"evcal/{camera}/{kind}", payload)
-
-
-def settle(svc: Service, timeout_s: float = 10.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while any(c.in_flight for c in svc.cameras.values()) and time.monotonic() < deadline:
-        time.sleep(0.01)
-    time.sleep(0.05)
 
 
 def test_camera_discovery_and_outputs():

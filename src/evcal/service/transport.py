@@ -65,8 +65,8 @@ class ZenohOptions:
 
     def to_config(self) -> zenoh.Config:
         try:
-            conf = (zenoh.Config.from_file(self.config_file) if self.config_file
-                    else zenoh.Config())
+            conf: zenoh.Config = (zenoh.Config.from_file(self.config_file)
+                                  if self.config_file else zenoh.Config())
             if self.mode is not None:
                 conf.insert_json5("mode", json.dumps(self.mode))
             if self.connect:
