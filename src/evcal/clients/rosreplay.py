@@ -11,7 +11,7 @@ event camera messages), whose hash it cannot compute, is skipped with a note.
 Delivery is checked as ``evcal replay`` does it, through the evcal service's status of the
 cameras the topics feed by default (their namespaces; a service run with ``--ros-topic-map``
 names other cameras, and delivery is then not confirmed), and the exit code follows the same
-table (:data:`evcal.clients.replay.EXIT_CODES`): the first outcome in its order that applies
+table (:data:`evcal.clients.delivery.EXIT_CODES`): the first outcome in its order that applies
 to the run or to any camera names the cause. A bag none of whose topics feeds an evcal camera
 is unconfirmed (7) when something subscribed.
 """
@@ -30,7 +30,7 @@ from evcal.service import keys
 from evcal.service.ros2 import ENCODING, INPUT_TYPES, RosNode, RosPublication, TopicMap
 from evcal.service.transport import Publisher, Transport
 
-from .replay import (
+from .delivery import (
     CONFIRM_TIMEOUT_S,
     EXIT_CODES,
     EXIT_ERROR,
@@ -42,10 +42,12 @@ from .replay import (
     STOPPED_CONFIRM_S,
     ReplayStats,
     StatusProbe,
-    _confirm,
-    _probe_status,
+    confirm,
+    print_account,
+    print_outcome,
+    probe_status,
 )
-from .replay import exit_code as camera_exit_code
+from .delivery import exit_code as camera_exit_code
 
 NODE = "evcal_replay"
 # the exit codes in the order they are judged (EXIT_CODES lists 0 first)
@@ -141,7 +143,7 @@ def replay_bag(t: Transport, path: str | Path, *, domain: int = 0,
             return stats
         time.sleep(0.02)
     status_keys = {c: keys.camera_key(prefix, c, "status") for c in stats.cameras}
-    before = {c: _probe_status(t, k) for c, k in status_keys.items()}
+    before = {c: probe_status(t, k) for c, k in status_keys.items()}
     wall0 = time.monotonic()
     t0: int | None = None
     for m in iter_bag_messages(path, topics=set(pubs)):
@@ -178,7 +180,7 @@ def replay_bag(t: Transport, path: str | Path, *, domain: int = 0,
 def _confirm_cameras(t: Transport, stats: BagReplayStats, status_keys: dict[str, str],
                      before: dict[str, StatusProbe], *, prefix: str, since_s: float,
                      wait_s: float) -> None:
-    """Each camera's account (:func:`evcal.clients.replay._confirm`), one after the other
+    """Each camera's account (:func:`evcal.clients.delivery.confirm`), one after the other
     within ``wait_s`` in all; a camera asked after the deadline still gets up to two status
     queries' time (the service answers each within one, once it has processed the
     messages)."""
@@ -189,7 +191,7 @@ def _confirm_cameras(t: Transport, stats: BagReplayStats, status_keys: dict[str,
         if sent == 0:
             continue  # nothing of it was sent: nothing to confirm
         acc = ReplayStats(event_messages=sent)  # ``messages``: what its account must hold
-        _confirm(t, acc, key, before[camera], prefix=prefix, since_s=since_s,
+        confirm(t, acc, key, before[camera], prefix=prefix, since_s=since_s,
                  deadline=max(deadline, time.monotonic() + floor_s),
                  stop_now=threading.Event())
         stats.accounts[camera] = acc
@@ -219,31 +221,5 @@ def report(prog: str, stats: BagReplayStats, wait_subscriber_s: float, domain: i
         print(f"{prog}: delivery not confirmed: no topic sent feeds an evcal camera (an "
               "EventPacket or Image topic; its namespace names the camera)", file=sys.stderr)
     for camera, acc in stats.accounts.items():
-        _report_camera(prog, camera, acc)
-    outcome = {c: o for c, o, _ in EXIT_CODES}[code]
-    print(f"{prog}: {outcome} (exit code {code})", file=sys.stderr)
-    return code
-
-
-def _report_camera(prog: str, camera: str, acc: ReplayStats) -> None:
-    """One camera's account, as ``evcal replay`` prints it."""
-    if acc.service_gone:
-        print(f"{prog}: camera {camera}: the service answered for it before the run but not "
-              "after it, and is gone: the link was lost and messages may be lost",
-              file=sys.stderr)
-    d = acc.delivered
-    if acc.refusal is not None and (acc.displaced or (d or {}).get("refused_messages")):
-        print(f"{prog}: camera {camera}: the service refused it: "
-              f"{acc.refusal.get('reason')}: {acc.refusal.get('message')}", file=sys.stderr)
-    if d is not None:
-        print(f"{prog}: camera {camera}: the service processed {d['event_messages']} event "
-              f"messages ({d['events']} events) and {d['frames']} frames, dropped "
-              f"{d['dropped_messages']}, rejected {d['rejected_messages']} and refused "
-              f"{d['refused_messages']} of {acc.messages}", file=sys.stderr)
-        missing = acc.missing_messages or 0
-        if acc.confirmed and missing > 0:
-            print(f"{prog}: camera {camera}: {missing} of {acc.messages} messages never "
-                  "reached the service", file=sys.stderr)
-    if not acc.confirmed:
-        print(f"{prog}: camera {camera}: delivery not confirmed: {acc.why_unconfirmed}",
-              file=sys.stderr)
+        print_account(prog, acc, camera=camera)
+    return print_outcome(prog, code)
