@@ -185,7 +185,6 @@ NOT_YET = {
     "gap/render.py": {"CachedSource._index", "CachedSource.render_block"},
     "gap/stats.py": {"_binned"},
     "gap/workflow.py": {"GapConfig.__post_init__"},
-    "service/ros2.py": {"Ros2Options.__post_init__", "dds_type", "topic_key"},
     "sim/dvs.py": {"IdealDvs.__init__", "IdealDvs.step"},
     "sim/ideal.py": {"SimConfig.__post_init__"},
     "sim/nonideal.py": {"simulate"},

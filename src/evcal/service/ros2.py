@@ -105,7 +105,8 @@ def dds_type(msgtype: str) -> str:
     """``pkg/msg/Name`` -> ``pkg::msg::dds_::Name_`` (the type chunk of rmw_zenoh keys)."""
     pkg, sep, name = msgtype.rpartition("/")
     if not sep or not pkg or not name:
-        raise ValueError(f"message type {msgtype!r} is not of the form pkg/msg/Name")
+        raise ConfigError(f"message type {msgtype!r} is not of the form pkg/msg/Name",
+                          ErrorReason.MALFORMED)
     return f"{pkg.replace('/', '::')}::dds_::{name}_"
 
 
@@ -121,7 +122,7 @@ def topic_key(domain: int, topic: str, msgtype: str, hash_: str | None = None) -
     """The data key of ``topic`` (``/a/b``) of type ``msgtype`` in ``domain``."""
     name = topic.strip("/")
     if not name:
-        raise ValueError(f"topic {topic!r} has no name")
+        raise ConfigError(f"topic {topic!r} has no name", ErrorReason.MALFORMED)
     return f"{int(domain)}/{name}/{dds_type(msgtype)}/{hash_ or type_hash(msgtype)}"
 
 
@@ -328,7 +329,7 @@ class Ros2Options:
 
     def __post_init__(self) -> None:
         if not 0 <= int(self.domain) <= 232:
-            raise ValueError(f"ROS domain {self.domain} is not in 0..232")
+            raise ConfigError(f"ROS domain {self.domain} is not in 0..232")
         if self.distro != "auto":
             distro(self.distro)
 
