@@ -126,6 +126,24 @@ def feed(svc: Service, camera: str, msgs) -> None:
         svc.on_sample(f"evcal/{camera}/{kind}", payload)
 
 
+def test_a_camera_has_one_stream_guard():
+    """The camera's StreamGuard checks its streams; its calibrator, fed checked input, keeps
+    the stream's latest times and no guard of its own (restarts included)."""
+    svc, _ = make_service()
+    try:
+        feed(svc, "cam0", stream())
+        feed(svc, "cam0", stream(seed=1))  # sequence numbers and time from 0 again
+        settle(svc)
+        st = svc.cameras["cam0"].state
+        assert st.guard.sessions == 1
+        assert st.calibrator is not None
+        assert st.calibrator._guard is None
+        assert st.calibrator.last_event_t_us == st.guard.last_event_t_us
+        assert st.calibrator.last_frame_t_us == st.guard.last_frame_t_us
+    finally:
+        svc.close()
+
+
 def test_camera_discovery_and_outputs():
     svc, pub = make_service()
     try:

@@ -65,7 +65,12 @@ class OnlineCalibrator:
         self.n_refolds = 0  # frames earlier than events folded ahead (counted again)
         self.n_late_events = 0  # events that arrived after the frame that ends their interval
         self.n_sessions = 0  # discontinuities of the stream's time base (new_session)
-        self._guard = StreamGuard(sensor)  # time order of this calibrator's input
+        # the stream's latest times; input the caller did not check goes through a guard of
+        # the calibrator's own, made at the first such input (a service camera's one guard is
+        # its own: it feeds events and frames checked=True)
+        self._last_event_t_us: int | None = None
+        self._last_frame_t_us: int | None = None
+        self._guard: StreamGuard | None = None
 
     # -- lifecycle ----------------------------------------------------------------------------
 
@@ -90,7 +95,8 @@ class OnlineCalibrator:
         change of sensor needs a new calibrator instead.
         """
         self.buffer.reset()
-        self._guard = StreamGuard(self.sensor)
+        self._guard = None
+        self._last_event_t_us = self._last_frame_t_us = None
         self.n_sessions += 1
         self.buffer.holds_all = False
 
@@ -98,6 +104,14 @@ class OnlineCalibrator:
         guard = self._guard
         self.new_session()
         self._guard = guard  # it already accepted the message that started the session
+
+    def _own_guard(self) -> StreamGuard:
+        """The guard of input the caller did not check, at the stream's latest times."""
+        if self._guard is None:
+            self._guard = StreamGuard(self.sensor)
+        self._guard.last_event_t_us = self._last_event_t_us
+        self._guard.last_frame_t_us = self._last_frame_t_us
+        return self._guard
 
     # -- the parts' figures -------------------------------------------------------------------
 
@@ -123,12 +137,12 @@ class OnlineCalibrator:
     @property
     def last_event_t_us(self) -> int | None:
         """Time of the latest event fed (None before the first)."""
-        return self._guard.last_event_t_us
+        return self._last_event_t_us
 
     @property
     def last_frame_t_us(self) -> int | None:
         """Time of the latest frame fed (None before the first)."""
-        return self._guard.last_frame_t_us
+        return self._last_frame_t_us
 
     @property
     def buffer_events(self) -> int:
@@ -156,9 +170,13 @@ class OnlineCalibrator:
         validated whole): nothing is checked again.
         """
         if checked:
-            self._guard.note_events(events)
-        elif self._guard.accept_events(events, what="events").new_session:
-            self._start_session_keeping_guard()
+            if events.size:
+                self._last_event_t_us = int(events["t_us"][-1])
+        else:
+            guard = self._own_guard()
+            if guard.accept_events(events, what="events").new_session:
+                self._start_session_keeping_guard()
+            self._last_event_t_us = guard.last_event_t_us
         if events.size == 0:
             return
         self.n_events += int(events.size)
@@ -175,14 +193,20 @@ class OnlineCalibrator:
         self.buffer.gap = True
         self.n_gaps += 1
 
-    def feed_frame(self, t_us: int, image: np.ndarray, exposure_us: int = 0) -> bool:
-        """Close the frame interval ending at ``t_us``; True when the estimate was re-solved."""
+    def feed_frame(self, t_us: int, image: np.ndarray, exposure_us: int = 0, *,
+                   checked: bool = False) -> bool:
+        """Close the frame interval ending at ``t_us``; True when the estimate was re-solved.
+
+        ``checked=True``: the caller's :class:`~evcal.stream.StreamGuard` accepted the frame's
+        time (the image is checked here all the same)."""
         t_us = int(t_us)
         img = self._checked_frame(t_us, image)
         previous = self.last_frame_t_us
-        if self._guard.accept_frame(t_us, what=f"frame at t_us={t_us}").new_session:
+        if not checked and self._own_guard().accept_frame(
+                t_us, what=f"frame at t_us={t_us}").new_session:
             self._start_session_keeping_guard()
             previous = None
+        self._last_frame_t_us = t_us
         buffer, offset = self.buffer, self.offset
         if buffer.intake.fold_pending_before(t_us):
             self.n_refolds += 1

@@ -137,8 +137,8 @@ def from_state(cls: type[OnlineCalibrator], state: dict[str, np.ndarray],
             cal.offset.state = "restored from a saved state"
         base = cal.buffer.base
         cal.buffer.win_range = [[base, base], [base, base]]
-        cal._guard.last_event_t_us = s["last_event_t_us"]
-        cal._guard.last_frame_t_us = s["last_frame_t_us"]
+        cal._last_event_t_us = s["last_event_t_us"]
+        cal._last_frame_t_us = s["last_frame_t_us"]
     except KeyError as exc:
         raise StateError(f"OnEI state lacks {exc.args[0]!r}") from None
     return cal

@@ -333,7 +333,7 @@ class CameraState:
                            f"{self.frame_dtype}", ErrorReason.MALFORMED)
         self.frame_dtype = image.dtype
         try:
-            updated = cal.feed_frame(t_us, image, exposure_us)
+            updated = cal.feed_frame(t_us, image, exposure_us, checked=True)
         except EvcalError as exc:
             raise Rejected(f"{what}: {exc}", ErrorReason.REJECTED) from None
         if self.events_only is not None:
