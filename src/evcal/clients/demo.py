@@ -166,7 +166,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     server.start()
     try:
         if not ready.wait(30) or failure:
-            raise RuntimeError(f"the service did not start: {failure[0] if failure else '?'}")
+            # said like the failures below, not as a traceback (the finally stops it)
+            print(f"evcal demo: the service did not start: "
+                  f"{failure[0] if failure else 'not ready within 30 s'}", file=sys.stderr)
+            return 1
         _say(f"service up on {ep}; replaying onto {config.prefix}/{args.camera}")
         with Transport(ZenohOptions.loopback(connect=[ep])) as t:
             st = replay(t, rec, args.camera, speed=None if args.max_rate else 1.0)
