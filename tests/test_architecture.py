@@ -171,8 +171,7 @@ def test_evcal_onei_is_the_package_and_calls_the_function():
 BUILTIN_RAISES = {"ValueError", "RuntimeError", "TypeError", "Exception"}
 ARGUMENT_PARSING = {
     "service/cli.py": {"ros2_from_args", "main_serve"},
-    "service/transport.py": {"options_from_args", "_scouting", "check_key",
-                             "ZenohOptions.__post_init__"},
+    "service/transport.py": {"options_from_args", "_scouting", "check_key"},
     "service/ros2.py": {"default_domain", "TopicMap.parse"},
 }
 # raises in modules being rewritten by others when this check came (issue 22), converted

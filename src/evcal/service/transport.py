@@ -29,6 +29,8 @@ from typing import Any
 
 import zenoh
 
+from ..errors import ConfigError
+
 log = logging.getLogger("evcal.transport")
 
 # sessions whose bounded close timed out: kept referenced until the process exits
@@ -54,7 +56,7 @@ class ZenohOptions:
 
     def __post_init__(self) -> None:
         if self.mode is not None and self.mode not in MODES:
-            raise ValueError(f"zenoh mode {self.mode!r} is not one of {MODES}")
+            raise ConfigError(f"zenoh mode {self.mode!r} is not one of {MODES}")
 
     @classmethod
     def loopback(cls, *, listen: Iterable[str] = (), connect: Iterable[str] = (),
