@@ -15,7 +15,7 @@ from ..calibration import Calibration, Diagnostics, OnEIDiagnostics
 from ..errors import CalibrationError, ErrorReason
 from ..events import SensorSize
 from ..recording import Recording
-from ..stream import StreamError, StreamGuard, frame_intervals
+from ..stream import StreamError, StreamGuard, frame_cut, frame_intervals
 from . import state as state_format
 from .buffer import LargeBuffer
 from .config import GROW_DIVISOR, OnEIConfig
@@ -182,7 +182,7 @@ class OnlineCalibrator:
         self.n_events += int(events.size)
         if self.last_frame_t_us is not None and int(events["t_us"][0]) < self.last_frame_t_us:
             # their frame came first: they are counted in the next interval
-            self.n_late_events += int(np.searchsorted(events["t_us"], self.last_frame_t_us))
+            self.n_late_events += frame_cut(events["t_us"], self.last_frame_t_us)
         intake = self.buffer.intake
         intake.add(events)
         self.n_folded_late += intake.shed(self.config.max_pending_events)
