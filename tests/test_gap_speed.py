@@ -17,7 +17,7 @@ from evcal.sim.effects import LogOffset, Refractory, ShotNoise
 from evcal.sim.ideal import SimConfig
 from evcal.sim.nonideal import simulate
 from evcal.sim.scene import Trajectory
-from evcal.sim.sources import MovingScene, SpeedProfile
+from evcal.sim.sources import FrameInterpolator, MovingScene, SpeedProfile
 
 H, W = 32, 40
 
@@ -44,7 +44,7 @@ def test_a_cached_render_gives_the_same_events(interpolation: str) -> None:
     assert cache.hits == 1
     for a, b in zip(plain, cached, strict=True):
         np.testing.assert_array_equal(a, b)
-    # float16 when float32 does not fit: the same events but for a few near-ties
+    # 16-bit fixed point when float32 does not fit: the same events but for a few near-ties
     half = RenderCache(max_bytes=int(2.5 * cache.nbytes() / 2))
     ev16 = simulate_model(model, rec, 1, settings, half).events
     assert half.nbytes() * 2 == cache.nbytes()
@@ -54,6 +54,36 @@ def test_a_cached_render_gives_the_same_events(interpolation: str) -> None:
     np.testing.assert_array_equal(simulate_model(model, rec, 1, settings, none).events,
                                   plain[0])
     assert none.nbytes() == 0
+
+
+def test_fixed_point_render_reads_back_within_its_step() -> None:
+    rec = small_recording(3, [], duration_s=0.3)
+    times_us = np.arange(0, 300_001, 1000, dtype=np.int64)
+    shape = rec.sensor.shape
+    n_bytes = times_us.size * shape[0] * shape[1] * 2
+
+    def interp() -> FrameInterpolator:
+        return FrameInterpolator(rec.frames, shape)
+
+    exact = interp().render_block(times_us * 1e-6)
+    fixed = RenderCache(max_bytes=n_bytes + 10).source(b"k", times_us, shape, interp)
+    got = fixed.render_block(times_us * 1e-6)
+    step = (float(exact.max()) - float(exact.min())) / 65535
+    assert np.abs(got - exact).max() <= 0.51 * step + 1e-4
+    lag = RenderCache(max_bytes=n_bytes + 10).source(b"k", times_us, shape, interp,
+                                                     lag_s=0.0025)
+    # read at t - 2.5 ms: held at the first sample before it, halfway between two after
+    want = np.concatenate([exact[[0, 0, 0]], 0.5 * (exact[:-3] + exact[1:-2])])
+    np.testing.assert_allclose(lag.render_block(times_us * 1e-6), want,
+                               atol=0.51 * step + 1e-4)
+
+    class NoRange:  # a source that does not say its range: float16
+        def render_block(self, t_s: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+            return interp().render_block(t_s, out=out)
+
+    half = RenderCache(max_bytes=n_bytes + 10)
+    src16 = half.source(b"k", times_us, shape, NoRange)  # type: ignore[arg-type]
+    np.testing.assert_allclose(src16.render_block(times_us * 1e-6), exact, rtol=1e-3)
 
 
 def test_one_seed_borrows_the_spread_of_an_evaluation() -> None:

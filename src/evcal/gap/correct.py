@@ -50,6 +50,7 @@ from ..calibration import Calibration
 from ..denoise import background_activity_filter, still_interval_mask
 from ..errors import ConfigError
 from ..offline import OffEIConfig, offei
+from ..online import usable_cores
 from ..recording import Recording
 from ..sim.effects import Effect, LogOffset, effect_set, make_effect
 from .model import Model, SimSettings, _shrink, estimate_read_noise, simulate_model
@@ -232,7 +233,8 @@ def model_corrected(rec: Recording, effects: Mapping[str, Effect] | list[Effect]
     settings = SimSettings(internal_rate_hz=cfg.internal_rate_hz,
                            read_noise_dn=estimate_read_noise(rec.frames),
                            interpolation=cfg.interpolation)
-    render = RenderCache()  # the interpolated frames, rendered once for every simulation
+    # the interpolated frames, rendered once (on every core) for every simulation
+    render = RenderCache(workers=usable_cores())
     valid = cal_m.valid.ravel()
     c_m = cal_m.contrast.astype(np.float64).ravel()
     b_m = cal_m.bias.astype(np.float64).ravel()

@@ -54,8 +54,11 @@ from .stats import (
     discrepancy,
     every_nth_row,
     fit_from_sums,
+    lowpass_log_changes,
     observe,
+    residual_from_sums,
     timestamp_quantum,
+    window_sums,
 )
 
 
@@ -521,29 +524,18 @@ def _filter_fit_error(obs: Observation, cutoff_hz: float, offset: float) -> floa
     """Unexplained fraction of ``dLf = c P + b E`` where ``Lf`` is the frames' log intensity
     through the bandwidth low-pass with this cutoff (per pixel, at frame rate). Kept in
     ``obs.extra`` (the measurement's is asked for again every round)."""
-    from .stats import fit_pixels  # noqa: PLC0415
-
     key = f"bandwidth_fit_error/{float(cutoff_hz)!r}/{float(offset)!r}"
     if key in obs.extra:
         cached: float = obs.extra[key]
         return cached
     f = _fit(obs)
-    ref = Bandwidth().ref_dn
-    L = np.log(obs.intensity.astype(np.float64) + offset)
-    lf = L[0].copy()
-    dlf = np.empty_like(f["dL"])
-    for k in range(1, L.shape[0]):
-        fc = np.maximum(0.5, cutoff_hz * (obs.intensity[k] + offset) / ref)
-        alpha = 1.0 - np.exp(-2 * np.pi * fc * obs.window_s[k - 1])
-        new = lf + alpha * (L[k] - lf)
-        dlf[k - 1] = new - lf
-        lf = new
-    wgt = obs.usable.astype(np.float64)
-    c, b, ok = fit_pixels(f["P"], f["E"], dlf, wgt)
-    res = dlf - np.nan_to_num(c) * f["P"] - np.nan_to_num(b) * f["E"]
-    m = ok[None, :] & obs.usable
-    tss = (dlf[m] ** 2).sum()
-    err = float((res[m] ** 2).sum() / max(tss, 1e-12))
+    dlf = lowpass_log_changes(np.ascontiguousarray(obs.intensity),
+                              np.ascontiguousarray(obs.window_s, np.float64), float(offset),
+                              float(cutoff_hz), float(Bandwidth().ref_dn))
+    sums = window_sums(f["P"], f["E"], dlf, obs.usable.astype(np.float64))
+    c, b, ok = fit_from_sums(*sums[:6])
+    ssr = residual_from_sums(sums, np.nan_to_num(c), np.nan_to_num(b))
+    err = float(ssr[ok].sum() / max(float(sums[6][ok].sum()), 1e-12))
     obs.extra[key] = err
     return err
 

@@ -8,11 +8,15 @@ sequence is rendered once into memory (:class:`RenderCache`) and every simulatio
 (:class:`CachedSource`). Per-seed randomness of the input (the quantisation dither) is added
 on the way out.
 
-Float32 while the sequence fits a quarter of ``max_bytes`` at 4 bytes a value, float16 (a
-relative step of 5e-4, a log-intensity step 200x below the smallest thresholds) while it fits
-``max_bytes`` at 2; beyond
-that nothing is cached and each simulation renders again (the workflow keeps its working
-window small enough that this does not happen: ``GapConfig.max_pixel_steps``).
+Float32 while the sequence fits a quarter of ``max_bytes`` at 4 bytes a value, 16-bit fixed
+point while it fits ``max_bytes`` at 2; beyond that nothing is cached and each simulation
+renders again (the workflow keeps its working window small enough that this does not happen:
+``GapConfig.max_pixel_steps``). The fixed point spans the range of the interpolator's frames
+(its blends are convex, so no rendered value leaves it) in 65,535 steps: 0.004 DN for 8-bit
+frames, a log-intensity step at least 25x below the smallest thresholds once the log offset
+(at least 1 DN) is added. It is read back with one multiply-add, where float16 (the fallback
+for a source that does not say its range) takes a conversion several times slower, once per
+simulation over the whole sequence.
 """
 
 from __future__ import annotations
@@ -20,6 +24,7 @@ from __future__ import annotations
 import hashlib
 import threading
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -53,11 +58,23 @@ class CachedSource:
     frame)."""
 
     def __init__(self, data: np.ndarray, times_s: np.ndarray, add: np.ndarray | None,
-                 lag_s: float = 0.0):
+                 lag_s: float = 0.0, scale: tuple[float, float] | None = None):
         self._data = data
         self._times_s = times_s
         self._add = None if add is None else np.asarray(add, np.float32)
         self._lag_s = float(lag_s)
+        # fixed-point data (see the module doc): value = stored * step + low
+        self._scale = None if scale is None else (np.float32(scale[0]), np.float32(scale[1]))
+
+    def _read(self, i: int, out: np.ndarray) -> None:
+        """Sample ``i`` of the sequence into ``out`` (float32)."""
+        if self._scale is None:
+            np.copyto(out, self._data[i], casting="unsafe")
+            return
+        step, low = self._scale
+        np.multiply(self._data[i], step, out=out)
+        if low != 0.0:
+            out += low
 
     def _index(self, ts: np.ndarray) -> np.ndarray:
         i = np.searchsorted(self._times_s, ts)
@@ -82,7 +99,7 @@ class CachedSource:
             self._shifted(ts, out)
         else:
             for j, i in enumerate(idx):  # one frame copy per sample time, over pixels
-                np.copyto(out[j], self._data[i], casting="unsafe")
+                self._read(int(i), out[j])
         if self._add is not None:
             out += self._add[None]
         if self._add is not None:
@@ -96,11 +113,14 @@ class CachedSource:
         k1 = np.minimum(k + 1, times.size - 1)
         span = np.where(k1 > k, times[k1] - times[k], 1.0)
         w = np.clip((u - times[k]) / span, 0.0, 1.0).astype(np.float32)
+        nxt = np.empty(out.shape[1:], np.float32)
         for j in range(ts.size):  # per sample time, vectorised over pixels
-            np.copyto(out[j], self._data[k[j]], casting="unsafe")
+            self._read(int(k[j]), out[j])
             if w[j] > 0.0:
+                self._read(int(k1[j]), nxt)
                 out[j] *= 1.0 - w[j]
-                out[j] += w[j] * self._data[k1[j]].astype(np.float32)
+                nxt *= w[j]
+                out[j] += nxt
 
     def __call__(self, t_s: float) -> np.ndarray:
         one: np.ndarray = self.render_block([t_s])[0]
@@ -113,18 +133,22 @@ class RenderCache:
     a key's frames when it must be rendered."""
 
     def __init__(self, max_bytes: int = DEFAULT_MAX_BYTES,
-                 on_use: Callable[[float], None] | None = None):
+                 on_use: Callable[[float], None] | None = None, workers: int = 1):
         self.max_bytes = int(max_bytes)
+        # threads rendering a sequence's blocks at once (the warps of the flow interpolation
+        # run in OpenCV and numpy without the GIL; the other simulations wait for the render)
+        self.workers = max(1, int(workers))
         # called once per source served (one per simulation), with the share of the
         # sensor's rows it serves
         self._on_use = on_use
-        self._entries: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
+        # key -> (data, sample times in s, fixed-point (step, low) or None)
+        self._entries: dict[bytes, tuple[np.ndarray, np.ndarray, tuple[float, float] | None]] = {}
         self.renders = 0  # sequences rendered (for the benchmark and the tests)
         self.hits = 0
         self._lock = threading.Lock()
 
     def nbytes(self) -> int:
-        return sum(d.nbytes for d, _ in self._entries.values())
+        return sum(e[0].nbytes for e in self._entries.values())
 
     def source(self, key: bytes, times_us: np.ndarray, shape: tuple[int, int],
                make_source: Callable[[], FrameInterpolator], add: np.ndarray | None = None,
@@ -150,7 +174,7 @@ class RenderCache:
         if hit is not None:
             self.hits += 1
             self._entries[key] = self._entries.pop(key)  # most recently used last
-            return CachedSource(hit[0][:, band], hit[1], add, lag_s)
+            return CachedSource(hit[0][:, band], hit[1], add, lag_s, hit[2])
         if rows is not None:
             # a band of a sequence not rendered whole (a frame-side candidate screened on
             # the band): the band's rows only, when the interpolator can render them alone
@@ -159,44 +183,69 @@ class RenderCache:
             if hit is not None:
                 self.hits += 1
                 self._entries[band_key] = self._entries.pop(band_key)
-                return CachedSource(hit[0], hit[1], add, lag_s)
+                return CachedSource(hit[0], hit[1], add, lag_s, hit[2])
             src = make_source()
             only_rows = getattr(src, "only_rows", None)
             if only_rows is not None:
                 n_rows = len(range(*rows.indices(shape[0])))
-                data = self._render(only_rows(rows), times_s, (n_rows, shape[1]))
-                if data is None:
+                got = self._render(only_rows(rows), times_s, (n_rows, shape[1]))
+                if got is None:
                     return _Offset(src, add, None, lag_s)  # not kept: rendered per use
-                self._entries[band_key] = (data, times_s)
-                return CachedSource(data, times_s, add, lag_s)
+                self._entries[band_key] = (got[0], times_s, got[1])
+                return CachedSource(got[0], times_s, add, lag_s, got[1])
         n_values = times_s.size * shape[0] * shape[1]
         if 2 * n_values > self.max_bytes:
             return _Offset(make_source(), add, rows, lag_s)
-        data = self._render(make_source(), times_s, shape)
-        assert data is not None
-        self._entries[key] = (data, times_s)
-        return CachedSource(data[:, band], times_s, add, lag_s)
+        got = self._render(make_source(), times_s, shape)
+        assert got is not None
+        self._entries[key] = (got[0], times_s, got[1])
+        return CachedSource(got[0][:, band], times_s, add, lag_s, got[1])
 
     def _render(self, src: FrameInterpolator, times_s: np.ndarray, shape: tuple[int, int]
-                ) -> np.ndarray | None:
-        """``src`` rendered at ``times_s`` (room made for it), or None when it cannot be
-        kept."""
+                ) -> tuple[np.ndarray, tuple[float, float] | None] | None:
+        """``src`` rendered at ``times_s`` (room made for it) and its fixed-point scale
+        (``None``: stored as floats), or None when it cannot be kept."""
         n_values = times_s.size * shape[0] * shape[1]
         if 2 * n_values > self.max_bytes:
             return None
-        dtype = np.float32 if 4 * n_values <= self.max_bytes // 4 else np.float16
+        scale: tuple[float, float] | None = None
+        dtype: type[np.generic] = np.float32
+        if 4 * n_values > self.max_bytes // 4:
+            images = getattr(src, "images", None)
+            dtype = np.float16
+            if images is not None and np.asarray(images).size:
+                low, high = float(np.min(images)), float(np.max(images))
+                if np.isfinite(low) and np.isfinite(high):
+                    dtype = np.uint16
+                    scale = (max(high - low, 1e-6) / 65535.0, low)
         while self._entries and self.nbytes() + n_values * np.dtype(dtype).itemsize \
                 > self.max_bytes:
             self._entries.pop(next(iter(self._entries)))
         data = np.empty((times_s.size, *shape), dtype)
         block = 64
-        buf = np.empty((block, *shape), np.float32)
-        for k in range(0, times_s.size, block):
-            n = min(block, times_s.size - k)
-            rendered = src.render_block(times_s[k:k + n], out=buf[:n])
-            data[k:k + n] = rendered
+        starts = list(range(0, times_s.size, block))
+        n_threads = min(self.workers, len(starts))
+
+        def render_blocks(part: int) -> None:
+            buf = np.empty((block, *shape), np.float32)
+            for k in starts[part::n_threads]:
+                n = min(block, times_s.size - k)
+                rendered = src.render_block(times_s[k:k + n], out=buf[:n])
+                if scale is not None:
+                    step, low = scale
+                    rendered -= np.float32(low)
+                    rendered *= np.float32(1.0 / step)
+                    np.rint(rendered, out=rendered)
+                    np.clip(rendered, 0.0, 65535.0, out=rendered)
+                data[k:k + n] = rendered
+
+        if n_threads == 1:
+            render_blocks(0)
+        else:
+            with ThreadPoolExecutor(max_workers=n_threads) as pool:
+                list(pool.map(render_blocks, range(n_threads)))
         self.renders += 1
-        return data
+        return data, scale
 
 
 class _Offset:

@@ -288,6 +288,26 @@ def window_sums(P: np.ndarray, E: np.ndarray, dL: np.ndarray, wgt: np.ndarray,
     return out[0] if split is None else out
 
 
+@numba.njit(cache=True, nogil=True)
+def lowpass_log_changes(intensity: Any, window_s: Any, offset: float, cutoff_hz: float,
+                         ref_dn: float) -> Any:  # pragma: no cover - compiled
+    """Per window and pixel, the change of the frames' log intensity (``[K, N]`` DN, log of
+    ``I + offset``) through the bandwidth low-pass of cutoff ``cutoff_hz (I + offset) /
+    ref_dn`` (at least 0.5 Hz), sampled at frame rate: ``[K - 1, N]``."""
+    k_n, n = intensity.shape
+    out = np.empty((max(k_n - 1, 0), n))
+    for i in range(n):
+        lf = np.log(np.float64(intensity[0, i]) + offset)
+        for k in range(1, k_n):
+            x = np.float64(intensity[k, i]) + offset
+            fc = max(0.5, cutoff_hz * x / ref_dn)
+            alpha = 1.0 - np.exp(-2.0 * np.pi * fc * window_s[k - 1])
+            new = lf + alpha * (np.log(x) - lf)
+            out[k - 1, i] = new - lf
+            lf = new
+    return out
+
+
 def fit_pixels(P: np.ndarray, E: np.ndarray, dL: np.ndarray, wgt: np.ndarray
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Closed-form per-pixel least squares of ``dL = c P + b E``; returns ``c, b, ok``."""
@@ -461,31 +481,36 @@ def _static(obs: Observation) -> np.ndarray:
 
 def _static_bins(obs: Observation, n_bins: int = 4
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Still windows, their intensity bins (``n_bins`` quantiles of the windows' mean
+    intensity), the bin edges and each bin's window seconds; computed once per observation
+    (the rate and the balance both bin the same windows)."""
+    key_name = f"static_bins_{n_bins}"
+    if key_name in obs.extra:
+        cached: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] = obs.extra[key_name]
+        return cached
     st = _static(obs)
-    i_mid = _i_mid(obs)
-    ws = np.broadcast_to(obs.window_s[:, None], st.shape)
-    key = i_mid[st]
+    key = _i_mid(obs)[st]
     edges = _quantile_edges(key, n_bins)
-    return st, key, edges, ws[st]
+    idx = np.clip(np.searchsorted(edges, key, side="right") - 1, 0, edges.size - 2)
+    ws = np.broadcast_to(obs.window_s[:, None], st.shape)[st]
+    den = np.bincount(idx, weights=ws, minlength=edges.size - 1)
+    obs.extra[key_name] = (st, idx, edges, den)
+    return st, idx, edges, den
 
 
 def stat_static_rate(obs: Observation) -> StatValue:
-    st, key, edges, ws = _static_bins(obs)
+    st, idx, edges, den = _static_bins(obs)
     e = (obs.on + obs.off)[st].astype(np.float64)
     # events per pixel-second: sum(E) / sum(window seconds) per bin
-    idx = np.clip(np.searchsorted(edges, key, side="right") - 1, 0, edges.size - 2)
     num = np.bincount(idx, weights=e, minlength=edges.size - 1)
-    den = np.bincount(idx, weights=ws, minlength=edges.size - 1)
     v = np.where(den > 0, num / np.maximum(den, 1e-12), 0.0)
     return StatValue("static_rate_vs_intensity", v, _edge_labels(edges, "static, I (DN)"), 0.05)
 
 
 def stat_static_balance(obs: Observation) -> StatValue:
-    st, key, edges, ws = _static_bins(obs)
+    st, idx, edges, den = _static_bins(obs)
     pnet = (obs.on - obs.off)[st].astype(np.float64)
-    idx = np.clip(np.searchsorted(edges, key, side="right") - 1, 0, edges.size - 2)
     num = np.bincount(idx, weights=pnet, minlength=edges.size - 1)
-    den = np.bincount(idx, weights=ws, minlength=edges.size - 1)
     v = np.where(den > 0, num / np.maximum(den, 1e-12), 0.0)
     return StatValue("static_balance_vs_intensity", v, _edge_labels(edges, "static, I (DN)"),
                      0.05)
@@ -528,10 +553,15 @@ def stat_residual_vs_intensity(obs: Observation) -> StatValue:
 def stat_residual_vs_time(obs: Observation, n_bins: int = 5) -> StatValue:
     f = _fit(obs)
     m = np.isfinite(f["res"])
-    wi = np.broadcast_to(np.arange(obs.n_windows)[:, None], m.shape)[m].astype(np.float64)
+    # per window first (a sum over its pixels), then the windows binned
+    sq = np.square(np.where(m, f["res"], 0.0), dtype=np.float64).sum(1)
     edges = np.linspace(0, obs.n_windows, n_bins + 1)
     edges[0], edges[-1] = -np.inf, np.inf
-    v = _binned(f["res"][m], wi, edges, how="rms")
+    idx = np.clip(np.searchsorted(edges, np.arange(obs.n_windows), side="right") - 1, 0,
+                  n_bins - 1)
+    num = np.bincount(idx, weights=sq, minlength=n_bins)
+    den = np.bincount(idx, weights=m.sum(1), minlength=n_bins)
+    v = np.sqrt(np.where(den > 0, num / np.maximum(den, 1e-30), 0.0))
     dur = (obs.frame_t_us[-1] - obs.frame_t_us[0]) * 1e-6
     labels = [f"t {dur * k / n_bins:.2f}..{dur * (k + 1) / n_bins:.2f} s" for k in range(n_bins)]
     return StatValue("offei_residual_vs_time", v, labels, 0.003)
@@ -600,19 +630,25 @@ def _changing_windows(obs: Observation) -> tuple[dict[str, Any], np.ndarray, np.
 
 def stat_speed_response(obs: Observation) -> StatValue:
     f, adl, m, i_mid = _changing_windows(obs)
-    ie = _quantile_edges(i_mid[m], 2)
-    se = _quantile_edges(adl[m] / obs.window_s[:, None].repeat(adl.shape[1], 1)[m], 2)
-    speed = adl / obs.window_s[:, None]
-    vals, labels = [], []
-    for a in range(ie.size - 1):
-        for s in range(se.size - 1):
-            mm = m & (i_mid >= ie[a]) & (i_mid < ie[a + 1]) & (speed >= se[s]) & (
-                speed < se[s + 1])
-            den = adl[mm].sum()
-            vals.append(f["E"][mm].sum() / den if den > 0 else 0.0)
-            labels.append(f"{'dark' if a == 0 else 'bright'} (I split {ie[1]:.3g} DN), "
-                          f"{'slow' if s == 0 else 'fast'} (|dL|/s split {se[1]:.3g})")
-    return StatValue("speed_response", np.asarray(vals), labels, 0.1)
+    i_sel = i_mid[m]
+    a_sel = adl[m]
+    speed = (adl / obs.window_s[:, None])[m]
+    ie = _quantile_edges(i_sel, 2)
+    se = _quantile_edges(speed, 2)
+    # every selected window in one (intensity, speed) cell: [ie[a], ie[a + 1]) x [se[s], ..)
+    ok = np.isfinite(i_sel) & np.isfinite(speed)
+    ia = np.searchsorted(ie, i_sel[ok], side="right") - 1
+    js = np.searchsorted(se, speed[ok], side="right") - 1
+    n_s = se.size - 1
+    cells = (ie.size - 1) * n_s
+    cell = ia * n_s + js
+    den = np.bincount(cell, weights=a_sel[ok], minlength=cells)
+    num = np.bincount(cell, weights=f["E"][m][ok], minlength=cells)
+    vals = np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
+    labels = [f"{'dark' if a == 0 else 'bright'} (I split {ie[1]:.3g} DN), "
+              f"{'slow' if s == 0 else 'fast'} (|dL|/s split {se[1]:.3g})"
+              for a in range(ie.size - 1) for s in range(n_s)]
+    return StatValue("speed_response", vals, labels, 0.1)
 
 
 def stat_lag(obs: Observation) -> StatValue:
@@ -624,15 +660,21 @@ def stat_lag(obs: Observation) -> StatValue:
     imean = obs.intensity.mean(0)
     edges = _quantile_edges(imean, 3)
     pb = np.clip(np.searchsorted(edges, imean, side="right") - 1, 0, edges.size - 2)
+    nb = edges.size - 1
+    # the normal equations of P[k] ~ b1 dL[k] + b2 dL[k-1] in each intensity bin, their sums
+    # taken in one pass over the selected windows
+    key = np.broadcast_to(pb[None, :], m.shape)[m]
+    y = P[1:][m].astype(np.float64)
+    x1 = dL[1:][m].astype(np.float64)
+    x2 = dL[:-1][m].astype(np.float64)
+    n = np.bincount(key, minlength=nb)
+    s11, s12, s22, s1y, s2y = (np.bincount(key, weights=w, minlength=nb)
+                               for w in (x1 * x1, x1 * x2, x2 * x2, x1 * y, x2 * y))
     vals = []
-    for j in range(edges.size - 1):
-        mm = m & (pb[None, :] == j)
-        y = P[1:][mm]
-        x1 = dL[1:][mm]
-        x2 = dL[:-1][mm]
-        a = np.array([[x1 @ x1, x1 @ x2], [x1 @ x2, x2 @ x2]])
-        r = np.array([x1 @ y, x2 @ y])
-        if y.size < 10 or np.linalg.det(a) <= 1e-12 * max(a[0, 0] * a[1, 1], 1e-30):
+    for j in range(nb):
+        a = np.array([[s11[j], s12[j]], [s12[j], s22[j]]])
+        r = np.array([s1y[j], s2y[j]])
+        if n[j] < 10 or np.linalg.det(a) <= 1e-12 * max(a[0, 0] * a[1, 1], 1e-30):
             vals.append(0.0)
             continue
         b1, b2 = np.linalg.solve(a, r)

@@ -230,8 +230,8 @@ class _Runner:
         # common random numbers: every model is simulated with the same seeds, the first of
         # them also the anchor's (its last simulation, when it agreed, is that seed's)
         self.seeds = [cfg.seed * 1000 + k for k in range(cfg.n_seeds)]
-        self.render = RenderCache(on_use=self._counted)
         self.workers = cfg.workers or usable_cores()
+        self.render = RenderCache(on_use=self._counted, workers=self.workers)
         self.simulations = 0
         self.work = 0.0  # simulations done, in simulations of the whole sensor
         self._lock = threading.Lock()
@@ -524,21 +524,39 @@ class _Runner:
         self.screened_pool = {}
         self.confirmed = []
         fitted: list[tuple[str, Effect]] = []
+        evals: list[Evaluation] = []
         names = [n for n in self.cfg.candidates if n not in current.model.effects and n != skip]
-        # the fitters on every core too (the slow ones are numpy and numba without the GIL)
+        if self.cfg.screen and self.band is not None:
+            self.band_spread(current)  # once, before the threads ask for it
+
+        def fit_and_screen(name: str) -> tuple[Effect | None, list[Effect], list[Evaluation]]:
+            """A candidate fitted and, when screening, its variants screened at once: the
+            fitters (numpy, holding the GIL in part) and the simulations of the candidates
+            fitted first (numba, without it) share the cores."""
+            eff = fit_candidate(name, self.meas, current.sims, current.model, self.rec)
+            if eff is None:
+                return None, [], []
+            # discrete alternatives the moment estimate cannot tell: the gap decides
+            alts = variants(eff)
+            if not self.cfg.screen:
+                return eff, alts, []
+            return eff, alts, [self.evaluate(self.candidate_model(current.model, e),
+                                             f"screen {e.name}", spread=current)
+                               for e in alts]
+
         with ThreadPoolExecutor(max_workers=self.workers) as pool:
-            effs = list(pool.map(lambda n: fit_candidate(n, self.meas, current.sims,
-                                                         current.model, self.rec), names))
-        for name, eff in zip(names, effs, strict=True):
+            done = list(pool.map(fit_and_screen, names))
+        for name, (eff, alts, screened) in zip(names, done, strict=True):
             if eff is None:
                 tried[name] = {"parameters": None, "gap": None}
                 continue
-            # discrete alternatives the moment estimate cannot tell: the gap decides
-            fitted += [(name, e) for e in variants(eff)]
+            fitted += [(name, e) for e in alts]
+            evals += screened
         if not fitted:
             return None
-        evals = self.evaluate_many([(e, self.candidate_model(current.model, e))
-                                    for _, e in fitted], current)
+        if not self.cfg.screen:
+            evals = self.evaluate_many([(e, self.candidate_model(current.model, e))
+                                        for _, e in fitted], current)
         pen = self.cfg.penalty_per_parameter
         ranked = sorted(range(len(fitted)),
                         key=lambda i: evals[i].gap + pen * fitted[i][1].n_fitted)
@@ -586,13 +604,20 @@ class _Runner:
         pen = cfg.penalty_per_parameter
         base = self.band_spread(current).gap if self.band is not None else current.gap
         need = max(cfg.min_improvement, cfg.min_relative_improvement * (base - 1.0))
+        todo: list[int] = []
         for i in ranked[:cfg.confirm_top]:
             score = evals[i].gap + pen * fitted[i][1].n_fitted
             if not evals[i].screened:
                 continue
             if _gain(base, score) <= 0.5 * need:
-                return
-            evals[i] = self.confirm(evals[i], f"confirm {fitted[i][0]}")
+                break
+            todo.append(i)
+        # side by side: each anchor's simulations run one after the other
+        with ThreadPoolExecutor(max_workers=max(1, min(self.workers, len(todo)))) as pool:
+            done = list(pool.map(lambda i: self.confirm(evals[i], f"confirm {fitted[i][0]}"),
+                                 todo))
+        for i, ev in zip(todo, done, strict=True):
+            evals[i] = ev
 
     def beam_top(self, tried: dict[str, dict[str, Any]]) -> list[str]:
         """The ``beam_width`` screened candidates of the lowest score."""
@@ -686,30 +711,29 @@ class _Runner:
         if v0 <= 0:
             return eff, best
         factors = (0.7, 1.0, 1 / 0.7)
-        gaps = []
-        evals = []
+        points: list[Effect] = []
         for f in factors:
-            if f == 1.0 and self.band is None:
-                gaps.append(best.gap)
-                evals.append((eff, best))
-                continue
-            if f == 1.0:
-                # screenings on the band (the busiest rows) are compared with each other,
-                # not with ``best``'s gap on the whole sensor: the centre is screened too
-                ev = self.evaluate(self.near_model(current, best.model, eff),
-                                   f"refine {eff.name}", spread=best)
-                gaps.append(ev.gap)
-                evals.append((eff, best))
-                continue
             try:
-                e = eff.with_params(**{key: _cast(eff, key, v0 * f)})
+                points.append(eff if f == 1.0 else
+                              eff.with_params(**{key: _cast(eff, key, v0 * f)}))
             except ValueError:  # outside the parameter's range (e.g. sigma above 1)
                 return eff, best  # no three-point search: the moment estimate stands
-            # screened (one seed, ``best``'s spread): only a winner is confirmed
-            ev = self.evaluate(self.near_model(current, best.model, e), f"refine {eff.name}",
-                               spread=best)
+        # screened (one seed, ``best``'s spread; side by side): only a winner is confirmed.
+        # On the band (the busiest rows) screenings are compared with each other, not with
+        # ``best``'s gap on the whole sensor: the centre is screened too
+        todo = [e for f, e in zip(factors, points, strict=True)
+                if f != 1.0 or self.band is not None]
+        with ThreadPoolExecutor(max_workers=max(1, min(self.workers, len(todo)))) as pool:
+            screened = dict(zip(map(id, todo), pool.map(
+                lambda e: self.evaluate(self.near_model(current, best.model, e),
+                                        f"refine {eff.name}", spread=best), todo),
+                strict=True))
+        gaps = []
+        evals = []
+        for f, e in zip(factors, points, strict=True):
+            ev = screened.get(id(e), best)
             gaps.append(ev.gap)
-            evals.append((e, ev))
+            evals.append((e, best if f == 1.0 else ev))
         y = np.asarray(gaps)
         x = np.log(np.asarray(factors))
         den = y[0] - 2 * y[1] + y[2]
