@@ -284,6 +284,11 @@ def replay(t: Transport, rec: Recording, camera: str, *, prefix: str = "evcal",
         if time.monotonic() > deadline or stop.is_set():
             break
         time.sleep(0.02)
+    # a recorder started beside a service subscribes first (the service takes seconds to
+    # start): wait for the service too, within the same deadline, or it misses the start
+    while (pub_ev.has_subscribers and not stop.is_set() and time.monotonic() < deadline
+           and not t.alive(keys.service_token_key(prefix), timeout_s=0.5)):
+        time.sleep(0.1)
     stats = ReplayStats()
     if not (pub_ev.has_subscribers or pub_fr.has_subscribers):
         stats.subscribed = False
