@@ -179,9 +179,7 @@ ARGUMENT_PARSING = {
 NOT_YET = {
     "gap/flow.py": {"FlowInterpolator.__init__", "FlowInterpolator.only_rows",
                     "FlowInterpolator.render_block"},
-    "gap/model.py": {"SimSettings.__post_init__"},
     "gap/render.py": {"CachedSource._index", "CachedSource.render_block"},
-    "gap/stats.py": {"_binned"},
     "gap/workflow.py": {"GapConfig.__post_init__"},
     "sim/dvs.py": {"IdealDvs.__init__", "IdealDvs.step"},
     "sim/ideal.py": {"SimConfig.__post_init__"},

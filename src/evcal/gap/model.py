@@ -123,7 +123,7 @@ class SimSettings:
 
     def __post_init__(self) -> None:
         if self.interpolation not in ("linear", "flow"):
-            raise ValueError(f"interpolation={self.interpolation!r} must be 'linear' or 'flow'")
+            raise ConfigError(f"interpolation={self.interpolation!r} must be 'linear' or 'flow'")
 
 
 def estimate_read_noise(frames: Frames) -> float:

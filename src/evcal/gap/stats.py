@@ -406,7 +406,7 @@ def _binned(values: np.ndarray, key: np.ndarray, edges: np.ndarray, *, how: str,
     if how == "rms":
         s = np.bincount(idx, weights=wts * values * values, minlength=nb)
         return np.sqrt(np.where(sw > 0, s / np.maximum(sw, 1e-30), 0.0))
-    raise ValueError(how)
+    raise EvcalError(how)
 
 
 def _edge_labels(edges: np.ndarray, unit: str, fmt: str = "{:.3g}") -> list[str]:
