@@ -474,7 +474,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="OffEI window d in frame intervals (default 5)")
     sp.add_argument("--n-small", type=_positive_int, default=None,
                     help="OnEI events per small buffer (default: 200 k scaled from 240x180 "
-                         "to the sensor)")
+                         "to the sensor, at most an eighth of the recording's events)")
     sp.add_argument("--n-large", type=_positive_int, default=None,
                     help="OnEI events in the large buffer (default: 1.7 M, scaled likewise)")
     sp.add_argument("--smoothing", type=float, default=None,

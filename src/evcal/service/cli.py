@@ -117,7 +117,9 @@ def build_parser(prog: str = "evcal serve") -> argparse.ArgumentParser:
                         "(default): from the tokens and attachments seen on the domain")
     g = p.add_argument_group("OnEI estimator")
     g.add_argument("--n-small", type=int, default=None,
-                   help="events per equation (default: scaled with the sensor)")
+                   help="events per small buffer, a re-solve after each (default: an "
+                        "eighth of the events the camera has sent, at least 1000, growing to "
+                        "the paper's 200 k at 240x180 scaled to the sensor)")
     g.add_argument("--n-large", type=int, default=None,
                    help="events in the sliding buffer (default: scaled with the sensor)")
     g.add_argument("--smoothing", type=float, default=None,
