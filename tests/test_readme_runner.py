@@ -50,7 +50,9 @@ def test_background_commands_are_stopped_and_must_exit_0(runner, tmp_path):
     (evcal's serve and record do); one that dies of the signal fails the block, as does a
     failing foreground command (its background commands are stopped all the same)."""
     env = {"PATH": "/usr/bin:/bin"}
-    clean = "bash -c 'trap \"exit 0\" TERM; sleep 30 & wait' &"
+    # it says when its handler is in place (else the SIGTERM could come first)
+    clean = ("bash -c 'trap \"exit 0\" TERM; touch ready; sleep 30 & wait' &\n"
+             "while [ ! -e ready ]; do sleep 0.05; done")
     ok = runner.Block(1, f"{clean}\necho fg > out.txt")
     assert "__bg+=($!)" in runner.script_of(ok, 5.0)
     assert runner.run_block(ok, tmp_path, env, 20.0, 5.0) == 0
