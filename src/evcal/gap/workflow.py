@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 import threading
+import weakref
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -248,7 +249,8 @@ class _Runner:
             self.meas_band = observe(self.band.rec, trusted=self.trusted_band)
             self.meas_stats_band = summarise(self.meas_band)
         # the band's discrepancy of an evaluation whose spread screenings borrow, by id
-        self._band_spread: dict[int, tuple[Evaluation, Discrepancy]] = {}
+        # (held weakly: the cache must not keep an evaluation's simulations alive)
+        self._band_spread: dict[int, tuple[weakref.ref[Evaluation], Discrepancy]] = {}
 
     def _counted(self, share: float) -> None:
         """One more simulation, of ``share`` of the sensor's rows (the render cache serves
@@ -355,7 +357,7 @@ class _Runner:
         """``ev``'s discrepancy on the band (its simulations cut to the band's rows): the
         spread that screenings on the band borrow."""
         hit = self._band_spread.get(id(ev))
-        if hit is not None and hit[0] is ev:
+        if hit is not None and hit[0]() is ev:
             return hit[1]
         if len(ev.sims) < 2:
             raise GapError("a screening on the band needs an evaluation with simulations on "
@@ -365,7 +367,7 @@ class _Runner:
         disc = discrepancy(self.meas_stats_band, sums)
         if len(self._band_spread) >= 4:  # the round's current and best are what is asked for
             self._band_spread.pop(next(iter(self._band_spread)))
-        self._band_spread[id(ev)] = (ev, disc)
+        self._band_spread[id(ev)] = (weakref.ref(ev), disc)
         return disc
 
     def meas_disc(self, summaries: list[dict[str, StatValue]], spread: Evaluation | None
@@ -419,6 +421,7 @@ class _Runner:
             return ev
 
         cur_eff, cur_ev = self._bootstrap(eff, m, best, refit, evaluate, info)
+        _drop_derived(current.sims)
         if cur_eff is eff or cur_ev.gap > best.gap + max(0.3, 0.1 * best.gap):
             return eff, best, info
         info["value"] = float(cur_eff.parameters()[key])
@@ -437,6 +440,7 @@ class _Runner:
             v = float(cur_eff.parameters()[key])
             again = [float(e.parameters()[key]) for e in map(refit, cur_ev.sims)
                      if e is not None and float(e.parameters()[key]) > 0]
+            _drop_derived(cur_ev.sims)
             if len(again) < max(2, len(cur_ev.sims) // 2):
                 info["note"] = "the fitter did not find the effect in its own simulations"
                 break
@@ -546,6 +550,7 @@ class _Runner:
 
         with ThreadPoolExecutor(max_workers=self.workers) as pool:
             done = list(pool.map(fit_and_screen, names))
+        _drop_derived(current.sims)
         for name, (eff, alts, screened) in zip(names, done, strict=True):
             if eff is None:
                 tried[name] = {"parameters": None, "gap": None}
@@ -639,6 +644,17 @@ class _Runner:
                 return c
         return None
 
+    def let_go(self, *keep: Evaluation | None) -> None:
+        """The round's screened and confirmed evaluations let go of their simulations, but
+        for ``keep``: once the round has chosen what it finishes, no other candidate is
+        simulated on top of or refitted from (a few hundred MB each on a user's
+        recording)."""
+        kept = {id(ev) for ev in keep if ev is not None}
+        for ev in [ev for _, ev in self.screened_pool.values()] + \
+                [ev for _, _, ev in self.confirmed]:
+            if id(ev) not in kept:
+                ev.sims.clear()
+
     def evaluate_many(self, models: list[tuple[Effect, Model]], current: Evaluation
                       ) -> list[Evaluation]:
         """Each model evaluated on top of ``current``: screened on one seed when the config
@@ -672,6 +688,7 @@ class _Runner:
                 if eff_b is None:
                     continue
                 jobs.append((eff_a, ev_a, eff_b, self.candidate_model(ev_a.model, eff_b)))
+            _drop_derived(ev_a.sims)
         if not jobs:
             return None
         evals = self.evaluate_many([(j[2], j[3]) for j in jobs], current)
@@ -866,6 +883,14 @@ def working_window(rec: Recording, max_pixel_steps: int, internal_rate_hz: float
     return cut, info
 
 
+def _drop_derived(sims: list[Observation]) -> None:
+    """The fitters' derived arrays of ``sims`` let go once a phase of fits is over (they
+    are a cache, recomputed when asked for again: a few hundred MB per simulation on a
+    user's recording, more than the observation itself)."""
+    for o in sims:
+        o.extra.clear()
+
+
 def _moved_on(old: Evaluation, new: Evaluation) -> Evaluation:
     """``new``, once the workflow has moved on from ``old``: ``old``'s simulated
     observations are let go (its statistics stay, for the report; nothing simulates on top
@@ -950,13 +975,17 @@ def run_gap(rec: Recording, config: GapConfig | None = None, *,
             steps.append(Step(eff_b, ev_a, ev_pair, {}))
             _moved_on(ev_a, ev_pair)
             current = _moved_on(current, ev_pair)
+            run.let_go(current)
             continue
         close = run.runner_up(best)
+        run.let_go(current, best[2], None if close is None else close[2])
         _, eff, ev = best
         eff, ev = run.finish(current, ev, eff, tried)
+        finished = [ev]
         if close is not None:
             # a close second, compared at its bias-corrected value too
             eff2, ev2 = run.finish(current, close[2], close[1], tried)
+            finished.append(ev2)
             pen = cfg.penalty_per_parameter
             tried[eff2.name]["finished_gap"] = ev2.gap
             if ev2.gap + pen * eff2.n_fitted < ev.gap + pen * eff.n_fitted and \
@@ -964,6 +993,9 @@ def run_gap(rec: Recording, config: GapConfig | None = None, *,
                 eff, ev = eff2, ev2
         steps.append(Step(eff, current, ev, tried))
         current = _moved_on(current, ev)
+        for other in finished:
+            _moved_on(other, current)
+        run.let_go(current)
     if plan is not None:
         plan(run.work)
     info = {"sensor": str(rec.sensor), "n_events": full.n_events,
