@@ -16,7 +16,9 @@ from __future__ import annotations
 
 import functools
 import http.server
+import os
 import shutil
+import signal
 import subprocess
 import sys
 import threading
@@ -126,9 +128,12 @@ def viewer_url(served_recording: tuple[str, list[str]]) -> Iterator[str]:
     """rerun's web viewer (only the page: an http URL needs no gRPC server) opening the file."""
     rrd_url, _ = served_recording
     port = free_port()
+    # the rerun command is a Python wrapper around the viewer binary: a group of its own, so
+    # that stopping it stops the binary too
     proc = subprocess.Popen([_rerun_cli(), "--serve-web", "--bind", "127.0.0.1",
                              "--web-viewer-port", str(port), rrd_url],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True)
     page = f"http://127.0.0.1:{port}"
     try:
         deadline = time.monotonic() + 30
@@ -147,12 +152,16 @@ def viewer_url(served_recording: tuple[str, list[str]]) -> Iterator[str]:
             time.sleep(0.2)
         yield f"{page}/?url={urllib.parse.quote(rrd_url, safe='')}"
     finally:
-        proc.terminate()
-        try:
-            proc.wait(10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(10)
+        for sig in (signal.SIGTERM, signal.SIGKILL):
+            try:
+                os.killpg(proc.pid, sig)
+            except ProcessLookupError:
+                break
+            try:
+                proc.wait(10)
+                break
+            except subprocess.TimeoutExpired:
+                continue
         if proc.stderr:
             proc.stderr.close()
 
