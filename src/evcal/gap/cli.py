@@ -18,8 +18,8 @@ def build_parser() -> argparse.ArgumentParser:
         prog="evcal gap",
         description="Find where simulation and measurement disagree, name the missing sensor "
                     "effect, add it and show the gap shrink.",
-        epilog="Cost: about 3 minutes for a 3 s 240x180 recording on 2 cores (some 80 "
-               "simulations, most on a quarter of the rows); a longer recording is cut to "
+        epilog="Cost: about 2 minutes for a 3 s 240x180 recording on 2 cores (some 90 "
+               "simulations, half on a quarter of the rows); a longer recording is cut to "
                "--max-pixel-steps. Progress goes to stderr: a bar on a terminal, else a "
                "line every 10 s with the time left.")
     p.add_argument("recording", help="ECD folder, .aedat4, .mcap or .npz (needs frames)")
