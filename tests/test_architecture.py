@@ -174,20 +174,9 @@ ARGUMENT_PARSING = {
     "service/transport.py": {"options_from_args", "_scouting", "check_key"},
     "service/ros2.py": {"default_domain", "TopicMap.parse"},
 }
-# raises in modules being rewritten by others when this check came (issue 22), converted
-# with them: this list only shrinks
-NOT_YET = {
-    "gap/flow.py": {"FlowInterpolator.__init__", "FlowInterpolator.only_rows",
-                    "FlowInterpolator.render_block"},
-    "gap/render.py": {"CachedSource._index", "CachedSource.render_block"},
-    "gap/workflow.py": {"GapConfig.__post_init__"},
-    "sim/dvs.py": {"IdealDvs.__init__", "IdealDvs.step"},
-    "sim/ideal.py": {"SimConfig.__post_init__"},
-    "sim/nonideal.py": {"simulate"},
-    "sim/scene.py": {"Renderer.render_many", "Trajectory.__post_init__", "load_scene"},
-    "sim/sources.py": {"FrameInterpolator.__init__", "FrameInterpolator._block_buffer",
-                       "Illumination.__post_init__", "SpeedProfile.__post_init__"},
-}
+# raises in modules being rewritten when this check came (issue 22), converted since: empty,
+# and it stays so
+NOT_YET: dict[str, set[str]] = {}
 
 
 def _builtin_raises(tree: ast.AST) -> list[tuple[int, str, str]]:

@@ -34,6 +34,7 @@ from typing import Any
 
 import numpy as np
 
+from ..errors import ConfigError
 from ..recording import Frames
 from ..sim.sources import FrameInterpolator
 
@@ -121,7 +122,7 @@ class FlowInterpolator(FrameInterpolator):
         super().__init__(frames, shape, t_origin_us=t_origin_us, gain=gain)
         src = self.images if flow_images is None else np.asarray(flow_images)
         if src.shape != self.images.shape:
-            raise ValueError(f"flow_images have shape {src.shape}, the frames "
+            raise ConfigError(f"flow_images have shape {src.shape}, the frames "
                              f"{self.images.shape}")
         self.fwd, self.bwd, self.v_fwd, self.v_bwd = frame_flows(src, min_size=min_size)
         h, w = self.images.shape[1:]
@@ -137,7 +138,7 @@ class FlowInterpolator(FrameInterpolator):
         h = self.images.shape[1]
         y0, y1, step = rows.indices(h)
         if step != 1 or y1 <= y0:
-            raise ValueError(f"rows {rows} must be a non-empty contiguous band of 0..{h}")
+            raise ConfigError(f"rows {rows} must be a non-empty contiguous band of 0..{h}")
         self._rows = slice(y0, y1)
         return self
 
@@ -210,7 +211,7 @@ class FlowInterpolator(FrameInterpolator):
         if out is None:
             out = np.empty(shape, np.float32)
         elif out.shape != shape or out.dtype != np.float32:
-            raise ValueError(f"out has shape {out.shape} and dtype {out.dtype}; expected "
+            raise ConfigError(f"out has shape {out.shape} and dtype {out.dtype}; expected "
                              f"float32 {shape}")
         ks, ws = self._locate(ts)
         for j in range(ts.size):  # one warp per requested time, vectorised over pixels

@@ -28,6 +28,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
+from ..errors import ConfigError
 from ..recording import Frames
 from ..sim.sources import FrameInterpolator
 
@@ -82,7 +83,7 @@ class CachedSource:
         # the simulator asks with times_us * 1e-6: the same floats the cache was keyed with
         if not np.array_equal(self._times_s[i], ts):
             bad = ts[self._times_s[i] != ts][:3]
-            raise ValueError(f"times {bad.tolist()} s are not among the rendered sample times")
+            raise ConfigError(f"times {bad.tolist()} s are not among the rendered sample times")
         return i
 
     def render_block(self, t_s: np.ndarray | list[float], out: np.ndarray | None = None
@@ -93,7 +94,7 @@ class CachedSource:
         if out is None:
             out = np.empty(shape, np.float32)
         elif out.shape != shape or out.dtype != np.float32:
-            raise ValueError(f"out has shape {out.shape}, dtype {out.dtype}; expected "
+            raise ConfigError(f"out has shape {out.shape}, dtype {out.dtype}; expected "
                              f"float32 {shape}")
         if self._lag_s != 0.0:
             self._shifted(ts, out)

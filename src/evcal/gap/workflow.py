@@ -32,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from ..errors import ConfigError
 from ..jsonable import to_jsonable
 from ..online import usable_cores
 from ..recording import Recording
@@ -107,21 +108,21 @@ class GapConfig:
 
     def __post_init__(self) -> None:
         if self.max_effects < 0:
-            raise ValueError(f"max_effects={self.max_effects} must be >= 0")
+            raise ConfigError(f"max_effects={self.max_effects} must be >= 0")
         if self.n_seeds < 2:
-            raise ValueError(f"n_seeds={self.n_seeds} must be >= 2 (the spread needs two)")
+            raise ConfigError(f"n_seeds={self.n_seeds} must be >= 2 (the spread needs two)")
         if self.confirm_top < 1 or self.beam_width < 0:
-            raise ValueError(f"confirm_top={self.confirm_top} must be >= 1 and "
+            raise ConfigError(f"confirm_top={self.confirm_top} must be >= 1 and "
                              f"beam_width={self.beam_width} >= 0")
         if self.max_pixel_steps < 1_000_000:
-            raise ValueError(f"max_pixel_steps={self.max_pixel_steps} must be >= 1e6")
+            raise ConfigError(f"max_pixel_steps={self.max_pixel_steps} must be >= 1e6")
         if not 0.0 < self.screen_rows <= 1.0:
-            raise ValueError(f"screen_rows={self.screen_rows} must be in (0, 1]")
+            raise ConfigError(f"screen_rows={self.screen_rows} must be in (0, 1]")
         if self.workers is not None and self.workers < 1:
-            raise ValueError(f"workers={self.workers} must be >= 1")
+            raise ConfigError(f"workers={self.workers} must be >= 1")
         unknown = set(self.candidates) - set(EFFECT_NAMES)
         if unknown:
-            raise ValueError(f"unknown candidate effect(s) {sorted(unknown)}")
+            raise ConfigError(f"unknown candidate effect(s) {sorted(unknown)}")
 
 
 @dataclass

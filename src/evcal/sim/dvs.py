@@ -14,6 +14,7 @@ from typing import Any
 import numba
 import numpy as np
 
+from ..errors import ConfigError, ErrorReason
 from ..events import EVENTS_DTYPE, empty_events
 
 
@@ -76,12 +77,12 @@ class IdealDvs:
         contrast = np.asarray(contrast, np.float64)
         bias = np.asarray(bias, np.float64)
         if contrast.shape != bias.shape or contrast.ndim != 2:
-            raise ValueError(f"contrast {contrast.shape} and bias {bias.shape} must be equal "
+            raise ConfigError(f"contrast {contrast.shape} and bias {bias.shape} must be equal "
                              "[H, W]")
         th_on = contrast + bias
         th_off = contrast - bias
         if (th_on <= 0).any() or (th_off <= 0).any():
-            raise ValueError("every pixel needs c + b > 0 and c - b > 0 (|b| < c)")
+            raise ConfigError("every pixel needs c + b > 0 and c - b > 0 (|b| < c)")
         self.shape = contrast.shape
         self.th_on = th_on.ravel().copy()
         self.th_off = th_off.ravel().copy()
@@ -104,11 +105,12 @@ class IdealDvs:
     def step(self, log_i: np.ndarray, t_us: int) -> np.ndarray:
         """Events while the log intensity moves linearly to ``log_i`` at ``t_us``."""
         if self.ref is None or self.l_prev is None:
-            raise RuntimeError("call reset() with the first log image before step()")
+            raise ConfigError("call reset() with the first log image before step()",
+                              ErrorReason.REJECTED)
         l1 = np.asarray(log_i, np.float64).ravel()
         dt_us = int(t_us) - self.t_prev_us
         if dt_us <= 0:
-            raise ValueError(f"step to t_us={t_us} does not move forward from {self.t_prev_us}")
+            raise ConfigError(f"step to t_us={t_us} does not move forward from {self.t_prev_us}")
         n = _count_crossings(self.l_prev, l1, self.ref, self.th_on, self.th_off)
         if n == 0:
             self.l_prev = l1.copy()

@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from ..errors import ConfigError
 from ..events import SensorSize, empty_events
 from ..recording import Frames, Recording, concat_events
 from .dvs import IdealDvs
@@ -54,7 +55,7 @@ class SimConfig:
         }
         for name, ok in checks.items():
             if not ok:
-                raise ValueError(f"simulation {name}={getattr(self, name)} is out of range")
+                raise ConfigError(f"simulation {name}={getattr(self, name)} is out of range")
 
     @property
     def sensor(self) -> SensorSize:

@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from ..errors import ConfigError
 from ..events import EVENTS_DTYPE
 from ..recording import Frames, Recording
 from .effects import (
@@ -161,18 +162,18 @@ def simulate(
     else:
         c, b = (np.asarray(m, np.float64) for m in maps)
         if c.shape != (cfg.height, cfg.width) or b.shape != c.shape:
-            raise ValueError(f"maps have shapes {c.shape}, {b.shape}; the sensor is "
+            raise ConfigError(f"maps have shapes {c.shape}, {b.shape}; the sensor is "
                              f"{cfg.width}x{cfg.height}")
     th_on_nom = (c + b).ravel().copy()
     th_off_nom = (c - b).ravel().copy()
     if (th_on_nom <= 0).any() or (th_off_nom <= 0).any():
-        raise ValueError("every pixel needs c + b > 0 and c - b > 0 (|b| < c)")
+        raise ConfigError("every pixel needs c + b > 0 and c - b > 0 (|b| < c)")
     if source is None:
         source = MovingScene(cfg.scene, (cfg.height, cfg.width), cfg.trajectory,
                              min_dn=cfg.min_dn, max_dn=cfg.max_dn)
     times = internal_times_us(cfg) if times_us is None else np.asarray(times_us, np.int64)
     if times.size < 2 or (np.diff(times) <= 0).any():
-        raise ValueError("internal sample times must be at least two, increasing")
+        raise ConfigError("internal sample times must be at least two, increasing")
     offset = effective_log_offset(cfg, eff)
     npix = cfg.height * cfg.width
 

@@ -16,6 +16,8 @@ from typing import Any
 import numba
 import numpy as np
 
+from ..errors import ConfigError
+
 SCENES = ("camera", "astronaut", "coffee", "chelsea", "rocket", "brick", "grass", "gravel",
           "moon", "text", "coins", "page")
 
@@ -41,10 +43,10 @@ def load_scene(name_or_image: str | np.ndarray, *, min_dn: float = 8.0, max_dn: 
     if img.ndim == 3:
         img = img[..., :3] @ np.array([0.2125, 0.7154, 0.0721])
     if img.ndim != 2 or min(img.shape) < 8:
-        raise ValueError(f"scene has shape {img.shape}, expected a 2-D image of at least 8x8")
+        raise ConfigError(f"scene has shape {img.shape}, expected a 2-D image of at least 8x8")
     lo, hi = np.percentile(img, [0.5, 99.5])
     if hi <= lo:
-        raise ValueError("scene image is constant: nothing for events to see")
+        raise ConfigError("scene image is constant: nothing for events to see")
     img = np.clip((img - lo) / (hi - lo), 0.0, 1.0)
     result: np.ndarray = (min_dn + (max_dn - min_dn) * img).astype(np.float32)
     return result
@@ -68,7 +70,8 @@ class Trajectory:
     def __post_init__(self) -> None:
         for name in ("pan_px", "rotation_rad", "zoom", "shake_px", "speed"):
             if not np.isfinite(getattr(self, name)) or getattr(self, name) < 0:
-                raise ValueError(f"trajectory {name}={getattr(self, name)} must be finite and >= 0")
+                raise ConfigError(f"trajectory {name}={getattr(self, name)} must be finite "
+                                  "and >= 0")
 
     @cached_property
     def _phases(self) -> np.ndarray:
@@ -130,7 +133,7 @@ class Renderer:
         if out is None:
             out = np.empty(shape, np.float32)
         elif out.shape != shape or out.dtype != np.float32 or not out.flags.c_contiguous:
-            raise ValueError(f"out has shape {out.shape} and dtype {out.dtype}; expected a "
+            raise ConfigError(f"out has shape {out.shape} and dtype {out.dtype}; expected a "
                              f"C-contiguous float32 array of shape {shape}")
         _render_poses(self.scene, params, self._cx, self._cy, out)
         return out

@@ -24,6 +24,7 @@ from typing import Any
 import numba
 import numpy as np
 
+from ..errors import ConfigError
 from ..recording import Frames
 from .scene import Renderer, Trajectory, load_scene
 
@@ -40,10 +41,10 @@ class SpeedProfile:
 
     def __post_init__(self) -> None:
         if not self.segments:
-            raise ValueError("speed profile needs at least one (duration_s, speed) segment")
+            raise ConfigError("speed profile needs at least one (duration_s, speed) segment")
         for d, s in self.segments:
             if not (d > 0 and s >= 0 and np.isfinite(d) and np.isfinite(s)):
-                raise ValueError(f"speed segment ({d}, {s}) needs duration > 0 and speed >= 0")
+                raise ConfigError(f"speed segment ({d}, {s}) needs duration > 0 and speed >= 0")
 
     def warp(self, t_s: float) -> float:
         tau, t0 = 0.0, 0.0
@@ -69,9 +70,9 @@ class Illumination:
 
     def __post_init__(self) -> None:
         if self.gain_start <= 0 or self.gain_end <= 0 or self.ramp_s <= 0:
-            raise ValueError("illumination gains and ramp_s must be > 0")
+            raise ConfigError("illumination gains and ramp_s must be > 0")
         if not 0 <= self.flicker_depth < 1:
-            raise ValueError(f"flicker_depth={self.flicker_depth} must be in [0, 1)")
+            raise ConfigError(f"flicker_depth={self.flicker_depth} must be in [0, 1)")
 
     def gain(self, t_s: float) -> float:
         a = min(max(t_s / self.ramp_s, 0.0), 1.0)
@@ -130,7 +131,7 @@ class FrameInterpolator:
     def __init__(self, frames: Frames, shape: tuple[int, int] | None = None, *,
                  t_origin_us: int | None = None, gain: float = 1.0):
         if len(frames) == 0:
-            raise ValueError("frame source needs at least one frame")
+            raise ConfigError("frame source needs at least one frame")
         shape = (int(shape[0]), int(shape[1])) if shape is not None else frames.shape
         self.images = np.stack([_resize(np.asarray(f, np.float32), shape) * np.float32(gain)
                                 for f in frames.images])
@@ -181,7 +182,7 @@ class FrameInterpolator:
         if out is None:
             return np.empty(shape, np.float32)
         if out.shape != shape or out.dtype != np.float32 or not out.flags.c_contiguous:
-            raise ValueError(f"out has shape {out.shape} and dtype {out.dtype}; expected a "
+            raise ConfigError(f"out has shape {out.shape} and dtype {out.dtype}; expected a "
                              f"C-contiguous float32 array of shape {shape}")
         return out
 
