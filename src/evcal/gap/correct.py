@@ -27,9 +27,8 @@ so the measurement is first cleaned with the background-activity filter
 variance they add (the bias alone is what steps 2-4 can remove); it also drops real events of
 isolated pixels, a bias of its own. So the simulations *with* the effects are filtered the
 same way and the ideal ones are not: the gain ``a`` then holds the effects' bias and the
-filter's together, and step 4 removes both. Measured on v2e recordings with 2 Hz shot noise
-(four scenes): OffEI's c RMSE 1.7-2.4x the noise-free one; filtered (10 ms) 1.4-1.5x; see
-tests/test_v2e.py for the corrected figures.
+filter's together, and step 4 removes both (what the filter and the correction each take
+off: docs/MEASUREMENTS.md and tests/test_v2e.py).
 
 Pixels that OffEI marked invalid stay invalid with their defaults. The gains and offsets
 applied (population median and the range over cells) are reported in the diagnostics.

@@ -25,10 +25,8 @@ The split overlaps: a small buffer opens at *every* frame of the large buffer an
 first later frame by which it holds ``n_small`` events. This is OffEI's overlapping windows
 with an event-count instead of a frame-count window, and it is what brings OnEI's error close
 to OffEI's: a disjoint split gives each pixel ~``n_large / n_small`` equations, each carrying a
-full sub-threshold residual at both ends; the overlapping split uses every frame of the buffer.
-Measured at 240x180, 10 s, paper buffer sizes (``tests/test_recovery.py``, seed 7): contrast
-RMSE 0.0268 with the disjoint split and smoothing 0.2, 0.0119 with this one and smoothing 0.1
-(OffEI: 0.0093); bias RMSE 0.0038 (OffEI: 0.0031).
+full sub-threshold residual at both ends; the overlapping split uses every frame of the buffer
+(the two compared: docs/MEASUREMENTS.md).
 
 The per-pixel normal equations (:class:`~evcal.solver.NormalEquations`' sums) are updated
 incrementally: a small buffer's equation is added when it closes and subtracted, recomputed

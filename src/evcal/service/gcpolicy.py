@@ -2,8 +2,8 @@
 
 CPython's cyclic collector scans every tracked container of the generation it collects. A
 full (generation 2) collection of the service after start-up visits the modules, zenoh's and
-numba's objects and the compiled kernels' metadata: measured 14-47 ms at start-up
-(346x260 latency run), which, when it lands on a frame, is that frame's latency. Those
+numba's objects and the compiled kernels' metadata (tens of ms: docs/MEASUREMENTS.md), which,
+when it lands on a frame, is that frame's latency. Those
 objects live as long as the process, so they are moved out of the collector's sight
 (:func:`gc.freeze`) once the service is up and again after each camera's first update (its
 kernels loaded, its state allocated). Later garbage is collected as before, and the

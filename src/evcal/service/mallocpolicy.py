@@ -3,21 +3,21 @@
 glibc serves an allocation above its mmap threshold (128 KiB at first, raised adaptively up
 to 32 MiB) with fresh pages from the kernel and returns them when it is freed; every page
 is then faulted in (and zeroed) on first touch again. A live update at 1280x720 allocates
-about 40 MiB of maps and messages and frees them soon after: measured 9.4 ms for the
-calibration maps with fresh pages against 3.4 ms with reused ones (one thread), per update.
-The service therefore raises the mmap threshold and the heap's trim threshold
-(``mallopt``) so that freed memory stays in the process for the next update; its RSS then
-sits at its working set's high-water mark instead of swinging about it.
+about 40 MiB of maps and messages and frees them soon after, and fresh pages make its
+calibration maps several times slower than reused ones (docs/MEASUREMENTS.md). The service
+therefore raises the mmap threshold and the heap's trim threshold (``mallopt``) so that
+freed memory stays in the process for the next update; its RSS then sits at its working
+set's high-water mark instead of swinging about it.
 
 Those thresholds hold for the main heap. A thread that is not the main thread allocates
 from an arena of its own, made of heaps of at most 64 MiB that glibc unmaps as soon as one
 is wholly free, whatever the trim threshold: the camera worker's 16 MiB messages at
-1280x720 then came from fresh pages again every few updates (an update's encode step at
-52 ms, its calibration maps at 17 ms, against medians of 1.7 and 5.5 ms; 3,000 page faults
-per update). So every thread allocates from the main arena (``M_ARENA_MAX`` 1): the service's
-threads allocate large arrays a few times per frame, not small objects at a rate that the
-arena's lock would slow (Python's small objects have their own allocator). Without glibc
-(or with ``EVCAL_MALLOC_KEEP=0``) nothing changes.
+1280x720 then came from fresh pages again every few updates, and those updates were many
+times slower than the median (thousands of page faults each; docs/MEASUREMENTS.md). So
+every thread allocates from the main arena (``M_ARENA_MAX`` 1): the service's threads
+allocate large arrays a few times per frame, not small objects at a rate that the arena's
+lock would slow (Python's small objects have their own allocator). Without glibc (or with
+``EVCAL_MALLOC_KEEP=0``) nothing changes.
 """
 
 from __future__ import annotations

@@ -269,9 +269,9 @@ class ShmPool:
 
     zenoh copies an ordinary payload of a local put into its own shared memory anyway (its
     transport optimisation, above 3 KiB) but only after the put has handed it through its
-    pipeline in batches: a 16 MiB calibration message of a 1280x720 camera took 9.6 ms per
-    put and 10.8 ms to reach a subscriber's callback, against 0.9 and 2.3 ms when written
-    into the provider's memory first (2026-11-25, ``bench_service.py shm``). Remote
+    pipeline in batches, several times slower for a 1280x720 camera's calibration message
+    than writing it into the provider's memory first (``bench_service.py shm``; figures in
+    docs/MEASUREMENTS.md). Remote
     subscribers get the bytes as usual. The pool is created on the first payload of at least
     ``threshold_bytes`` (small sensors never create it); when it cannot be (a container's
     small /dev/shm) or is full (subscribers still hold its buffers), the payload goes as
