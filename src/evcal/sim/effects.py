@@ -69,6 +69,13 @@ from typing import Any, ClassVar
 import numpy as np
 
 from ..errors import ConfigError
+from .kernel import step_events
+from .labels import LABEL_HOT_PIXEL as LABEL_HOT_PIXEL
+from .labels import LABEL_LEAK as LABEL_LEAK
+from .labels import LABEL_LEGEND as LABEL_LEGEND
+from .labels import LABEL_ROW_NOISE as LABEL_ROW_NOISE
+from .labels import LABEL_SHOT_NOISE as LABEL_SHOT_NOISE
+from .labels import LABEL_SIGNAL as LABEL_SIGNAL
 
 
 class EffectError(ConfigError):
@@ -516,8 +523,6 @@ def quantise_events(t_us: np.ndarray, pix: np.ndarray, pol: np.ndarray, lab: np.
         k = np.maximum(np.ceil((t - origin) / step).astype(np.int64) - 1, 0)
         ends: np.ndarray = np.rint(origin + (k + 1) * step).astype(np.int64)
         return ends, np.asarray(pix).copy(), np.asarray(pol).copy(), np.asarray(lab).copy()
-    from .kernel import step_events  # noqa: PLC0415 - the kernel imports this module
-
     refr_us = float(refractory.period_us) if refractory is not None else 0.0
     drop = bool(refractory is not None and refractory.mode == "drop")
     end = float(t[-1]) if t_end_us is None else float(t_end_us)
@@ -606,15 +611,6 @@ EFFECTS: dict[str, type[Effect]] = {
                 Exposure)
 }
 EFFECT_NAMES: tuple[str, ...] = tuple(EFFECTS)
-
-# Labels of simulated events (``truth["labels"]``, uint8, one per event).
-LABEL_SIGNAL = 0
-LABEL_LEAK = 1
-LABEL_SHOT_NOISE = 2
-LABEL_HOT_PIXEL = 3
-LABEL_ROW_NOISE = 4
-LABEL_LEGEND = {LABEL_SIGNAL: "signal", LABEL_LEAK: "leak", LABEL_SHOT_NOISE: "shot_noise",
-                LABEL_HOT_PIXEL: "hot_pixels", LABEL_ROW_NOISE: "row_noise"}
 
 
 def make_effect(name: str, **params: Any) -> Effect:

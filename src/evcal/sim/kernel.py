@@ -33,7 +33,7 @@ from typing import Any
 import numba
 import numpy as np
 
-from .effects import LABEL_LEAK, LABEL_SHOT_NOISE, LABEL_SIGNAL
+from .labels import LABEL_LEAK, LABEL_SHOT_NOISE, LABEL_SIGNAL
 
 TWO_PI = 2.0 * math.pi
 
