@@ -409,7 +409,7 @@ class RecordingObserver:
     def frame(self, camera, t_us, image):
         self._note("frame", camera, t_us)
 
-    def updated(self, camera, cal, t_us, status):
+    def updated(self, camera, cal, t_us, status, extra_maps):
         self._note("updated", camera, t_us)
 
     def discard(self, camera, dropped):

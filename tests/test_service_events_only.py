@@ -16,9 +16,12 @@ from evcal.bench import random_events
 from evcal.errors import CalibrationError, StateError
 from evcal.events import SensorSize
 from evcal.io.wire import (
+    WireError,
     decode_calibration,
+    decode_calibration_maps,
     decode_events,
     decode_frame,
+    encode_calibration,
     encode_events,
     encode_frame,
 )
@@ -184,6 +187,50 @@ def test_camera_events_only_idle_update_and_snapshot(tmp_path: Path) -> None:
         c.on_events(_events_msg(more, sensor, 8), 100, now_s=3.0)
     assert_same_maps(cam.on_idle(now_s=4.0)[0].calibration,
                      back.on_idle(now_s=4.0)[0].calibration)
+
+
+def test_events_only_update_carries_the_noise_rate_map(tmp_path: Path) -> None:
+    sensor = SensorSize(height=12, width=10)
+    ev = biased_events(sensor, 30_000, 1_500_000, seed=8)
+    cam = CameraState("lab/noise", offe_period_us=10_000_000)
+    for seq, chunk in enumerate(np.array_split(ev, 5)):
+        cam.on_events(_events_msg(chunk, sensor, seq), 100, now_s=0.0)
+    (upd,) = cam.on_idle(now_s=1.0)
+    assert isinstance(upd, CalibrationUpdate)
+    # events/s per pixel over the stream so far
+    counts = np.bincount(ev["y"].astype(np.int64) * sensor.width + ev["x"],
+                         minlength=sensor.n_pixels).reshape(sensor.shape)
+    span_s = (int(ev["t_us"][-1]) - int(ev["t_us"][0])) / 1e6
+    np.testing.assert_allclose(upd.extra_maps["noise_rate_hz"], counts / span_s, rtol=1e-6)
+    maps, meta = decode_calibration_maps(upd.message)
+    assert meta["method"] == "offe"
+    np.testing.assert_array_equal(maps["noise_rate_hz"], upd.extra_maps["noise_rate_hz"])
+    cal, _ = decode_calibration(upd.message)  # a Calibration: the schema's maps only
+    assert_same_maps(cal, upd.calibration)
+    # a restored camera serves the same map from its stored message
+    path = atomic_savez(tmp_path / "cam.npz", cam.state_arrays() or {})
+    with path.open("rb") as f:
+        arrays = read_snapshot(f)
+    back = CameraState("lab/noise")
+    back.restore(arrays)
+    assert back.current_calibration() is not None
+    np.testing.assert_array_equal(back.extra_maps["noise_rate_hz"],
+                                  upd.extra_maps["noise_rate_hz"])
+
+
+def test_extra_maps_on_the_wire_are_checked() -> None:
+    sensor = SensorSize(height=4, width=6)
+    cal = offe(Recording(sensor, biased_events(sensor, 20_000, 1_000_000, seed=3), None))
+    ok = np.full(sensor.shape, 2.5, np.float32)
+    maps, _ = decode_calibration_maps(encode_calibration(cal, t_us=1, seq=0,
+                                                         extra_maps={"noise_rate_hz": ok}))
+    assert maps["noise_rate_hz"].dtype == np.float32
+    for name, values, match in (("noise", ok, "unknown map 'noise'"),
+                                ("noise_rate_hz", ok[:2], r"shape \(2, 6\), expected \(4, 6\)"),
+                                ("noise_rate_hz", -ok, "negative, NaN or infinite"),
+                                ("noise_rate_hz", ok * np.nan, "negative, NaN or infinite")):
+        with pytest.raises(WireError, match=match):
+            encode_calibration(cal, t_us=1, seq=0, extra_maps={name: values})
 
 
 def test_snapshot_with_a_wrong_events_only_field_is_refused(tmp_path: Path) -> None:
@@ -372,3 +419,54 @@ def test_camera_whose_frames_start_later_moves_to_onei(service, tmp_path: Path) 
     assert methods[-1] == "onei", seen
     assert methods.index("onei") > methods.index("offe"), seen
 
+
+
+@pytest.mark.timeout(300)
+def test_events_only_noise_rate_published_queried_and_recorded(tmp_path: Path) -> None:
+    """Through real zenoh sessions: an events-only camera replayed live (EVT 3.0) gets the
+    noise-rate map in its published calibration, in a ``fields=`` query, and in the
+    service's ``.rrd``."""
+    pytest.importorskip("zenoh")
+    from evcal.service.recording import read_entities  # noqa: PLC0415
+    from evcal.service.transport import Transport, ZenohOptions  # noqa: PLC0415
+    from evcal.testing import ServiceProcess, endpoint, free_port, wait_for  # noqa: PLC0415
+
+    sensor = SensorSize(height=30, width=40)
+    ev = biased_events(sensor, 120_000, 2_500_000, seed=11)
+    path = write_evt3(tmp_path / "noise.raw", ev, sensor)
+    cam = "lab/noise/cam0"
+    ep = endpoint(free_port())
+    rrd = tmp_path / "service.rrd"
+    args = ["--listen", ep, "--no-multicast-scouting", "--on-full", "block", "--rrd",
+            str(rrd), "--rrd-map-period", "0", "--status-period", "0.2", "-v"]
+    with ServiceProcess(args, log_path=tmp_path / "service.log") as sp:
+        with Transport(ZenohOptions.loopback(connect=[ep])) as t:
+            wait_for(lambda: t.alive("evcal/@service/*", timeout_s=1.0), timeout_s=60,
+                     what="the service's liveliness token")
+            _replay({"ep": ep}, path, cam, "--max-rate")
+
+            def complete():
+                replies = t.get(f"evcal/{cam}/calibration", timeout_s=2.0)
+                if not replies or not replies[0].ok:
+                    return None
+                maps, meta = decode_calibration_maps(replies[0].payload)
+                return (maps, meta) if meta["n_events_used"] >= ev.size - 2_000 and int(
+                    maps["n_events"].sum()) == meta["n_events_used"] and meta[
+                    "t_us"] == int(ev["t_us"][-1] - ev["t_us"][0]) else None
+
+            maps, meta = wait_for(complete, timeout_s=90, interval_s=0.3,
+                                  what="the calibration of every replayed event")
+            assert meta["method"] == "offe"
+            counts = np.bincount(ev["y"].astype(np.int64) * sensor.width + ev["x"],
+                                 minlength=sensor.n_pixels).reshape(sensor.shape)
+            span_s = (int(ev["t_us"][-1]) - int(ev["t_us"][0])) / 1e6
+            np.testing.assert_allclose(maps["noise_rate_hz"], counts / span_s, rtol=1e-5)
+            (reply,) = t.get(f"evcal/{cam}/calibration?fields=noise_rate_hz,bias",
+                             timeout_s=5.0)
+            assert reply.ok
+            sub, _ = decode_calibration_maps(reply.payload)
+            assert sorted(sub) == ["bias", "noise_rate_hz"]
+            np.testing.assert_array_equal(sub["noise_rate_hz"], maps["noise_rate_hz"])
+        assert sp.stop() == 0, sp.log_text()
+    ents = read_entities(rrd)
+    assert ents.get(f"/cameras/{cam}/maps/noise_rate_hz", 0) >= 1, sorted(ents)

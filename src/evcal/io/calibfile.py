@@ -54,11 +54,14 @@ def calibration_npz_arrays(cal: Calibration, names: Any = None, *,
 
 
 def calibration_npz_bytes(cal: Calibration, names: Any = None, *,
-                          extra: Mapping[str, Any] | None = None) -> bytes:
-    """:func:`calibration_npz_arrays` as the bytes of a compressed ``.npz`` (in memory)."""
+                          extra: Mapping[str, Any] | None = None,
+                          arrays: Mapping[str, np.ndarray] | None = None) -> bytes:
+    """:func:`calibration_npz_arrays` (plus ``arrays``, maps beside the calibration's: such a
+    file is not loadable by :func:`load_calibration`) as the bytes of a compressed ``.npz``
+    (in memory)."""
     buf = io.BytesIO()
-    arrays: dict[str, Any] = calibration_npz_arrays(cal, names, extra=extra)
-    np.savez_compressed(buf, **arrays)
+    out: dict[str, Any] = calibration_npz_arrays(cal, names, extra=extra) | dict(arrays or {})
+    np.savez_compressed(buf, **out)
     return buf.getvalue()
 
 

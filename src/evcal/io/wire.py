@@ -24,6 +24,7 @@ from __future__ import annotations
 import json
 import math
 import struct
+from collections.abc import Mapping
 from typing import Any
 
 import msgpack
@@ -324,21 +325,28 @@ def decode_frame(
 #      "method": str, "log_offset": float, "params_json": str,
 #      "maps": {name: <bin, H * W values, row-major [y, x], little-endian>, ...}}
 #
-# ``maps`` holds any subset of CALIBRATION_MAP_DTYPES (a query may ask for some fields only);
-# each map's dtype is fixed by its name. A full message converts to a Calibration.
+# ``maps`` holds any subset of CALIBRATION_MAP_DTYPES (a query may ask for some fields only),
+# plus, beside them, the maps of EXTRA_MAP_DTYPES an estimate has that the schema has not
+# (the events-only estimate's noise rate); each map's dtype is fixed by its name. A full
+# message converts to a Calibration (the extra maps stay in decode_calibration_maps' dict).
 
 # the wire dtypes of the calibration schema (evcal.calibration.CALIBRATION_MAPS)
 CALIBRATION_MAP_DTYPES: dict[str, np.dtype[Any]] = {s.name: s.wire for s in CALIBRATION_MAPS}
+# maps some estimates add (not in Calibration): finite values >= 0
+EXTRA_MAP_DTYPES: dict[str, np.dtype[Any]] = {
+    "noise_rate_hz": np.dtype("<f4"),  # events-only: per-pixel event rate, events/s
+}
 _CALIBRATION_KEYS = frozenset({"version", "height", "width", "seq", "t_us", "n_events_used",
                                "method", "log_offset", "params_json", "maps"})
 
 
-def encode_calibration(cal: Calibration, *, t_us: int, seq: int,
-                       fields: Any = None) -> bytes:
+def encode_calibration(cal: Calibration, *, t_us: int, seq: int, fields: Any = None,
+                       extra_maps: Mapping[str, np.ndarray] | None = None) -> bytes:
     """Pack a :class:`~evcal.calibration.Calibration` (or the ``fields`` subset of its maps).
 
     ``t_us`` is the sensor time of the calibration (the last frame used), ``seq`` the
-    message counter of the camera's calibration stream.
+    message counter of the camera's calibration stream. ``extra_maps`` (names of
+    :data:`EXTRA_MAP_DTYPES`, ``[H, W]``, finite and >= 0) go beside the calibration's maps.
 
     Raises
     ------
@@ -359,6 +367,9 @@ def encode_calibration(cal: Calibration, *, t_us: int, seq: int,
     # memoryviews: msgpack copies each map once into the message (no intermediate bytes)
     maps = {name: np.ascontiguousarray(a, dtype=CALIBRATION_MAP_DTYPES[name]).reshape(-1).data
             for name, a in maps_in.items()}
+    for name, a in (extra_maps or {}).items():
+        maps[name] = _check_extra_map(name, np.asarray(a), (h, w), "cannot encode calibration"
+                                      ).reshape(-1).data
     msg = {
         "version": WIRE_VERSION, "height": int(h), "width": int(w), "seq": seq,
         "t_us": int(t_us), "n_events_used": int(np.asarray(cal.n_events).sum()),
@@ -367,6 +378,26 @@ def encode_calibration(cal: Calibration, *, t_us: int, seq: int,
         "maps": maps,
     }
     return _packb_large_bins(msg)
+
+
+def _check_extra_map(name: str, a: np.ndarray, shape: tuple[int, int], what: str
+                     ) -> np.ndarray:
+    """An extra map (:data:`EXTRA_MAP_DTYPES`) checked: known name, ``shape``, real numbers,
+    finite and >= 0; returned in its wire dtype (contiguous)."""
+    dt = EXTRA_MAP_DTYPES.get(name)
+    if dt is None:
+        raise WireError(f"{what}: unknown map {name!r}", ErrorReason.BAD_VALUES)
+    if a.shape != shape:
+        raise WireError(f"{what}: map {name!r} has shape {a.shape}, expected {shape}",
+                        ErrorReason.BAD_VALUES)
+    if a.dtype.kind not in "uif":
+        raise WireError(f"{what}: map {name!r} has dtype {a.dtype}, expected {dt}",
+                        ErrorReason.BAD_VALUES)
+    out = np.ascontiguousarray(a, dtype=dt)
+    if out.size and not (np.isfinite(out).all() and float(out.min()) >= 0):
+        raise WireError(f"{what}: map {name!r} holds negative, NaN or infinite values",
+                        ErrorReason.BAD_VALUES)
+    return out
 
 
 def _bin_header(n: int) -> bytes:
@@ -403,7 +434,8 @@ def decode_calibration_maps(
     """Unpack a calibration message into its maps (any subset) and header.
 
     Returns ``(maps, header)``: maps are ``[H, W]`` arrays of the dtypes of
-    :data:`CALIBRATION_MAP_DTYPES` (``valid`` as bool); the header holds ``version``,
+    :data:`CALIBRATION_MAP_DTYPES` (``valid`` as bool), and of :data:`EXTRA_MAP_DTYPES` for
+    the extra maps the message has; the header holds ``version``,
     ``height``, ``width``, ``seq``, ``t_us``, ``n_events_used``, ``method``, ``log_offset``
     and ``params`` (a dict).
 
@@ -434,18 +466,22 @@ def decode_calibration_maps(
         raise WireError(f"{what}: field 'maps' must be a map, got {type(raw_maps).__name__}")
     maps: dict[str, np.ndarray] = {}
     for name, raw in raw_maps.items():
-        if name not in CALIBRATION_MAP_DTYPES:
+        dt = CALIBRATION_MAP_DTYPES.get(name, EXTRA_MAP_DTYPES.get(name))
+        if dt is None:
             raise WireError(f"{what}: unknown map {name!r}")
         if not isinstance(raw, bytes):
             raise WireError(f"{what}: map {name!r} must be binary (msgpack bin)")
-        dt = CALIBRATION_MAP_DTYPES[name]
         expected = h * w * dt.itemsize
         if len(raw) != expected:
             state = "truncated" if len(raw) < expected else "too long"
             raise WireError(f"{what}: map {name!r} is {state}: {len(raw)} bytes, expected "
                             f"{expected} ({w}x{h} {dt.str})", ErrorReason.TRUNCATED)
+        values = np.frombuffer(raw, dtype=dt).reshape(h, w)
+        if name in EXTRA_MAP_DTYPES:
+            maps[name] = _check_extra_map(name, values, (h, w), what).copy()
+            continue
         try:
-            maps[name] = check_map(name, np.frombuffer(raw, dtype=dt).reshape(h, w)).copy()
+            maps[name] = check_map(name, values).copy()
         except EvcalError as exc:
             raise WireError(f"{what}: {exc}", exc.reason) from None
     header = {"version": WIRE_VERSION, "height": h, "width": w, "seq": seq, "t_us": t_us,
@@ -463,6 +499,7 @@ def decode_calibration(buf: bytes | bytearray | memoryview) -> tuple[Calibration
         If the message is malformed or does not carry every map.
     """
     maps, header = decode_calibration_maps(buf)
+    maps = {k: v for k, v in maps.items() if k in CALIBRATION_MAP_DTYPES}
     missing = sorted(set(CALIBRATION_MAP_DTYPES) - set(maps))
     if missing:
         raise WireError(f"calibration message seq {header['seq']}: map(s) {missing} missing "

@@ -64,6 +64,9 @@ class CalibrationUpdate:
     t_cal_s: float  # maps built
     t_enc_s: float  # encoded
     from_frame: bool = True  # triggered by a frame (else between frames: no latency)
+    # maps beside the calibration's, in the message too (io.wire.EXTRA_MAP_DTYPES): the
+    # events-only estimate's noise_rate_hz
+    extra_maps: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -173,6 +176,7 @@ class CameraState:
         self.calibration_msg: bytes | None = None  # last published, all fields
         self.calibration_t_us: int | None = None
         self.calibration: Calibration | None = None
+        self.extra_maps: dict[str, np.ndarray] = {}  # of the latest calibration
         self.last_update_wall: float | None = None
         self.latency_ms: deque[float] = deque(maxlen=200)
         self.latency_parts_ms: deque[tuple[float, ...]] = deque(maxlen=200)
@@ -231,6 +235,7 @@ class CameraState:
             if check.new_sensor:
                 # the old sensor's calibration does not describe this one
                 self.calibration = self.calibration_msg = None
+                self.extra_maps = {}
                 c.restarts[kind] += 1
             # live: the online log offset is taken when it is ready, no frame waits for it
             self.calibrator = OnlineCalibrator(sensor, replace(self.onei, offset_wait=False),
@@ -320,7 +325,11 @@ class CameraState:
         except CalibrationError as exc:
             log.debug("camera %s: no events-only calibration yet: %s", self.id, exc)
             return None
-        return self._publishable(cal, est.last_t_us, now_s, t_start, t_fed, from_frame=False)
+        # the per-pixel event rate: on a still scene, the pixels' noise (background
+        # activity) rate, the figure an events-only rig is characterised by
+        noise = est.event_rate_hz().astype(np.float32)
+        return self._publishable(cal, est.last_t_us, now_s, t_start, t_fed, from_frame=False,
+                                 extra_maps={"noise_rate_hz": noise})
 
     def on_frame(self, decoded: DecodedFrame, nbytes: int, *, t_recv_s: float,
                  t_start_s: float, drops_before: int = 0) -> list[Output]:
@@ -375,15 +384,18 @@ class CameraState:
         return self._publishable(cal, t_us, t_recv_s, t_start_s, t_fed, from_frame=from_frame)
 
     def _publishable(self, cal: Calibration, t_us: int, t_recv_s: float, t_start_s: float,
-                     t_fed: float, *, from_frame: bool) -> CalibrationUpdate:
-        """``cal`` encoded once, as this camera's latest calibration."""
+                     t_fed: float, *, from_frame: bool,
+                     extra_maps: dict[str, np.ndarray] | None = None) -> CalibrationUpdate:
+        """``cal`` (with ``extra_maps``) encoded once, as this camera's latest calibration."""
         t_cal = time.monotonic()
-        msg = encode_calibration(cal, t_us=t_us, seq=self.calibration_seq)
+        extra = extra_maps or {}
+        msg = encode_calibration(cal, t_us=t_us, seq=self.calibration_seq, extra_maps=extra)
         t_enc = time.monotonic()
         upd = CalibrationUpdate(self.id, t_us, self.calibration_seq, cal, msg, t_recv_s,
-                                t_start_s, t_fed, t_cal, t_enc, from_frame)
+                                t_start_s, t_fed, t_cal, t_enc, from_frame, extra)
         self.calibration_seq += 1
         self.calibration = cal
+        self.extra_maps = extra
         self.calibration_msg = msg
         self.calibration_t_us = t_us
         self.last_update_wall = time.time()
@@ -439,9 +451,13 @@ class CameraState:
     def current_calibration(self) -> Calibration | None:
         """The latest calibration (rebuilt from the stored message after a restore)."""
         if self.calibration is None and self.calibration_msg is not None:
-            from ..io.wire import decode_calibration  # noqa: PLC0415
+            from ..io.wire import EXTRA_MAP_DTYPES, decode_calibration_maps  # noqa: PLC0415
 
-            self.calibration, _ = decode_calibration(self.calibration_msg)
+            maps, header = decode_calibration_maps(self.calibration_msg)
+            self.calibration = Calibration.from_maps(
+                maps, log_offset=header["log_offset"], method=header["method"],
+                diagnostics=header["params"])
+            self.extra_maps = {k: v for k, v in maps.items() if k in EXTRA_MAP_DTYPES}
         return self.calibration
 
     # -- snapshots -----------------------------------------------------------------------------
@@ -513,3 +529,4 @@ class CameraState:
         self.calibration_seq, self.calibration_t_us = calibration_seq, calibration_t_us
         self.calibration_msg = msg or None
         self.calibration = None
+        self.extra_maps = {}  # current_calibration() reads them from the message

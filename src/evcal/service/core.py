@@ -38,7 +38,7 @@ import os
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -168,8 +168,8 @@ class Observer(Protocol):
 
     def events(self, camera: str, events: np.ndarray) -> None: ...
     def frame(self, camera: str, t_us: int, image: np.ndarray) -> None: ...
-    def updated(self, camera: str, cal: Calibration, t_us: int, status: dict[str, Any]
-                ) -> None: ...
+    def updated(self, camera: str, cal: Calibration, t_us: int, status: dict[str, Any],
+                extra_maps: Mapping[str, np.ndarray]) -> None: ...
     def discard(self, camera: str, dropped: int) -> None: ...
     def close(self) -> None: ...
 
@@ -292,7 +292,7 @@ class Service:
                 if self._observer_thread is not None:
                     self._observer_thread.submit(
                         "updated", (cam.id, out.calibration, out.t_us,
-                                    camera_status(cam)))
+                                    camera_status(cam), out.extra_maps))
             elif isinstance(out, Rejection):
                 self._publish_error(out, cam.state)
             elif isinstance(out, Observed) and self._observer_thread is not None:

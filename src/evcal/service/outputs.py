@@ -21,7 +21,7 @@ import numpy as np
 from ..calibration import check_map_names
 from ..errors import ErrorReason, EvcalError
 from ..io.calibfile import calibration_npz_bytes
-from ..io.wire import encode_calibration
+from ..io.wire import EXTRA_MAP_DTYPES, encode_calibration
 from ..jsonable import strict_dumps
 from . import keys
 from .camera import CameraState, Rejected, Rejection
@@ -109,10 +109,13 @@ def parse_query(params: Mapping[str, str]) -> tuple[str, list[str] | None]:
                        ErrorReason.BAD_QUERY)
     fields = None
     if params.get("fields"):
+        names = [f for f in params["fields"].split(",") if f]
         try:
-            fields = check_map_names(f for f in params["fields"].split(",") if f)
+            # the calibration's maps, and the extra maps of some estimates
+            check_map_names(f for f in names if f not in EXTRA_MAP_DTYPES)
         except EvcalError as exc:
             raise Rejected(str(exc), ErrorReason.BAD_QUERY) from None
+        fields = names
     return fmt, fields
 
 
@@ -140,10 +143,15 @@ def calibration_reply(st: CameraState, fmt: str, fields: list[str] | None
     cal = st.current_calibration()
     assert cal is not None  # msg is not None
     t_us = int(st.calibration_t_us or 0)
+    # an extra map asked for but not in this estimate (an OnEI camera's noise_rate_hz) is
+    # left out, as the published message leaves it out
+    extra = {k: v for k, v in st.extra_maps.items() if fields is None or k in fields}
+    names = None if fields is None else [f for f in fields if f not in EXTRA_MAP_DTYPES]
     if fmt == "msgpack":
-        return (encode_calibration(cal, t_us=t_us, seq=st.calibration_seq - 1, fields=fields),
-                keys.ENC_CALIBRATION)
-    return (calibration_npz_bytes(cal, fields, extra={"t_us": t_us}),
+        return (encode_calibration(cal, t_us=t_us, seq=st.calibration_seq - 1, fields=names,
+                                   extra_maps=extra), keys.ENC_CALIBRATION)
+    return (calibration_npz_bytes(cal, names, extra={"t_us": t_us},
+                                  arrays=extra if fields is not None else None),
             keys.ENC_CALIBRATION_NPZ)
 
 

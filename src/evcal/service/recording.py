@@ -57,7 +57,7 @@ import struct
 import tempfile
 import threading
 import time
-from collections.abc import Callable, Collection
+from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass
 from enum import Enum
 from pathlib import Path
@@ -100,7 +100,9 @@ def entity(camera: str, *parts: str) -> str:
     return "/".join(("cameras", camera, *parts))
 
 
-def camera_blueprint(camera: str, *, truth: bool = False) -> Any:
+def camera_blueprint(camera: str, *, truth: bool = False, events_only: bool = False) -> Any:
+    """One camera's tab. An events-only camera (calibrated by OffE) has no reference frame:
+    its noise-rate map takes that view's place."""
     base = "/" + entity(camera)
     views = [
         rrb.Spatial2DView(origin=f"{base}/maps/contrast", name="contrast c"),
@@ -111,7 +113,9 @@ def camera_blueprint(camera: str, *, truth: bool = False) -> Any:
         rrb.Spatial2DView(origin=f"{base}/events", name="events ON/OFF (one interval)"),
         rrb.Spatial2DView(origin=f"{base}/recon/calibrated", name="calibrated reconstruction"),
         rrb.Spatial2DView(origin=f"{base}/recon/di", name="DI reconstruction"),
-        rrb.Spatial2DView(origin=f"{base}/recon/frame", name="reference frame"),
+        (rrb.Spatial2DView(origin=f"{base}/maps/noise_rate_hz",
+                           name="noise rate (events/s per pixel)") if events_only
+         else rrb.Spatial2DView(origin=f"{base}/recon/frame", name="reference frame")),
     ]
     if truth:
         views += [rrb.Spatial2DView(origin=f"{base}/maps/contrast_error", name="|c - true c|"),
@@ -129,11 +133,13 @@ def camera_blueprint(camera: str, *, truth: bool = False) -> Any:
                         row_shares=[4, 1.2, 2, 0.6], name=camera)
 
 
-def make_blueprint(cameras: list[str], truth: Collection[str] | None = None) -> Any:
+def make_blueprint(cameras: list[str], truth: Collection[str] | None = None,
+                   events_only: Collection[str] = ()) -> Any:
     if not cameras:
         return rrb.Blueprint(rrb.TextLogView(origin="/service", name="service"),
                              collapse_panels=False)
-    return rrb.Blueprint(rrb.Tabs(*[camera_blueprint(c, truth=c in (truth or ()))
+    return rrb.Blueprint(rrb.Tabs(*[camera_blueprint(c, truth=c in (truth or ()),
+                                                     events_only=c in events_only)
                                     for c in cameras]), collapse_panels=False)
 
 
@@ -712,13 +718,18 @@ class RrdLogger:
                 cl = self._cams[camera] = _CameraLog(shape, StreamingEvaluator(
                     shape, period_us=self.recon_period_us, window_frames=self.recon_frames,
                     max_events=self.max_recon_events))
-                names = sorted(self._cams)
             self._log_static(camera)
-            self.rec.send_blueprint(make_blueprint(names, self.truth), make_active=True,
-                                    make_default=True)
+            self._send_blueprint()
             self.rec.log(entity(camera, "log"), rr.TextLog(
                 f"camera {camera}: {shape[1]}x{shape[0]} sensor", level="INFO"))
         return cl
+
+    def _send_blueprint(self) -> None:
+        with self._lock:
+            names = sorted(self._cams)
+            events_only = {c for c, cl in self._cams.items() if cl.method == "offe"}
+        self.rec.send_blueprint(make_blueprint(names, self.truth, events_only),
+                                make_active=True, make_default=True)
 
     def _log_static(self, camera: str) -> None:
         self.rec.log(entity(camera, "maps", "special"), rr.AnnotationContext([
@@ -799,20 +810,28 @@ class RrdLogger:
             if np.isfinite(v):
                 self.rec.log(entity(camera, "series", name), rr.Scalars([float(v)]))
 
-    def updated(self, camera: str, cal: Calibration, t_us: int, status: dict[str, Any]
-                ) -> None:
+    def updated(self, camera: str, cal: Calibration, t_us: int, status: dict[str, Any],
+                extra_maps: Mapping[str, np.ndarray] | None = None) -> None:
         # at most 6 series and a warning; when maps are due 6 float32 maps, their uint8 masks,
-        # the special map and 2 histograms; for a new camera the blueprint and its static rows
+        # the special map, the extra maps (float32) and 2 histograms; for a new camera, or a
+        # camera whose method changed, the blueprint (and a new camera's static rows)
         cl = self._cams.get(camera)
+        extra = dict(extra_maps or {})
         maps = (cl is None or cl.last_map_t_us is None
                 or t_us - cl.last_map_t_us >= self.map_period_us)
-        nbytes = (7 + 15 * maps) * _ROW_BYTES + 31 * int(cal.contrast.size) * maps
+        nbytes = ((7 + (15 + len(extra)) * maps) * _ROW_BYTES
+                  + (31 + 4 * len(extra)) * int(cal.contrast.size) * maps)
         if cl is None:
-            nbytes += 9 * _ROW_BYTES + _BLUEPRINT_BYTES_PER_CAMERA * (len(self._cams) + 1)
-        self._guard(nbytes, self._updated, camera, cal, t_us, status, new_camera=cl is None)
+            nbytes += 9 * _ROW_BYTES
+        if cl is None or cl.method != status.get("method"):
+            # a new events-only camera: the new camera's blueprint, then its method's
+            nbytes += (_BLUEPRINT_BYTES_PER_CAMERA * (len(self._cams) + 1)
+                       * (1 + (cl is None and status.get("method") == "offe")))
+        self._guard(nbytes, self._updated, camera, cal, t_us, status, extra,
+                    new_camera=cl is None)
 
-    def _updated(self, camera: str, cal: Calibration, t_us: int, status: dict[str, Any]
-                 ) -> None:
+    def _updated(self, camera: str, cal: Calibration, t_us: int, status: dict[str, Any],
+                 extra_maps: dict[str, np.ndarray]) -> None:
         cl = self._camera(camera, cal.shape)
         cl.evaluator.calibration(cal)
         self._set_time(t_us)
@@ -825,7 +844,10 @@ class RrdLogger:
                     f"calibration by {method}" + (" (events only: c relative, median 0.1)"
                                                   if method == "offe" else ""),
                     level="INFO"))
+            new_view = (method == "offe") != (cl.method == "offe")
             cl.method = method
+            if new_view:  # the noise-rate view replaces the reference frame's, or leaves
+                self._send_blueprint()
         if cl.last_scalar_t_us is None or t_us - cl.last_scalar_t_us >= self.scalar_period_us:
             cl.last_scalar_t_us = t_us
             lat = status.get("latency_ms", {}).get("last")
@@ -839,11 +861,20 @@ class RrdLogger:
         if cl.last_map_t_us is not None and t_us - cl.last_map_t_us < self.map_period_us:
             return
         n_maps = 4 + 2 * (camera in self.truth)  # c, b, their errors (and vs truth)
-        if not self._image_budget(n_maps * (cal.contrast.size * 5) + cal.special.nbytes,
+        if not self._image_budget(n_maps * (cal.contrast.size * 5) + cal.special.nbytes
+                                  + 4 * cal.contrast.size * len(extra_maps),
                                   camera):  # each a float32 map and a uint8 mask
             return
         cl.last_map_t_us = t_us
         self._log_maps(camera, cal)
+        noise = extra_maps.get("noise_rate_hz")
+        if noise is not None and noise.shape == cal.shape:
+            # events/s per pixel: on a still scene the noise rate; the scale stops at the
+            # 99th percentile, or a few hot pixels would leave the rest black
+            hi = float(np.percentile(noise, 99)) if noise.size else 1.0
+            self.rec.log(entity(camera, "maps", "noise_rate_hz"), rr.DepthImage(
+                noise.astype(np.float32), colormap="inferno",
+                depth_range=(0.0, max(hi, 1e-3))))
 
     def _truth_errors(self, camera: str, cal: Calibration) -> dict[str, float]:
         """c and b mean absolute errors over the valid pixels, when the truth is known."""
