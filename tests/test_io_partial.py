@@ -426,6 +426,116 @@ def test_ros1_bag_cut_at_random_places(tmp_path: Path, compression: str) -> None
         _check_messages(rec, full, c, ev, fr)
 
 
+def _ros2_sqlite_bag(folder: Path, rec: Recording) -> Path:
+    """``rec`` as a ROS 2 sqlite3 bag (rosbags' writer) of libcaer_cmp EventPackets and mono8
+    Images, in time order; returns its ``.db3`` file."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    store = typestore(2)
+
+    def header(t_ns: int) -> Any:
+        stamp = store.types["builtin_interfaces/msg/Time"](sec=t_ns // 10**9,
+                                                           nanosec=t_ns % 10**9)
+        return store.types["std_msgs/msg/Header"](stamp=stamp, frame_id="cam")
+
+    h, w = rec.sensor.shape
+    msgs: list[tuple[int, str, Any]] = []
+    for i, pk in enumerate(packets(rec.events, rec.frames.t_us, packet_us=20_000)):
+        msgs.append((pk.time_base_ns, EVENT_PACKET, store.types[EVENT_PACKET](
+            header=header(pk.time_base_ns), height=h, width=w, seq=i, time_base=pk.time_base_ns,
+            encoding="libcaer_cmp", is_bigendian=False,
+            events=np.frombuffer(pk.payload, np.uint8))))
+    for t, image in zip(rec.frames.t_us, rec.frames.images, strict=True):
+        msgs.append((int(t) * 1000, IMAGE, store.types[IMAGE](
+            header=header(int(t) * 1000), height=h, width=w, encoding="mono8", is_bigendian=0,
+            step=w, data=image.reshape(-1))))
+    with Writer(folder, version=8, storage_plugin=StoragePlugin.SQLITE3) as writer:
+        conns = {EVENT_PACKET: writer.add_connection("/ev", EVENT_PACKET, typestore=store),
+                 IMAGE: writer.add_connection("/img", IMAGE, typestore=store)}
+        for t_ns, kind, msg in sorted(msgs, key=lambda m: m[0]):
+            writer.write(conns[kind], t_ns, bytes(store.serialize_cdr(msg, kind)))
+    (db3,) = folder.glob("*.db3")
+    return db3
+
+
+def test_ros2_sqlite3_bag_cut_at_random_places(tmp_path: Path) -> None:
+    """A cut ``.db3``: the messages read are the full bag's first ones, none of them with
+    bytes past the cut (SQLite would give zeros for missing pages), more as the cut moves
+    on, and nearly all of them when only the last page is cut."""
+    db3 = _ros2_sqlite_bag(tmp_path / "bag", _recording(n=60_000, seed=12))
+    src = db3.read_bytes()
+    full = read_rosbag(db3)
+    page = int.from_bytes(src[16:18], "big")
+    # where each message's data ends in the file (its last 16 bytes, random content)
+    import sqlite3
+
+    with sqlite3.connect(f"file:{db3}?mode=ro", uri=True) as db:
+        rows = db.execute("SELECT topic_id, data FROM messages ORDER BY id").fetchall()
+    tails = [src.find(bytes(d[-16:])) + 16 for _t, d in rows]
+    assert min(tails) > 16
+    events_topic = min(t for t, _d in rows)  # /ev was added first
+    counts, last = [], (0, 0)
+    for c in [*_cuts(2 * page, len(src), seed=12, avoid=lambda c: c % page == 0),
+              len(src) - 5]:
+        rec = _read_cut(read_rosbag, _write_cut(src, tmp_path, "cut.db3", c))
+        if rec is None:
+            counts.append(0)
+            continue
+        _is_prefix(rec, full, rec.n_events, len(rec.frames))
+        n = rec.metadata["truncated"]["read"]
+        k = int(n.split()[0].replace(",", ""))
+        assert max(tails[:k]) <= c  # no message read has bytes past the cut
+        assert (rec.n_events, len(rec.frames)) >= last
+        last = (rec.n_events, len(rec.frames))
+        counts.append(k)
+        assert k == sum(1 for t, _d in rows[:k] if t == events_topic) + len(rec.frames)
+    assert counts == sorted(counts)
+    assert counts[-1] >= len(rows) - 3  # the last page cut: (nearly) every message
+
+
+def test_ecd_events_cut_at_random_places(tmp_path: Path) -> None:
+    from evcal.io import read_ecd, write_ecd
+
+    rec = _recording(n=20_000, n_frames=3)
+    folder = write_ecd(rec, tmp_path / "ecd")
+    src = (folder / "events.txt").read_bytes()
+    full = read_ecd(folder)
+    cut_folder = tmp_path / "cut"
+    cut_folder.mkdir()
+    for name in ("images.txt", "images"):
+        (cut_folder / name).symlink_to(folder / name)
+    for c in _cuts(1, len(src), seed=13, avoid=lambda c: src[c - 1 : c] == b"\n"):
+        (cut_folder / "events.txt").write_bytes(src[:c])
+        rec_cut = _read_cut(lambda p, **kw: read_ecd(p.parent, **kw),
+                            cut_folder / "events.txt")
+        assert rec_cut is not None  # the frames are whole
+        _is_prefix(rec_cut, full, src[:c].count(b"\n"), len(full.frames))
+        assert rec_cut.metadata["truncated"]["whole_end_byte"] == src[:c].rfind(b"\n") + 1
+
+
+def test_npz_and_hdf5_are_not_read_in_part(tmp_path: Path) -> None:
+    """A zip keeps its directory at its end, HDF5 its index anywhere: a cut ``.npz`` or
+    HDF5 file is refused, naming the file, the cut and why, whatever ``strict`` says."""
+    from evcal.io import write_npz
+
+    npz = write_npz(_recording(n=20_000, n_frames=2), tmp_path / "rec.npz")
+    for path, pattern in ((npz, r"truncated zip archive: it ends at byte [\d,]+ inside "
+                                r"(member '[a-z_]+\.npy'|its directory)"),
+                          (FORMATS / "dsec_like.h5", r"truncated HDF5 file: it has [\d,]+ "
+                                                     r"bytes, its superblock says"),
+                          (FORMATS / "mvsec_like.hdf5", "truncated HDF5 file"),
+                          (FORMATS / "v2e_dvs.h5", "truncated HDF5 file")):
+        src = path.read_bytes()
+        for c in _cuts(64, len(src), seed=14):
+            cut = _write_cut(src, tmp_path, "cut" + path.suffix, c)
+            for strict in (False, True):
+                with pytest.raises(EvcalError, match=pattern) as info:
+                    open_recording(cut, strict=strict,
+                                   sensor=DAVIS346 if "v2e" in path.name else None)
+                assert info.value.reason == ErrorReason.TRUNCATED
+                assert str(cut) in str(info.value)
+
+
 # ------------------------------------------------------------------ empty, header only
 
 

@@ -16,9 +16,11 @@ jAER AEDAT 2.0, AEDAT 3.1          :func:`read_aedat2`          --
 :func:`open_recording` and :func:`write_recording` pick one by the path. Every reader raises
 :class:`~evcal.recording.RecordingError` with the path and what was wrong.
 
-Files cut short (RAW, DAT, AEDAT 2.0/3.1/4, evcal MCAP, ROS 1 bags, ROS 2 MCAP files) are read
-up to their last whole record with a :class:`TruncatedRecordingWarning`; ``strict=True``
-refuses them (:class:`TruncatedRecordingError`). An empty file, one cut inside its header, a
+Files cut short (RAW, DAT, AEDAT 2.0/3.1/4, evcal MCAP, ROS 1 bags, ROS 2 MCAP and sqlite3
+files, ECD ``events.txt``) are read up to their last whole record with a
+:class:`TruncatedRecordingWarning`; ``strict=True`` refuses them
+(:class:`TruncatedRecordingError`); a cut ``.npz`` or HDF5 file cannot be read in part and is
+refused (reason ``truncated``). An empty file, one cut inside its header, a
 header without data or a cut file without a whole record is an :class:`EmptyRecordingError`.
 """
 
@@ -159,8 +161,9 @@ def open_recording(path: str | os.PathLike[str], *, sensor: SensorSize | None = 
     the file, the byte where the whole part ends and what was left out, and
     ``metadata["truncated"]`` saying the same; ``strict=True`` refuses it instead
     (:class:`TruncatedRecordingError`). So are RAW/DAT, AEDAT 2.0/3.1/4, evcal MCAP, ROS 1
-    bags and ROS 2 MCAP files; HDF5, ``.npz``, sqlite3 bags and text files cut short are
-    refused as damaged.
+    bags, ROS 2 MCAP and sqlite3 files and ECD ``events.txt``; a cut ``.npz`` or HDF5 file
+    is refused (reason ``truncated``, whatever ``strict`` says): neither can be read in
+    part.
 
     Raises
     ------
@@ -214,7 +217,8 @@ def _open_kind(path: Path, kind: str | None, sensor: SensorSize | None,
         raise RecordingError(f"{path}: camera chooses the camera of an MVSEC HDF5 file; this "
                              f"is {what}")
     if kind == "ecd":
-        return read_ecd(path.parent if path.is_file() else path, sensor=sensor)
+        return read_ecd(path.parent if path.is_file() else path, sensor=sensor,
+                        strict=strict)
     if kind == "aedat4":
         return read_aedat4(path, sensor=sensor, strict=strict)
     if kind == "mcap":

@@ -139,3 +139,91 @@ def words_cut(path: str, size: int, body_start: int, body_bytes: int, word: int,
     n = body_bytes // word
     return Cut(path, size, body_start + n * word, f"{n:,} whole {unit}s",
                f"a {word}-byte {unit} ({extra} of its bytes present)")
+
+
+# ------------------------------------------------------------------ formats not read in part
+
+_ZIP_LOCAL = b"PK\x03\x04"
+_ZIP_END = b"PK\x05\x06"
+
+
+def zip_cut(path: Path) -> str | None:
+    """What is wrong with a zip archive (an ``.npz``) cut short, or None when it is not one.
+
+    A zip's directory is at its end, so a cut archive has none; the members whole before the
+    cut are told from their local headers (numpy writes each member's sizes there, in a
+    ZIP64 extra field)."""
+    try:
+        with open(path, "rb") as f:
+            data = f.read()
+    except OSError:
+        return None
+    end_at = data.rfind(_ZIP_END, max(0, len(data) - 65_536 - 22))
+    if not data.startswith(_ZIP_LOCAL) or (end_at >= 0 and end_at + 22 <= len(data)):
+        return None  # not a zip, or one with its end record: damaged, not cut
+    whole: list[str] = []
+    pos = 0
+    partial = f"a member's header, which starts at byte {pos:,}"
+    while data.startswith(_ZIP_LOCAL, pos) and pos + 30 <= len(data):
+        flags, csize, usize, nlen, elen = (int.from_bytes(data[pos + a : pos + b], "little")
+                                           for a, b in ((6, 8), (18, 22), (22, 26), (26, 28),
+                                                        (28, 30)))
+        name = data[pos + 30 : pos + 30 + nlen].decode("utf-8", "replace")
+        extra = data[pos + 30 + nlen : pos + 30 + nlen + elen]
+        k = 0
+        while k + 4 <= len(extra):  # ZIP64: the sizes that did not fit the header's fields
+            tag, n = int.from_bytes(extra[k : k + 2], "little"), int.from_bytes(
+                extra[k + 2 : k + 4], "little")
+            if tag == 1 and n >= 16 and 0xFFFFFFFF in (usize, csize):
+                usize = int.from_bytes(extra[k + 4 : k + 12], "little")
+                csize = int.from_bytes(extra[k + 12 : k + 20], "little")
+            k += 4 + n
+        end = pos + 30 + nlen + elen + csize
+        if flags & 0x08 or end > len(data) or pos + 30 + nlen + elen > len(data):
+            partial = f"member {name!r}, which starts at byte {pos:,}"
+            break
+        whole.append(name)
+        pos = end
+        partial = (f"its directory, which starts at byte {pos:,}"
+                   if data.startswith(b"PK\x01\x02", pos) else
+                   f"a member's header, which starts at byte {pos:,}")
+    return (f"truncated zip archive: it ends at byte {len(data):,} inside {partial}, without "
+            f"the directory a zip keeps at its end ({len(whole)} member(s) whole before the "
+            f"cut{': ' + ', '.join(whole) if whole else ''}). An .npz is not read in part: its "
+            "arrays are whole or missing; copy the file again whole")
+
+
+def hdf5_cut(path: Path) -> str | None:
+    """What is wrong with an HDF5 file shorter than the end-of-file address its superblock
+    records, or None when it is not one (HDF5 "File Format Specification", superblock
+    versions 0-3; the signature at byte 0, 512, 1024, ...)."""
+    try:
+        size = path.stat().st_size
+        with open(path, "rb") as f:
+            for base in (0, 512, 1024, 2048, 4096, 8192):
+                f.seek(base)
+                head = f.read(120)
+                if head.startswith(b"\x89HDF\r\n\x1a\n"):
+                    break
+            else:
+                return None
+    except OSError:
+        return None
+    version = head[8] if len(head) > 8 else -1
+    if version in (0, 1):
+        o = head[13] if len(head) > 13 else 0
+        at = 24 + (4 if version == 1 else 0) + 2 * o  # base, free-space, then end of file
+    elif version in (2, 3):
+        o = head[9] if len(head) > 9 else 0
+        at = 12 + 2 * o  # base, superblock extension, then end of file
+    else:
+        return None
+    if o not in (2, 4, 8) or len(head) < at + o:
+        return None
+    eof = base + int.from_bytes(head[at : at + o], "little")
+    if size >= eof:
+        return None
+    return (f"truncated HDF5 file: it has {size:,} bytes, its superblock says {eof:,} "
+            f"({eof - size:,} missing). HDF5 keeps its index (object headers, chunk B-trees) "
+            "anywhere in the file, often at its end, so a cut HDF5 file is not read in part; "
+            "copy the file again whole")

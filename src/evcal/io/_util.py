@@ -8,9 +8,11 @@ from typing import Any
 
 import numpy as np
 
+from ..errors import ErrorReason
 from ..events import EVENTS_DTYPE, SensorSize
 from ..jsonable import dumps
 from ..recording import RecordingError
+from ._partial import zip_cut
 
 
 def file_head(path: Path, n: int = 16) -> bytes | None:
@@ -65,6 +67,9 @@ def load_npz_arrays(path: str | Path, error: type[Exception], what: str = ""
     except error:
         raise
     except Exception as exc:  # zipfile, zlib, OS and format errors of a damaged archive
+        cut = zip_cut(path)
+        if cut is not None:
+            raise error(f"{path}: {cut}", ErrorReason.TRUNCATED) from None
         raise error(f"{path}: cannot read {what or 'as .npz'} (truncated or corrupt?): "
                     f"{type(exc).__name__}: {exc}") from None
 

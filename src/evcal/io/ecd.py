@@ -27,6 +27,7 @@ from PIL import Image
 
 from ..events import EVENTS_DTYPE, SensorSize
 from ..recording import Frames, Recording, RecordingError, concat_events
+from ._partial import Cut, nothing_whole, report_cut
 
 KNOWN_SENSORS: tuple[SensorSize, ...] = (
     SensorSize(height=180, width=240),  # DAVIS240C
@@ -309,32 +310,70 @@ def read_events_txt(
     *,
     sensor_source: str = "the sensor argument",
     block_bytes: int = _BLOCK_BYTES,
+    strict: bool = False,
 ) -> np.ndarray:
     """Read an ECD ``events.txt`` (``t[s] x y p`` a line, p in {0, 1}) into EVENTS_DTYPE.
 
     The file is parsed in blocks of about ``block_bytes`` (C parser, no Python loop over lines)
-    and ``t_us = rint(t * 1e6)``. Blank lines and ``#`` comments are skipped.
+    and ``t_us = rint(t * 1e6)``. Blank lines and ``#`` comments are skipped. A file cut
+    inside its last line (no end of line, not four columns) is read up to that line, with a
+    :class:`~evcal.io.TruncatedRecordingWarning` (``strict``: refused).
 
     Raises
     ------
     RecordingError
         Naming the line of the first malformed, out-of-order or out-of-sensor event.
     """
-    path = Path(path)
-    chunks = []
+    events, cut = _events_txt(Path(path), sensor, sensor_source, block_bytes)
+    if cut is not None:
+        if not events.size:
+            raise nothing_whole(cut)
+        report_cut(cut, strict=strict)
+    return events
+
+
+def _events_txt(path: Path, sensor: SensorSize, sensor_source: str, block_bytes: int
+                ) -> tuple[np.ndarray, Cut | None]:
+    """The events of ``events.txt`` and, for a file cut inside its last line, the cut."""
+    chunks: list[np.ndarray] = []
     prev: int | None = None
+    whole_end = 0  # bytes of the whole lines so far
+    lines = 0
     for block, first_line in _iter_blocks(path, block_bytes):
-        ev = _parse_block(block, first_line, path, sensor, sensor_source, prev)
+        try:
+            ev = _parse_block(block, first_line, path, sensor, sensor_source, prev)
+        except RecordingError:
+            cut = _cut_line(path, block, first_line, whole_end, lines, chunks)
+            if cut is None:
+                raise
+            return concat_events(chunks), cut
+        whole_end += len(block)
+        lines += block.count(b"\n")
         if ev.size:
             chunks.append(ev)
             prev = int(ev["t_us"][-1])
-    return concat_events(chunks)
+    return concat_events(chunks), None
+
+
+def _cut_line(path: Path, block: bytes, first_line: int, whole_end: int, lines: int,
+              chunks: list[np.ndarray]) -> Cut | None:
+    """The cut, when ``block`` (which did not parse) is the file's last line, unterminated
+    and short of its four columns (a copy stopped inside it); None for a malformed line."""
+    if block.endswith(b"\n") or len(block.split(b"#", 1)[0].split()) >= 4:
+        return None
+    n = sum(c.size for c in chunks)
+    text = block[:40].decode(errors="replace")
+    return Cut(str(path), whole_end + len(block), whole_end,
+               f"{lines:,} whole lines ({n:,} events)",
+               f"line {first_line} ({text!r}: {len(block)} bytes, no end of line, fewer "
+               f"than the 4 columns {EVENTS_COLUMNS})")
 
 
 # ----------------------------------------------------------------------------- reader
 
 
-def read_ecd(folder: str | os.PathLike[str], *, sensor: SensorSize | None = None) -> Recording:
+def read_ecd(folder: str | os.PathLike[str], *, sensor: SensorSize | None = None,
+             strict: bool = False) -> Recording:
     """Read an Event Camera Dataset folder.
 
     Parameters
@@ -344,6 +383,10 @@ def read_ecd(folder: str | os.PathLike[str], *, sensor: SensorSize | None = None
         ``calib.txt``.
     sensor : SensorSize, optional
         The sensor size; by default taken from the frames or guessed from ``calib.txt``.
+    strict : bool
+        Refuse an ``events.txt`` cut inside its last line
+        (:class:`~evcal.io.TruncatedRecordingError`) instead of reading the lines before it
+        with a :class:`~evcal.io.TruncatedRecordingWarning` (``metadata["truncated"]``).
 
     Returns
     -------
@@ -389,8 +432,12 @@ def read_ecd(folder: str | os.PathLike[str], *, sensor: SensorSize | None = None
             "sensor=SensorSize(height=..., width=...) or on the command line --sensor-size WxH"
         )
     metadata["sensor_source"] = source
-    events = (read_events_txt(events_txt, sensor, sensor_source=source)
-              if events_txt.is_file() else np.zeros(0, EVENTS_DTYPE))
+    events, cut = ((np.zeros(0, EVENTS_DTYPE), None) if not events_txt.is_file() else
+                   _events_txt(events_txt, sensor, source, _BLOCK_BYTES))
+    if cut is not None:
+        if not events.size and frames is None:
+            raise nothing_whole(cut)
+        metadata["truncated"] = report_cut(cut, strict=strict)
     return Recording(sensor=sensor, events=events,
                          frames=frames if frames is not None else Frames.empty(0, 0),
                          metadata=metadata)

@@ -34,6 +34,7 @@ import numpy as np
 from ..errors import ErrorReason
 from ..events import SensorSize
 from ..recording import Frames, Recording, RecordingError
+from ._partial import hdf5_cut
 from ._util import check_sensor_arg, events_sorted
 
 HDF5_MAGIC = b"\x89HDF\r\n\x1a\n"
@@ -221,6 +222,9 @@ def read_hdf5(path: str | os.PathLike[str], *, sensor: SensorSize | None = None,
         pass
     if not path.is_file():
         raise RecordingError(f"{where}: no such file")
+    cut = hdf5_cut(path)
+    if cut is not None:
+        raise RecordingError(f"{where}: {cut}", ErrorReason.TRUNCATED)
     try:
         f = h5py.File(path, "r")
     except OSError as exc:

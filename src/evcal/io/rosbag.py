@@ -55,6 +55,7 @@ from ._bag_partial import PartialBag, PartialBagError, partial_mcap_bag, scan_ro
 from ._evcodecs import DecodedPacket, PacketDecoder, PayloadError, make_decoder
 from ._mcap_partial import mcap_is_whole, scan_mcap_prefix
 from ._partial import Cut, cut_in_header, nothing_whole, refuse_empty_file, report_cut
+from ._sqlite_partial import SQLITE_MAGIC, scan_sqlite, sqlite_pages
 from ._util import check_sensor_arg, file_head
 
 if TYPE_CHECKING:
@@ -113,7 +114,6 @@ def is_calibration_topic(topic: str) -> bool:
 FRAME_ENCODINGS = ("mono8", "mono16", "rgb8", "bgr8")
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
-SQLITE_MAGIC = b"SQLite format 3\x00"
 ROS1_MAGIC = b"#ROSBAG V"
 
 _LUMA = np.array([0.299, 0.587, 0.114])
@@ -257,6 +257,21 @@ def _open_mcap_file(file: Path, bag: _Bag, strict: bool, report: bool) -> Any:
     return _partial(partial_mcap_bag(prefix), bag, strict, report)
 
 
+def _open_sqlite_file(file: Path, bag: _Bag, strict: bool, report: bool) -> Any:
+    """One ROS 2 sqlite3 file: by ``rosbags`` when whole, else up to its cut."""
+    from rosbags.rosbag2 import Reader as Reader2
+
+    pages = sqlite_pages(file)
+    if pages is None:
+        return _open_reader(Reader2(file), file)
+    scanned = scan_sqlite(file, *pages)
+    try:
+        return _partial(scanned, bag, strict, report)
+    except BaseException:
+        scanned.close()
+        raise
+
+
 def _open_ros1(path: Path, bag: _Bag, strict: bool, report: bool) -> Any:
     """A ROS 1 bag: by ``rosbags`` when whole (indexed), else up to its cut."""
     from rosbags.rosbag1 import Reader as Reader1
@@ -285,8 +300,8 @@ def _open_bag(path: Path, strict: bool = False, report: bool = True) -> _Bag:
         if not (path / "metadata.yaml").is_file():
             raise RosbagError(f"{path}: a folder without metadata.yaml is not a ROS 2 bag")
         storage, files = _ros2_folder(path)
-        if storage == "sqlite3" or (storage == "mcap" and all(mcap_is_whole(f)
-                                                              for f in files)):
+        if ((storage == "sqlite3" and not any(sqlite_pages(f) for f in files))
+                or (storage == "mcap" and all(mcap_is_whole(f) for f in files))):
             return _Bag(path, 2, storage, [_open_reader(Reader2(path), path)])
         # an empty storage_identifier (the shared EventPacket bag): told by the files' suffix,
         # which the single-file reader goes by; files are read in metadata.yaml's order
@@ -296,7 +311,7 @@ def _open_bag(path: Path, strict: bool = False, report: bool = True) -> _Bag:
             for file in files:
                 bag.readers.append(_open_mcap_file(file, bag, strict, report)
                                    if bag.storage == "mcap" else
-                                   _open_reader(Reader2(file), file))
+                                   _open_sqlite_file(file, bag, strict, report))
         except BaseException:
             _close(bag)
             raise
@@ -321,7 +336,7 @@ def _open_bag(path: Path, strict: bool = False, report: bool = True) -> _Bag:
                                   "for the bag reader; rename it")
             bag = _Bag(path, 2, storage)
             bag.readers.append(_open_mcap_file(path, bag, strict, report) if storage == "mcap"
-                               else _open_reader(Reader2(path), path))
+                               else _open_sqlite_file(path, bag, strict, report))
             return bag
     raise RosbagError(f"{path}: not a ROS bag (neither #ROSBAG, the MCAP magic, an SQLite "
                       "database nor a folder with metadata.yaml)")
@@ -695,7 +710,7 @@ def read_rosbag(path: str | os.PathLike[str], *, sensor: SensorSize | None = Non
         Refuse a bag file cut short (:class:`~evcal.io.TruncatedRecordingError`) instead of
         reading its whole messages with a :class:`~evcal.io.TruncatedRecordingWarning`. Cut
         ROS 1 bags and ROS 2 MCAP files are read up to their last whole message (in file
-        order); a cut sqlite3 file is refused as corrupt whatever ``strict`` says.
+        order; a sqlite3 file in the order its messages were written).
 
     Returns
     -------
