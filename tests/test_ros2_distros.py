@@ -391,3 +391,61 @@ def test_serve_ros2_images_decode_for_humble_and_jazzy_023_subscribers() -> None
             rmw_attachment(att, named=not WIRES[name].named)
         msg = store.deserialize_cdr(data, IMAGE)
         assert (msg.encoding, msg.height, msg.width) == ("32FC1", 36, 48)
+
+
+@pytest.mark.timeout(240)
+@pytest.mark.parametrize(("flag", "subscriber_hash", "name"), [
+    ("humble", None, "humble"), ("jazzy-0.2.3", None, "jazzy-0.2.3"),
+    ("auto", "TypeHashNotSupported", "humble"), ("auto", None, "jazzy"),
+])
+def test_replay_ros2_in_each_distributions_wire(tmp_path, flag: str,
+                                                 subscriber_hash: str | None,
+                                                 name: str) -> None:
+    """``evcal replay BAG --ros2 --ros-distro``: the bag's topics on the keys, tokens and
+    attachments of that rmw_zenoh, as its subscribers read them (emulated from their
+    sources); ``auto`` takes Humble's wire from a domain whose tokens are Humble's."""
+    pytest.importorskip("zenoh")
+    from evcal.io.ros2msg import write_ros2_bag
+    from evcal.service.transport import Transport, ZenohOptions
+    from evcal.sim.ideal import SimConfig, simulate_ideal
+    from evcal.testing import endpoint, free_port, run_client, wait_for
+
+    sim = simulate_ideal(SimConfig(height=24, width=32, duration_s=0.5, seed=3))
+    bag = write_ros2_bag(sim.recording, tmp_path / "sim.mcap", namespace="/lab/cam9",
+                         encoding="libcaer_cmp")
+    wire = WIRES[name]
+    ep = endpoint(free_port())
+    samples: list[tuple[str, bytes | None]] = []
+    with Transport(ZenohOptions.loopback(listen=[ep])) as t:
+        t.subscribe("0/**", lambda key, payload, enc, attachment:
+                    samples.append((key, attachment)), attachment=True)
+        if subscriber_hash is not None:  # a subscriber of that distribution is on the domain
+            t.token(f"@ros2_lv/0/{ZID}/0/5/MS/%/%/listener/%lab%cam9%events/{PACKET_DDS}/"
+                    f"{subscriber_hash}/:1:,1:,:,:,,")
+        res = run_client("replay", [str(bag), "--ros2", "--connect", ep,
+                                    "--no-multicast-scouting", "--max-rate",
+                                    "--ros-distro", flag, "--wait-subscriber", "10",
+                                    "--confirm-timeout", "1"])
+        assert res.returncode == 7, res.stderr  # no evcal service: unconfirmed
+        assert f"({name}'s rmw_zenoh wire)" in res.stderr, res.stderr
+        sent = int(res.stderr.split("sent ")[1].split()[0])
+        wait_for(lambda: len(samples) >= sent, timeout_s=30, what=f"{sent} samples")
+    assert len(samples) == sent
+    seqs: dict[str, list[int]] = {}
+    for key, attachment in samples:
+        head, dds, hash_ = key.rsplit("/", 2)
+        if wire.hash == "TypeHashNotSupported":
+            assert hash_ == wire.hash, key
+        else:
+            assert hash_.startswith("RIHS01_"), key
+            assert dds != IMAGE_DDS or hash_ == IMAGE_HASH, key
+        assert attachment is not None
+        seq, _t_ns, _gid = rmw_attachment(attachment, named=wire.named)
+        if wire.named:
+            assert len(attachment) == 77  # each field after its name
+        else:
+            with pytest.raises(RuntimeError):  # 0.2.0-0.2.3's constructor throws on it
+                rmw_attachment(attachment, named=True)
+        seqs.setdefault(head, []).append(seq)
+    for head, s in seqs.items():
+        assert s == list(range(1, len(s) + 1)), head

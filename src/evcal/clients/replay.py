@@ -56,7 +56,7 @@ from evcal.io import open_recording
 from evcal.io.wire import encode_events, encode_frame
 from evcal.recording import Recording
 from evcal.service import keys
-from evcal.service.cli import add_ros2_arguments, ros_domain
+from evcal.service.cli import add_ros2_arguments, add_ros_distro_argument, ros_domain
 from evcal.service.transport import Publisher, Transport, TransportError, options_from_args
 from evcal.stream import frame_cuts
 
@@ -317,6 +317,9 @@ def build_parser() -> argparse.ArgumentParser:
            "namespace)")
     g.add_argument("--topic", action="append", default=[], metavar="TOPIC",
                    help="with --ros2: publish only this topic (repeatable; default: all)")
+    add_ros_distro_argument(g, "Humble's wire when the domain's liveliness tokens are all "
+                               "Humble's, else the current one (Jazzy 0.2.4+, Kilted, "
+                               "Rolling); tokens do not tell jazzy-0.2.3, name it")
     return p
 
 
@@ -352,6 +355,7 @@ def _main_ros2(args: Any, prog: str) -> int:
             stats = replay_bag(t, args.recording, domain=domain,
                                speed=None if args.max_rate else args.speed,
                                topics=set(args.topic) or None, stop=stop, prefix=args.prefix,
+                               distro=args.ros_distro,
                                wait_subscriber_s=args.wait_subscriber,
                                confirm_timeout_s=args.confirm_timeout)
     except RecordingError as exc:

@@ -27,7 +27,18 @@ from pathlib import Path
 from evcal.io.ros2msg import type_hash
 from evcal.io.rosbag import bag_topics, iter_bag_messages
 from evcal.service import keys
-from evcal.service.ros2 import ENCODING, INPUT_TYPES, RosNode, RosPublication, TopicMap
+from evcal.service.ros2 import (
+    ENCODING,
+    INPUT_TYPES,
+    DistroDetector,
+    RosDistro,
+    RosNode,
+    RosPublication,
+    TopicMap,
+)
+from evcal.service.ros2 import (
+    distro as distro_profile,
+)
 from evcal.service.transport import Publisher, Transport
 
 from .delivery import (
@@ -69,6 +80,7 @@ class BagReplayStats:
     # ``delivered``, ``confirmed``, ``refusal``, ...); cameras sent nothing are not in it
     accounts: dict[str, ReplayStats] = field(default_factory=dict)
     stopped: bool = False  # SIGINT/SIGTERM (``stop``) ended the run early
+    distro: str = ""  # the rmw_zenoh wire it was published in (ros2.DISTROS)
     send_error: str | None = None  # a put raised (the session failed)
 
     @property
@@ -107,18 +119,34 @@ def _hash(msgtype: str) -> str | None:
         return None
 
 
+def wire_of(t: Transport, domain: int, name: str) -> RosDistro:
+    """The rmw_zenoh wire to publish in: ``--ros-distro NAME``'s, or for ``auto`` the one
+    the domain's liveliness tokens say (:class:`~evcal.service.ros2.DistroDetector`; one
+    profile: the current wire when tokens of both hash styles, or none, are there)."""
+    if name != "auto":
+        return distro_profile(name)
+    detector = DistroDetector(own_zid=t.zid)
+    for token in t.alive(f"@ros2_lv/{domain}/**", timeout_s=1.0):
+        detector.seen_token(token)
+    return detector.active()[0]
+
+
 def replay_bag(t: Transport, path: str | Path, *, domain: int = 0,
                speed: float | None = 1.0, topics: set[str] | None = None,
                stop: threading.Event | None = None, prefix: str = "evcal",
                wait_subscriber_s: float = 5.0,
-               confirm_timeout_s: float = CONFIRM_TIMEOUT_S) -> BagReplayStats:
-    """Publish the bag at ``path`` (``speed=None``: as fast as possible), then ask the
-    service for its account of each camera's messages (up to ``confirm_timeout_s``; 1 s once
-    ``stop`` is set), as ``evcal replay`` does (:func:`evcal.clients.replay.replay`)."""
+               confirm_timeout_s: float = CONFIRM_TIMEOUT_S,
+               distro: str = "auto") -> BagReplayStats:
+    """Publish the bag at ``path`` (``speed=None``: as fast as possible) in the wire of
+    ``distro`` (:func:`wire_of`), then ask the service for its account of each camera's
+    messages (up to ``confirm_timeout_s``; 1 s once ``stop`` is set), as ``evcal replay``
+    does (:func:`evcal.clients.replay.replay`)."""
     stop = stop or threading.Event()
     stats = BagReplayStats()
     types = bag_topics(path)
     chosen = {tp: ty for tp, ty in types.items() if topics is None or tp in topics}
+    wire = wire_of(t, domain, distro)
+    stats.distro = wire.name
     node = RosNode(zid=t.zid, domain=domain, name=NODE)
     t.token(node.node_token())
     pubs: dict[str, tuple[RosPublication, Publisher]] = {}
@@ -128,7 +156,9 @@ def replay_bag(t: Transport, path: str | Path, *, domain: int = 0,
         if h is None:
             stats.skipped_topics[topic] = f"type {msgtype} is not known to evcal"
             continue
-        pub = RosPublication(node, topic, msgtype, h)
+        # (the hash known is what makes a type publishable; Humble's keys do not carry it)
+        pub = RosPublication(node, topic, msgtype, h if wire.type_hash else None,
+                             distro=wire)
         t.token(pub.token)
         pubs[topic] = (pub, t.publisher(pub.key, ENCODING, block=True))
         stats.messages[topic] = 0
@@ -211,7 +241,8 @@ def report(prog: str, stats: BagReplayStats, wait_subscriber_s: float, domain: i
     if stats.send_error is not None:
         print(f"{prog}: sending failed: {stats.send_error}", file=sys.stderr)
     print(f"{prog}: sent {stats.total} messages ({stats.bytes / 1e6:.1f} MB) in "
-          f"{stats.seconds:.2f} s on {len(stats.messages)} topics in ROS domain {domain}: "
+          f"{stats.seconds:.2f} s on {len(stats.messages)} topics in ROS domain {domain} "
+          f"({stats.distro}'s rmw_zenoh wire): "
           + ", ".join(f"{tp} {n}" for tp, n in stats.messages.items())
           + (" (stopped)" if stats.stopped else ""), file=sys.stderr)
     if stats.unmatched_messages:

@@ -111,10 +111,7 @@ def build_parser(prog: str = "evcal serve") -> argparse.ArgumentParser:
                    help="feed camera CAMERA from TOPIC, or from every topic below a "
                         "namespace, e.g. /dvs/events=lab/rig1/cam0 or /dvs=lab/rig1/cam0 "
                         "(repeatable)")
-    g.add_argument("--ros-distro", choices=DISTRO_CHOICES, default="auto",
-                   help="the rmw_zenoh to speak to: humble (rmw_zenoh 0.1.2+), humble-0.1.1, "
-                        "jazzy (0.2.4+), jazzy-0.2.3 (0.2.0-0.2.3), kilted, rolling; auto "
-                        "(default): from the tokens and attachments seen on the domain")
+    add_ros_distro_argument(g, "from the tokens and attachments seen on the domain")
     g = p.add_argument_group("OnEI estimator")
     g.add_argument("--n-small", type=int, default=None,
                    help="events per small buffer, a re-solve after each (default: an "
@@ -212,6 +209,15 @@ def add_ros2_arguments(p: argparse.ArgumentParser, ros2_help: str
     g.add_argument("--ros-domain", type=int, default=None, metavar="N",
                    help="ROS domain id (default: $ROS_DOMAIN_ID, else 0)")
     return g
+
+
+def add_ros_distro_argument(g: argparse._ArgumentGroup, auto: str) -> None:
+    """``--ros-distro`` (:data:`~evcal.service.ros2.DISTROS`, or ``auto``: ``auto`` says
+    how), the same on every command that speaks rmw_zenoh's wire."""
+    g.add_argument("--ros-distro", choices=DISTRO_CHOICES, default="auto",
+                   help="the rmw_zenoh to speak to: humble (rmw_zenoh 0.1.2+), humble-0.1.1, "
+                        "jazzy (0.2.4+), jazzy-0.2.3 (0.2.0-0.2.3), kilted, rolling; auto "
+                        f"(default): {auto}")
 
 
 def ros_domain(args: argparse.Namespace) -> int:
