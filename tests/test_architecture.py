@@ -3,7 +3,7 @@
 - the core (everything but ``service``, ``clients`` and the two display modules) never imports
   zenoh, rerun or matplotlib, at module level or inside a function;
 - ``evcal.service.transport`` is the only module importing zenoh;
-- rerun is imported by exactly one module for the service (``service/recording.py``) and
+- rerun is imported by exactly one module for the service (``service/rrdlog.py``) and
   one for the gap workflow (``gap/rrd.py``); matplotlib only by ``gap/report.py``;
 - importing ``evcal`` and running its core loads none of them;
 - the version is declared once (pyproject) and the package reports it.
@@ -24,7 +24,7 @@ SRC = Path(evcal.__file__).resolve().parent
 HEAVY = ("zenoh", "rerun", "matplotlib")
 ALLOWED = {
     "zenoh": {"service/transport.py"},
-    "rerun": {"service/recording.py", "gap/rrd.py"},
+    "rerun": {"service/rrdlog.py", "gap/rrd.py"},
     "matplotlib": {"gap/report.py"},
 }
 
@@ -47,7 +47,7 @@ def _modules() -> list[tuple[str, Path]]:
 
 def test_the_source_tree_is_where_the_contract_expects_it():
     names = {rel for rel, _ in _modules()}
-    assert {"service/transport.py", "service/recording.py", "gap/rrd.py",
+    assert {"service/transport.py", "service/rrdlog.py", "gap/rrd.py",
             "gap/report.py", "service/camera.py", "service/ingest.py",
             "service/outputs.py", "stream.py", "solver.py", "offline.py"} <= names
 

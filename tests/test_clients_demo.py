@@ -8,7 +8,7 @@ import pytest
 pytest.importorskip("zenoh")
 pytest.importorskip("rerun")
 
-from evcal.service.recording import read_entities  # noqa: E402
+from evcal.service.rrdlog import read_entities  # noqa: E402
 from evcal.testing import endpoint, free_port, run_client  # noqa: E402
 
 pytestmark = pytest.mark.timeout(180)

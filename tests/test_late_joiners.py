@@ -37,11 +37,10 @@ from evcal.service.core import ServiceConfig  # noqa: E402
 from evcal.service.ros2 import (  # noqa: E402
     DISTROS,
     Ros2Options,
-    RosCalibrationPublisher,
     RosNode,
-    output_topic,
     topic_key,
 )
+from evcal.service.ros2out import RosCalibrationPublisher, output_topic  # noqa: E402
 from evcal.service.server import run  # noqa: E402
 from evcal.service.transport import Transport, ZenohOptions  # noqa: E402
 from evcal.sim.ideal import SimConfig, simulate_ideal  # noqa: E402

@@ -38,7 +38,7 @@ pytest.importorskip("rerun")
 
 from evcal.calibration import Calibration  # noqa: E402
 from evcal.events import make_events  # noqa: E402
-from evcal.service.recording import read_entities  # noqa: E402
+from evcal.service.rrdlog import read_entities  # noqa: E402
 from evcal.testing import python_env  # noqa: E402
 
 RERUN = shutil.which("rerun") or str(Path(sys.executable).with_name("rerun"))
@@ -58,7 +58,7 @@ if cfg["module_path"]:
     sys.modules[spec.name] = mod  # dataclasses look their module up
     spec.loader.exec_module(mod)
 else:
-    from evcal.service import recording as mod
+    from evcal.service import rrdlog as mod
 if cfg["no_gate"]:  # the writer's own fallback: no check before the calls
     mod._file_size_limit = lambda: 1 << 62
 stop = threading.Event()
@@ -133,7 +133,8 @@ def _old_module_file(tmp: Path) -> str | None:
     """``EVCAL_RECORDING_UNDER_TEST`` with its relative imports made absolute, or None."""
     if not UNDER_TEST:
         return None
-    text = Path(UNDER_TEST).read_text().replace("from ..", "from evcal.")
+    text = (Path(UNDER_TEST).read_text().replace("from ..", "from evcal.")
+            .replace("from .", "from evcal.service."))
     out = tmp / "recording_under_test.py"
     out.write_text(text)
     return str(out)
@@ -142,9 +143,9 @@ def _old_module_file(tmp: Path) -> str | None:
 def _recording_module(tmp: Path):
     path = _old_module_file(tmp)
     if path is None:
-        from evcal.service import recording
+        from evcal.service import rrdlog
 
-        return recording
+        return rrdlog
     spec = importlib.util.spec_from_file_location("recording_under_test", path)
     mod = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = mod  # dataclasses look their module up

@@ -48,8 +48,8 @@ from evcal.service.ros2 import (  # noqa: E402
     RosSample,
     TopicMap,
     encode_attachment,
-    output_topic,
 )
+from evcal.service.ros2out import output_topic  # noqa: E402
 
 IMAGE_HASH = "RIHS01_d31d41a9a4c4bc8eae9be757b0beed306564f7526c88ea6a4588fb9582527d47"
 IMAGE_DDS = "sensor_msgs::msg::dds_::Image_"

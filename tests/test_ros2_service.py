@@ -22,7 +22,6 @@ from evcal.service.core import Service, ServiceConfig
 from evcal.service.ros2 import (
     QOS,
     SPECIAL_SCALE,
-    RosCalibrationPublisher,
     RosDecoder,
     RosNode,
     RosRouter,
@@ -31,13 +30,12 @@ from evcal.service.ros2 import (
     dds_type,
     decode_attachment,
     encode_attachment,
-    output_topic,
     parse_topic_key,
-    ros_name,
     ros_type,
     subscription_keys,
     topic_key,
 )
+from evcal.service.ros2out import RosCalibrationPublisher, output_topic, ros_name
 from evcal.sim.ideal import SimConfig, simulate_ideal
 from evcal.testing import settle as _settle
 

@@ -21,7 +21,7 @@ pytest.importorskip("rerun")
 from evcal.io import load_calibration, open_recording, write_recording  # noqa: E402
 from evcal.offline import OffEIConfig, offei  # noqa: E402
 from evcal.online import OnEIConfig, onei  # noqa: E402
-from evcal.service.recording import read_entities  # noqa: E402
+from evcal.service.rrdlog import read_entities  # noqa: E402
 from evcal.service.transport import Transport, ZenohOptions  # noqa: E402
 from evcal.sim.ideal import SimConfig, simulate_ideal  # noqa: E402
 from evcal.testing import (  # noqa: E402

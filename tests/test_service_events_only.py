@@ -427,7 +427,7 @@ def test_events_only_noise_rate_published_queried_and_recorded(tmp_path: Path) -
     noise-rate map in its published calibration, in a ``fields=`` query, and in the
     service's ``.rrd``."""
     pytest.importorskip("zenoh")
-    from evcal.service.recording import read_entities  # noqa: PLC0415
+    from evcal.service.rrdlog import read_entities  # noqa: PLC0415
     from evcal.service.transport import Transport, ZenohOptions  # noqa: PLC0415
     from evcal.testing import ServiceProcess, endpoint, free_port, wait_for  # noqa: PLC0415
 

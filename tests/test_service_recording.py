@@ -12,7 +12,7 @@ pytest.importorskip("rerun")
 
 from evcal.calibration import Calibration  # noqa: E402
 from evcal.events import make_events  # noqa: E402
-from evcal.service.recording import RrdLogger, read_entities  # noqa: E402
+from evcal.service.rrdlog import RrdLogger, read_entities  # noqa: E402
 
 
 def test_image_budget_bounds_the_file(tmp_path):
@@ -157,7 +157,7 @@ def test_histograms_are_bars_as_wide_as_their_bins(tmp_path):
 def test_series_each_in_one_view_of_its_own_scale():
     """Every logged series is in exactly one view (valid_fraction used to be in none) and
     rates, latencies, fractions and dB do not share an axis."""
-    from evcal.service.recording import SERIES, SERIES_VIEWS
+    from evcal.service.rrdlog import SERIES, SERIES_VIEWS
 
     placed = [n for _, names in SERIES_VIEWS for n in names]
     assert sorted(placed) == sorted(SERIES)

@@ -40,7 +40,7 @@ sync_api = pytest.importorskip("playwright.sync_api", reason="playwright is not 
 
 from evcal.calibration import Calibration  # noqa: E402
 from evcal.events import make_events  # noqa: E402
-from evcal.service.recording import RrdLogger  # noqa: E402
+from evcal.service.rrdlog import RrdLogger  # noqa: E402
 from evcal.testing import free_port  # noqa: E402
 
 pytestmark = pytest.mark.timeout(240)

@@ -581,11 +581,11 @@ def _write_json(target: str, data: Any) -> None:
 
 def _review(args: argparse.Namespace, command: str, rec: Any, cal: Any, *,
             reconstruct: bool, frames_per_image: int = 5) -> None:
-    """``--rrd``: the offline review recording (service/recording.py, rerun)."""
+    """``--rrd``: the offline review recording (service/rrdlog.py, rerun)."""
     if not args.rrd:
         return
     try:
-        from .service.recording import write_review  # noqa: PLC0415
+        from .service.rrdlog import write_review  # noqa: PLC0415
     except ModuleNotFoundError as exc:
         raise CliError(f"--rrd needs the 'service' extra ({exc.name} is missing): "
                        "pip install 'evcal[service]'") from None

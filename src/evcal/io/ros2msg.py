@@ -27,9 +27,9 @@ import numpy as np
 
 from ..errors import ConfigError
 from ..recording import Recording, RecordingError
+from .bagdecode import EVENT_PACKET, IMAGE, typestore
 from .evencode import packets
 from .mcap_rec import McapFileWriter
-from .rosbag import EVENT_PACKET, IMAGE, typestore
 
 if TYPE_CHECKING:
     from rosbags.typesys.store import Typestore

@@ -1,7 +1,7 @@
 """The calibration service without the network: cameras, their outputs, snapshots.
 
 :class:`Service` receives raw payloads (``on_sample``), keeps one
-:class:`~evcal.service.ingest.Camera` (threads and queues, :mod:`evcal.service.ingest`)
+:class:`~evcal.service.ingest.CameraWorker` (threads and queues, :mod:`evcal.service.ingest`)
 around one :class:`~evcal.service.camera.CameraState` (the pure per-camera state machine,
 :mod:`evcal.service.camera`) per camera id, and turns the records the state machines return
 into publications through a ``publish(key, payload, encoding)`` callable
@@ -34,7 +34,6 @@ rejected with an error.
 from __future__ import annotations
 
 import logging
-import os
 import threading
 import time
 from collections import OrderedDict
@@ -46,22 +45,20 @@ import numpy as np
 
 from ..calibration import Calibration
 from ..errors import ConfigError, ErrorReason, EvcalError
-from ..jsonable import strict_dumps
 from ..offe import OffEConfig
 from ..online import OnEIConfig, OnEIExecutor
 from . import keys
 from .camera import LATENCY_PARTS, CalibrationUpdate, CameraState, Observed, Output, Rejected
 from .camera import Rejection as Rejection
 from .gcpolicy import GcPolicy
-from .ingest import Camera, CameraQueue
+from .ingest import CameraQueue, CameraWorker
 from .outputs import (
     ErrorLimiter,
     ObserverThread,
-    calibration_reply,
     camera_status,
     error_body,
-    parse_query,
 )
+from .replies import ServiceReplies
 from .signing import Signer
 from .state import Snapshot, StateStore
 
@@ -193,7 +190,7 @@ class Refusal:
                 "last_wall": self.last_wall}
 
 
-class Service:
+class Service(ServiceReplies):
     """All cameras of one instance. Thread-safe entry points: ``on_sample``,
     ``query_calibration``, ``query_status``, ``cameras_info``, ``tick``; lifecycle:
     ``restore`` -> (samples) -> ``close``."""
@@ -213,7 +210,7 @@ class Service:
         self.instance = instance or config.instance or "evcal"
         # the attachment of calibration messages: the instance, signed when a key was given
         self.signer = signer or Signer(self.instance)
-        self.cameras: dict[str, Camera] = {}
+        self.cameras: dict[str, CameraWorker] = {}
         # camera ids refused a slot or displaced, newest last, at most refused_memory
         self.refused: OrderedDict[str, Refusal] = OrderedDict()
         self._limiter = ErrorLimiter(config.error_rate_hz)  # refusals not of one camera
@@ -241,9 +238,6 @@ class Service:
         self.claim = f"{config.prefix.strip('/')}/{config.cameras}"
 
     # -- plumbing --------------------------------------------------------------------------
-
-    def key(self, camera: str, kind: str) -> str:
-        return keys.camera_key(self.config.prefix, camera, kind)
 
     def attachment(self, key: str, payload: bytes) -> bytes:
         """The attachment of a calibration message on ``key`` (see :mod:`.signing`)."""
@@ -274,7 +268,7 @@ class Service:
             if self.observer_errors <= 3:
                 log.exception("the recorder failed in %s (logged 3 times at most)", method)
 
-    def _emit(self, cam: Camera, outputs: Sequence[Output]) -> None:
+    def _emit(self, cam: CameraWorker, outputs: Sequence[Output]) -> None:
         """Publish what a camera's state machine returned (its worker thread, its lock held)."""
         for out in outputs:
             if isinstance(out, CalibrationUpdate):
@@ -312,37 +306,17 @@ class Service:
                     rec.reason, rec.message)
         self.publish(self.key(rec.camera, "errors"), error_body(rec, st), keys.ENC_ERROR)
 
-    def claims(self, camera: str) -> bool:
-        """Whether this instance serves ``camera``: inside its ``cameras`` claim and, with a
-        shard, the shard's own."""
-        return self.owns(camera) and self._match(self.claim,
-                                                 f"{self.config.prefix.strip('/')}/{camera}")
-
-    def owns(self, camera: str) -> bool:
-        """Whether ``camera`` falls in this instance's shard (always, without a shard)."""
-        shard = self.config.shard
-        return shard is None or keys.shard_of(camera, shard[1]) == shard[0]
-
-    def accepts_key(self, key: str) -> bool:
-        """Whether a sample on ``key`` is for this instance's shard, judged from the key alone
-        (the transport asks before copying the payload). Keys that are not
-        ``<prefix>/<camera>/<kind>`` are accepted, for :meth:`on_sample` to refuse."""
-        if self.config.shard is None:
-            return True
-        parsed = keys.split_camera_key(self.config.prefix, key)
-        return parsed is None or self.owns(parsed[0])
-
-    def _new_camera(self, camera_id: str, *, observe: bool) -> Camera:
+    def _new_camera(self, camera_id: str, *, observe: bool) -> CameraWorker:
         cfg = self.config
         state = CameraState(camera_id, onei=cfg.onei, max_pixels=cfg.max_pixels,
                             observe=observe, offe=cfg.offe, offe_period_us=cfg.offe_period_us,
                             executor=self.executor)
-        cam = Camera(state, emit=self._emit, queue_bytes=cfg.queue_bytes,
+        cam = CameraWorker(state, emit=self._emit, queue_bytes=cfg.queue_bytes,
                      max_message_bytes=cfg.max_message_bytes, block=cfg.on_full == "block")
         cam.limiter = ErrorLimiter(cfg.error_rate_hz)
         return cam
 
-    def _restore_into(self, cam: Camera, snap: Snapshot) -> bool:
+    def _restore_into(self, cam: CameraWorker, snap: Snapshot) -> bool:
         """Resume ``cam`` from ``snap``; a snapshot that cannot be used is moved aside."""
         try:
             cam.state.restore(snap.arrays)
@@ -351,11 +325,6 @@ class Service:
                 self.store.quarantine(snap.path, str(exc))
             return False
         return True
-
-    def on_probation(self, cam: Camera) -> bool:
-        """Whether ``cam`` has not yet sent enough to keep its slot (see ``ServiceConfig``)."""
-        return cam.state.on_probation(min_frames=self.config.probation_frames,
-                                      min_events=self.config.probation_events)
 
     def _make_room(self, now_s: float) -> bool:
         """Take a slot from the least useful camera on probation for a new one (call with
@@ -407,7 +376,7 @@ class Service:
         else:
             rec.messages += 1
 
-    def camera(self, camera_id: str, *, create: bool = True) -> Camera | None:
+    def camera(self, camera_id: str, *, create: bool = True) -> CameraWorker | None:
         cam = self.cameras.get(camera_id)
         if cam is not None or not create:
             return cam
@@ -482,90 +451,7 @@ class Service:
             return
         cam.enqueue(kind, payload, t_recv)
 
-    def query_calibration(self, query_key: str, params: dict[str, str]
-                          ) -> list[tuple[str, bytes, str]]:
-        """Replies ``(key, payload, encoding)`` for every camera whose calibration key
-        intersects ``query_key``; raises :class:`Rejected` if the query is malformed or no
-        matching camera has a calibration yet."""
-        fmt, fields = parse_query(params)
-        out, problems = [], []
-        for cam in list(self.cameras.values()):
-            key = self.key(cam.id, "calibration")
-            if not self._match(query_key, key):
-                continue
-            try:
-                with cam.lock:
-                    payload, enc = calibration_reply(cam.state, fmt, fields)
-            except EvcalError as exc:
-                problems.append(str(exc))
-                continue
-            out.append((key, payload, enc))
-        if not out and problems:
-            raise Rejected("; ".join(problems), ErrorReason.NO_CALIBRATION)
-        return out
 
-    def status(self, cam: Camera) -> dict[str, Any]:
-        with cam.lock:
-            doc = camera_status(cam)
-        doc["probation"] = self.on_probation(cam)
-        rec = self.refused.get(cam.id)
-        doc["refused"] = rec.doc() if rec is not None else None  # refused before, or displaced
-        return doc
-
-    def refused_status(self, camera_id: str) -> dict[str, Any] | None:
-        """The ``status`` document of a camera id that has no slot: its refusal (None if it
-        was never refused or is served now)."""
-        rec = self.refused.get(camera_id)
-        if rec is None or camera_id in self.cameras:
-            return None
-        return {"camera": camera_id, "state": "refused", "refused": rec.doc()}
-
-    def query_status(self, query_key: str) -> list[tuple[str, bytes, str]]:
-        """Status replies for the cameras whose status key intersects ``query_key``; a query
-        for one camera id without a slot is answered with its refusal, so that its publisher
-        learns why nothing is processed (only for an exact key: a wildcard query lists the
-        cameras served)."""
-        out = [(self.key(cam.id, "status"), strict_dumps(self.status(cam)).encode(),
-                keys.ENC_STATUS)
-               for cam in list(self.cameras.values())
-               if self._match(query_key, self.key(cam.id, "status"))]
-        if not out and "*" not in query_key:
-            parsed = keys.split_camera_key(self.config.prefix, query_key)
-            doc = (self.refused_status(parsed[0])
-                   if parsed is not None and parsed[1] == "status" else None)
-            if doc is not None:
-                out.append((query_key, strict_dumps(doc).encode(), keys.ENC_STATUS))
-        return out
-
-    def cameras_info(self) -> dict[str, Any]:
-        return {
-            "instance": self.instance,
-            "prefix": self.config.prefix,
-            "claims": self.config.cameras,
-            "shard": (f"{self.config.shard[0]}/{self.config.shard[1]}"
-                      if self.config.shard is not None else None),
-            "pid": os.getpid(),
-            "rejected_cameras": self.rejected_cameras,
-            "refused_camera_ids": len(self.refused),
-            "invalid_camera_ids": self.invalid_camera_ids,
-            "refused_while_closing": self.refused_while_closing,
-            "evicted_cameras": self.evicted_cameras,
-            "forgotten_cameras": self.forgotten_cameras,
-            "bad_snapshots": self.store.bad if self.store is not None else 0,
-            "tick_errors": self.tick_errors,
-            "publish_errors": self.publish_errors,
-            "recorder_errors": self.observer_errors,
-            "recorder_dropped": self.observer_dropped,
-            "recorder": (self.observer.state()
-                         if self.observer is not None and hasattr(self.observer, "state")
-                         else None),
-            "gc": self.gc.stats() if self.gc is not None else None,
-            "shm": self.shm.stats() if self.shm is not None else None,
-            "cameras": [{"id": c.id, "sensor": str(c.sensor) if c.sensor else None,
-                         "updates": c.counters.updates, "events": c.counters.events,
-                         "last_update_t_us": c.state.calibration_t_us}
-                        for c in sorted(self.cameras.values(), key=lambda c: c.id)],
-        }
 
     def tick(self, *, force: bool = False) -> None:
         """Periodic work (call about every 0.1-1 s): status publication, snapshots, idle
@@ -588,16 +474,6 @@ class Service:
                 self.tick_errors += 1
                 log.exception("periodic %s failed (counted in tick_errors)", step.__name__)
 
-    def _publish_status(self) -> None:
-        for cam in list(self.cameras.values()):
-            try:
-                payload = strict_dumps(self.status(cam)).encode()
-            except Exception:
-                self.tick_errors += 1
-                log.exception("camera %s: status failed", cam.id)
-                continue
-            self.publish(self.key(cam.id, "status"), payload, keys.ENC_STATUS)
-
     def evict_idle(self, now_s: float | None = None) -> list[str]:
         """Drop cameras idle beyond ``probation_s`` (on probation: nothing worth keeping) or
         ``idle_evict_s`` (snapshotted first, back from it with their next message)."""
@@ -618,7 +494,7 @@ class Service:
                          " (state kept on disk)" if established and self.store else "")
         return out
 
-    def _drop(self, cam: Camera, *, save: bool) -> None:
+    def _drop(self, cam: CameraWorker, *, save: bool) -> None:
         """Stop a camera, snapshot it (``save``), then remove it: a message arriving meanwhile
         is dropped and counted, and one arriving after finds the snapshot."""
         cam.stop(timeout_s=2.0)

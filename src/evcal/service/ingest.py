@@ -1,11 +1,11 @@
 """Getting messages to a camera's state machine: bounded queues, decoder and worker threads.
 
-Per camera, :meth:`Camera.enqueue` (called in the transport's receive thread) only copies
+Per camera, :meth:`CameraWorker.enqueue` (called in the transport's receive thread) only copies
 the payload reference into the camera's bounded queue; a decoder thread decodes and
 validates the wire messages (numpy, mostly outside the GIL) and hands them to the camera's
 worker thread, at most two messages ahead; the worker runs the camera's
 :class:`~evcal.service.camera.CameraState` and passes the records it returns to ``emit``
-(the outputs layer). Nothing else touches the state but under ``Camera.lock`` (snapshots,
+(the outputs layer). Nothing else touches the state but under ``CameraWorker.lock`` (snapshots,
 status), so the state machine itself stays single-threaded.
 
 Back-pressure (both input keys share the camera's queue of ``queue_bytes``): with
@@ -30,7 +30,7 @@ from .ros2 import RosDecoder, RosSample
 
 log = logging.getLogger("evcal.service")
 
-EmitFn = Callable[["Camera", Sequence[Output]], None]
+EmitFn = Callable[["CameraWorker", Sequence[Output]], None]
 
 
 class BoundedQueue:
@@ -104,7 +104,7 @@ class CameraQueue(BoundedQueue):
         return self.used
 
 
-class Camera:
+class CameraWorker:
     """One camera's threads and queues around its :class:`CameraState`."""
 
     def __init__(self, state: CameraState, *, emit: EmitFn, queue_bytes: int,
@@ -180,6 +180,14 @@ class Camera:
             for kind, n in self.dropped.items():
                 self.state.counters.dropped[kind] += n
                 self.dropped[kind] = 0
+
+    def dropped_total(self) -> dict[str, int]:
+        """The messages dropped so far, per stream: those in the state's counters and those
+        the receive threads counted since the last :meth:`fold_dropped` (changes nothing)."""
+        with self._flight_lock:
+            counted = self.state.counters.dropped
+            return {kind: counted.get(kind, 0) + self.dropped.get(kind, 0)
+                    for kind in {**counted, **self.dropped}}
 
     def _done(self) -> None:
         with self._flight_lock:

@@ -25,7 +25,7 @@ from ..io.wire import EXTRA_MAP_DTYPES, encode_calibration
 from ..jsonable import strict_dumps
 from . import keys
 from .camera import CameraState, Rejected, Rejection
-from .ingest import BoundedQueue, Camera
+from .ingest import BoundedQueue, CameraWorker
 
 log = logging.getLogger("evcal.service")
 
@@ -35,10 +35,10 @@ QUERY_FORMATS = ("msgpack", "npz")
 # ----------------------------------------------------------------------------- status
 
 
-def camera_status(cam: Camera, *, now_s: float | None = None) -> dict[str, Any]:
+def camera_status(cam: CameraWorker, *, now_s: float | None = None) -> dict[str, Any]:
     """The ``status`` document of one camera (call with ``cam.lock`` held)."""
     st: CameraState = cam.state
-    cam.fold_dropped()
+    dropped = cam.dropped_total()  # not folded into the counters: a status changes nothing
     c = st.counters
     lat = np.asarray(st.latency_ms, np.float64)
     cal = st.calibrator
@@ -54,9 +54,9 @@ def camera_status(cam: Camera, *, now_s: float | None = None) -> dict[str, Any]:
         "event_rate_hz": st.rate.rate(now),
         # messages this service's queue refused, and messages missing upstream (sequence
         # gaps, less the service's own drops); "dropped"/"lost" are the older names
-        "dropped_messages": dict(c.dropped),
+        "dropped_messages": dropped,
         "lost_messages": dict(c.lost),
-        "dropped": dict(c.dropped),
+        "dropped": dict(dropped),
         "lost": dict(c.lost),
         "seq_restarts": dict(c.seq_restarts),
         "restarts": dict(c.restarts),  # new sessions: time base (or sensor) changed

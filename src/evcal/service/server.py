@@ -24,12 +24,12 @@ from .ros2 import (
     NODE_NAME,
     DistroDetector,
     Ros2Options,
-    RosCalibrationPublisher,
     RosNode,
     RosRouter,
     distro,
     subscription_keys,
 )
+from .ros2out import RosCalibrationPublisher
 from .signing import Signer
 from .state import StateStore
 from .transport import Request, Transport, ZenohOptions, intersects
@@ -81,7 +81,7 @@ def run(
     store = StateStore(state_dir, max_pixels=config.max_pixels) if state_dir else None
     observer = None
     if rrd:
-        from .recording import RrdLogger  # rerun only when asked for
+        from .rrdlog import RrdLogger  # rerun only when asked for
 
         observer = RrdLogger(rrd, **(rrd_options or {}))
     prefix = config.prefix.strip("/")

@@ -29,7 +29,7 @@ an absolute timestamp, for cameras whose t_us is Unix time, as ROS stamps are) a
 a running viewer (``connect_url``).
 
 The file is always a valid ``.rrd``: rerun's file sink writes into a pipe, and
-:class:`_RrdFile` appends what comes out to the file in whole messages (rerun's own sink,
+:class:`RrdFile` appends what comes out to the file in whole messages (rerun's own sink,
 writing to a full disk or past ``RLIMIT_FSIZE``, leaves the file cut mid-message and without
 its footer, which ``rerun rrd verify`` refuses). Before each call, :class:`RrdLogger` checks
 that the bytes the call may log, what rerun still holds and the footer (rerun's manifest of
@@ -46,20 +46,13 @@ appears.
 
 from __future__ import annotations
 
-import errno
-import itertools
 import logging
-import os
 import resource
-import shutil
 import signal
-import struct
-import tempfile
 import threading
 import time
 from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass
-from enum import Enum
 from pathlib import Path
 from typing import Any
 
@@ -70,8 +63,9 @@ import rerun.blueprint as rrb
 from ..calibration import SPECIAL_LEGEND, Calibration, Special
 from ..reconstruct import Reconstruction, StreamingEvaluator
 from ..recording import Recording
+from .rrdfile import RrdFile, StopReason, disk_free, free_path
 
-log = logging.getLogger("evcal.service.recording")
+log = logging.getLogger("evcal.service.rrdlog")
 
 APP_ID = "evcal-service"
 _SPECIAL_COLORS = {
@@ -154,45 +148,7 @@ class _CameraLog:
     event_counts: np.ndarray | None = None  # [2, pixels] ON, OFF of the open interval
 
 
-def free_path(path: Path) -> Path:
-    """``path``, or the first of ``stem.1.rrd``, ``stem.2.rrd``... that does not exist: a
-    restarted service never overwrites the previous run's recording."""
-    if not path.exists():
-        return path
-    for i in itertools.count(1):
-        p = path.with_name(f"{path.stem}.{i}{path.suffix}")
-        if not p.exists():
-            return p
-    raise AssertionError("unreachable")
-
-
-def _disk_free(path: Path) -> int:
-    return int(shutil.disk_usage(path).free)
-
-
-class StopReason(str, Enum):
-    """Why the recorder stopped (the ``reason`` of its state; stable strings)."""
-
-    DISK_FULL = "disk_full"  # less than min_free_bytes would be left on the disk
-    FILE_SIZE_LIMIT = "file_size_limit"  # the process's RLIMIT_FSIZE would be exceeded
-    WRITE_ERROR = "write_error"  # the file could not be written (an I/O error)
-    RERUN_ERROR = "rerun_error"  # rerun raised, timed out, or wrote what this cannot parse
-
-    def __str__(self) -> str:
-        return self.value
-
-
-# rerun 0.41's .rrd framing (re_log_encoding): a 12-byte stream header starting "RRF2", then
-# messages, each a 16-byte header (kind, payload length: u64 little-endian) and its payload;
-# kind 0 ends the stream and carries the footer (the manifest of every chunk, with byte
-# offsets into the stream), followed by a 32-byte trailer. A file is valid for `rerun rrd
-# verify` only with that end: it is written after the last message or not at all.
-_MAGIC = b"RRF2"
-_STREAM_HEADER = 12
-_MESSAGE_HEADER = struct.Struct("<QQ")
-_END = 0
-_TRAILER = 32
-_MAX_MESSAGE = 1 << 40  # a longer message means the bytes are not that framing
+_NO_LIMIT = 1 << 62
 _NO_LIMIT = 1 << 62
 # Bounds of what rerun writes, measured on rerun-sdk 0.41 (1 to 24 cameras) with margins of
 # 2x or more: the footer (its manifest has columns per entity and component) holds ~140 KiB
@@ -207,8 +163,8 @@ _FOOTER_BYTES_PER_MESSAGE_CAMERA = 64
 _BLUEPRINT_BYTES_PER_CAMERA = 128 << 10
 _ENTITIES_PER_CAMERA = 32
 _ROW_BYTES = 8 << 10
-_RESERVE_STEP = 1 << 20
-_RESERVE_SLACK = 64 << 10  # file-system blocks beyond the bytes a write needs
+
+
 
 
 def _file_size_limit() -> int:
@@ -232,265 +188,22 @@ def _ignore_sigxfsz() -> None:
     signal.signal(sig, signal.SIG_IGN)
 
 
-def _reason_of(exc: OSError) -> StopReason:
-    if exc.errno in (errno.ENOSPC, errno.EDQUOT):
-        return StopReason.DISK_FULL
-    if exc.errno == errno.EFBIG:
-        return StopReason.FILE_SIZE_LIMIT
-    return StopReason.WRITE_ERROR
-
-
-def _preallocate(fd: int, size: int) -> None:
-    """Make the file ``fd`` hold ``size`` bytes of disk (not sparse)."""
-    if hasattr(os, "posix_fallocate"):
-        os.posix_fallocate(fd, 0, size)
-        return
-    have = os.fstat(fd).st_size  # no posix_fallocate (macOS): zeros are as good
-    zeros = bytes(1 << 20)
-    while have < size:
-        have += os.pwrite(fd, zeros[:size - have], have)
-
-
-class _RrdFile:
-    """The ``.rrd`` on disk, fed by rerun's file sink through a pipe (``sink_path``).
-
-    A thread reads the pipe and appends whole units of rerun's framing (the stream header, one
-    message, or the end message with its trailer) to the file, so that the file always ends on
-    a message boundary: a write that fails (disk full, file too large) is cut back to the last
-    boundary, and from then on the pipe is read and discarded, so that rerun never blocks on
-    it. ``reserve`` holds disk space in an unlinked file beside the ``.rrd``; a write finding
-    the disk full takes its bytes from that reserve and tries again.
-    """
-
-    def __init__(self, path: Path) -> None:
-        self.path = path
-        # O_EXCL: free_path() chose an unused name; never truncate a file that appeared since
-        self.fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL
-                          | getattr(os, "O_CLOEXEC", 0), 0o644)
-        self._read_fd, write_fd = os.pipe()
-        self._write_fd: int | None = write_fd
-        # rerun opens its own descriptor of the pipe by this name
-        fds = "/dev/fd" if os.path.isdir("/dev/fd") else "/proc/self/fd"
-        self.sink_path = f"{fds}/{write_fd}"
-        self.received = 0  # bytes read from the pipe
-        self.written = 0  # bytes in the file: whole units only
-        self.messages = 0  # messages in the file (the footer grows with them)
-        self.complete = False  # the end and trailer are written: `rerun rrd verify` accepts it
-        self.failure: tuple[StopReason, str] | None = None
-        self._buf = bytearray()
-        self._unit: int | None = _STREAM_HEADER  # bytes of the next unit (None: not known yet)
-        self._unit_is_end = False
-        self._reserve_lock = threading.Lock()
-        self._reserve: Any = None  # the unlinked reserve file, made on first use
-        self.reserved = 0
-        self._reserve_broken = False
-        self._reading = True  # the read end is open
-        self._done = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="evcal-rrd-writer", daemon=True)
-        self._thread.start()
-
-    def sink_opened(self) -> None:
-        """Rerun holds its own descriptor of the pipe: the stream ends when rerun closes it."""
-        if self._write_fd is not None:
-            os.close(self._write_fd)
-            self._write_fd = None
-
-    # -- the writer thread -----------------------------------------------------------------
-
-    def _run(self) -> None:
-        try:
-            while True:
-                try:
-                    data = os.read(self._read_fd, 1 << 20)
-                except OSError as exc:
-                    self._fail(StopReason.WRITE_ERROR, f"cannot read rerun's stream: {exc}")
-                    return
-                if not data:
-                    return  # rerun closed the stream
-                self.received += len(data)
-                if self.failure is not None or self.complete:
-                    continue  # read and dropped: rerun must never block on a full pipe
-                try:
-                    self._feed(data)
-                except Exception as exc:  # noqa: BLE001 - the thread keeps draining the pipe
-                    self._fail(StopReason.WRITE_ERROR,
-                               f"writing {self.path} failed ({type(exc).__name__}: {exc})")
-        finally:
-            # a writer that gave up unblocks rerun too: its writes now fail with EPIPE
-            self._reading = False
-            os.close(self._read_fd)
-            self._done.set()
-
-    def _feed(self, data: bytes) -> None:
-        buf = self._buf
-        buf += data
-        while True:
-            if self._unit is None:
-                if len(buf) < _MESSAGE_HEADER.size:
-                    return
-                kind, length = _MESSAGE_HEADER.unpack_from(buf)
-                if length > _MAX_MESSAGE:
-                    self._fail(StopReason.RERUN_ERROR, self._not_rrd(
-                        f"a message header says {length} bytes"))
-                    return
-                self._unit_is_end = kind == _END
-                self._unit = _MESSAGE_HEADER.size + length + (_TRAILER if kind == _END else 0)
-            if len(buf) < self._unit:
-                return
-            if self.written == 0 and bytes(buf[:4]) != _MAGIC:
-                self._fail(StopReason.RERUN_ERROR, self._not_rrd(
-                    f"the stream starts with {bytes(buf[:4])!r}, not {_MAGIC!r}"))
-                return
-            unit, is_message = buf[:self._unit], self.written > 0
-            del buf[:self._unit]
-            self._unit = None
-            if not self._append(unit):
-                return
-            if self._unit_is_end:
-                self.complete = True
-                return
-            self.messages += is_message
-
-    def _not_rrd(self, what: str) -> str:
-        return (f"rerun-sdk {rr.__version__} wrote a stream this recorder cannot frame ({what}; "
-                "expected rerun 0.41's .rrd framing): recording stopped")
-
-    def _append(self, unit: bytearray) -> bool:
-        """Write ``unit`` at the end of the file; on failure cut the file back to where it
-        was and record why."""
-        start, done = self.written, 0
-        while done < len(unit):
-            try:
-                done += os.pwrite(self.fd, unit[done:], start + done)
-            except OSError as exc:
-                if (exc.errno in (errno.ENOSPC, errno.EDQUOT)
-                        and self._take_reserve(len(unit) - done)):
-                    continue  # the reserve was kept for these bytes
-                try:
-                    os.ftruncate(self.fd, start)
-                except OSError:  # noqa: S110 - nothing more to do; the failure says why
-                    pass
-                self._fail(_reason_of(exc), f"cannot write {self.path} ({exc.strerror}) at "
-                           f"{start} bytes: the file ends at its last whole message, without "
-                           "rerun's footer")
-                return False
-        self.written = start + len(unit)
-        return True
-
-    def _fail(self, reason: StopReason, message: str) -> None:
-        if self.failure is None:
-            self.failure = (reason, message)
-            log.error("rerun recording: %s", message)
-
-    # -- disk reserve ------------------------------------------------------------------------
-
-    def reserve(self, nbytes: int) -> bool:
-        """Hold ``nbytes`` of disk beside the file (in whole MiB, at most 2 MiB more): given to
-        writes that find the disk full, and back to the disk at close; False when the disk
-        has not that much."""
-        step = -(-nbytes // _RESERVE_STEP) * _RESERVE_STEP
-        with self._reserve_lock:
-            if self._reserve_broken:
-                return True
-            if self._reserve is not None and step + _RESERVE_STEP < self.reserved:
-                try:  # the promise shrank (rerun flushed): give the excess back
-                    os.ftruncate(self._reserve.fileno(), step)
-                    self.reserved = step
-                except OSError:  # noqa: S110 - keeping more than needed is harmless
-                    pass
-            if nbytes <= self.reserved:
-                return True
-            try:
-                if self._reserve is None:
-                    self._reserve = tempfile.TemporaryFile(  # noqa: SIM115 - closed in close()
-                        dir=self.path.parent, prefix=".evcal-rrd-reserve-")
-                for size in (step, nbytes):
-                    try:
-                        _preallocate(self._reserve.fileno(), size)
-                    except OSError as exc:
-                        if exc.errno not in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG):
-                            raise
-                        continue
-                    self.reserved = size
-                    return True
-                return False
-            except OSError as exc:
-                # a file system that cannot preallocate: record on, without the reserve
-                self._reserve_broken = True
-                log.warning("rerun recording: cannot reserve disk space beside %s (%s): a "
-                            "disk filled by another process may leave the file without its "
-                            "footer", self.path, exc)
-                return True
-
-    def _take_reserve(self, nbytes: int) -> bool:
-        """Give ``nbytes`` of the reserve back to the disk; False when it is empty."""
-        with self._reserve_lock:
-            if self._reserve is None or self.reserved == 0:
-                return False
-            self.reserved = max(0, self.reserved - nbytes - _RESERVE_SLACK)
-            try:
-                os.ftruncate(self._reserve.fileno(), self.reserved)
-            except OSError:
-                return False
-            return True
-
-    # -- end -------------------------------------------------------------------------------
-
-    def pending(self) -> int:
-        """Bytes rerun wrote into the pipe that this has not read yet."""
-        if not self._reading:
-            return 0
-        try:
-            import fcntl  # noqa: PLC0415 - Unix only, like the pipe
-            import termios  # noqa: PLC0415
-
-            n = bytearray(4)
-            fcntl.ioctl(self._read_fd, termios.FIONREAD, n)
-            return int.from_bytes(n, "little")
-        except (OSError, ImportError):
-            return 64 << 10  # a pipe's default capacity
-
-    def wait(self, timeout_s: float) -> bool:
-        """Wait until rerun closed the stream and all of it was handled."""
-        return self._done.wait(max(0.0, timeout_s))
-
-    def close(self) -> None:
-        """Release the reserve and the descriptors. A writer thread still running (a disk
-        that does not answer) keeps its descriptor: closing it under the thread could let a
-        later write land in whatever file reuses the number."""
-        self.sink_opened()
-        with self._reserve_lock:
-            if self._reserve is not None:
-                self._reserve.close()
-                self._reserve = None
-                self.reserved = 0
-        if self._done.is_set() and self.fd >= 0:
-            os.close(self.fd)
-            self.fd = -1
-
-
-class RrdLogger:
-    """Writes one ``.rrd`` per service run; implements :class:`evcal.service.core.Observer`.
+class RrdStream:
+    """The ``.rrd`` of one run as rerun writes it, kept whole and within limits.
 
     It never overwrites a file (a restart writes ``run.1.rrd`` beside ``run.rrd``) and never
-    fails the service. Before each call that logs, it checks that what the call may log, what
-    rerun still holds and the footer fit under the process's file-size limit and in the free
-    space (keeping ``min_free_bytes`` free); when they do not, or rerun raises, it logs why,
-    finishes the file (a valid ``.rrd``, footer included) and stops recording: ``state()``
-    says why (``reason``), and the service's ``cameras`` reply shows it. Finishing never
-    takes longer than ``finish_timeout_s``.
+    fails the service. Before each call that logs (:meth:`_guard`), it checks that what the
+    call may log, what rerun still holds and the footer fit under the process's file-size
+    limit and in the free space (keeping ``min_free_bytes`` free); when they do not, or
+    rerun raises, it logs why, finishes the file (a valid ``.rrd``, footer included) and
+    stops recording: ``state()`` says why (``reason``). Finishing never takes longer than
+    ``finish_timeout_s``. What is logged is its subclass's (:class:`RrdLogger`).
     """
 
-    def __init__(self, path: str | Path, *, map_period_s: float = 2.0,
-                 recon_period_s: float = 2.0, recon_frames: int = 5,
-                 scalar_period_s: float = 0.2, max_image_bytes: int = 300 << 20,
-                 max_recon_events: int = 5_000_000, recording_id: str | None = None,
-                 min_free_bytes: int = 64 << 20,
-                 disk_free: Callable[[Path], int] = _disk_free,
-                 max_unflushed_bytes: int = 4 << 20, finish_timeout_s: float = 3.0,
-                 truth: dict[str, tuple[np.ndarray, np.ndarray]] | None = None,
-                 serve_port: int | None = None, connect_url: str | None = None,
-                 app_id: str = APP_ID, started: str = "evcal service started"):
+    def __init__(self, path: str | Path, *, recording_id: str | None, min_free_bytes: int,
+                 disk_free: Callable[[Path], int], max_unflushed_bytes: int,
+                 finish_timeout_s: float, serve_port: int | None, connect_url: str | None,
+                 app_id: str, started: str, default_blueprint: Any) -> None:
         self.requested_path = Path(path)
         self.path = free_path(self.requested_path)
         if self.path != self.requested_path:
@@ -505,25 +218,12 @@ class RrdLogger:
         self.stopped: str | None = None  # why recording stopped, None while it records
         self.reason: StopReason | None = None
         self.errors = 0
-        self.map_period_us = int(map_period_s * 1e6)
-        self.recon_period_us = int(recon_period_s * 1e6)
-        self.recon_frames = int(recon_frames)
-        self.scalar_period_us = int(scalar_period_s * 1e6)
-        self.max_image_bytes = int(max_image_bytes)
-        self.max_recon_events = int(max_recon_events)
-        self.image_bytes = 0
-        self._images_stopped = False
-        self._cams: dict[str, _CameraLog] = {}
-        self._lock = threading.Lock()
         self._finish_lock = threading.Lock()
         self._finished = False
         self._closed = False
-        # camera -> (true c, true b) maps: error maps and c/b MAE curves are logged for them
-        self.truth = {k: (np.asarray(c, np.float64), np.asarray(b, np.float64))
-                      for k, (c, b) in (truth or {}).items()}
         _ignore_sigxfsz()
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._file = _RrdFile(self.path)
+        self._file = RrdFile(self.path)
         self.rec = rr.RecordingStream(app_id, recording_id=recording_id)
         sinks: list[Any] = [rr.FileSink(self._file.sink_path)]
         if serve_port is not None:  # a viewer connects: rerun --connect rerun+http://...
@@ -532,7 +232,7 @@ class RrdLogger:
             sinks.append(rr.GrpcSink(connect_url))
         self.serve_port = serve_port
         try:
-            self.rec.set_sinks(*sinks, default_blueprint=make_blueprint([]))
+            self.rec.set_sinks(*sinks, default_blueprint=default_blueprint)
         except BaseException:
             self._file.sink_opened()
             self._file.wait(self.finish_timeout_s)
@@ -545,7 +245,10 @@ class RrdLogger:
             self._set_time(None)
             self.rec.log("service", rr.TextLog(started, level="INFO"))
 
-    # -- helpers ---------------------------------------------------------------------------
+    def _n_cameras(self) -> int:
+        """The cameras logged so far (the footer grows with each)."""
+        return 0
+
 
     def _set_time(self, t_us: int | None) -> None:
         if t_us is not None:
@@ -561,8 +264,7 @@ class RrdLogger:
         return {"path": str(self.path), "recording": self.stopped is None,
                 "stopped": self.stopped,
                 "reason": str(self.reason) if self.reason is not None else None,
-                "errors": self.errors, "image_bytes": self.image_bytes,
-                "bytes": self._file.written, "complete": self._file.complete}
+                "errors": self.errors, "bytes": self._file.written, "complete": self._file.complete}
 
     def _footer_bytes(self, cameras: int) -> int:
         """An upper bound of what rerun writes when the stream of ``cameras`` cameras ends:
@@ -587,7 +289,7 @@ class RrdLogger:
             return False
         while True:
             promised = (f.pending() + self._held() + need
-                        + self._footer_bytes(len(self._cams) + new_camera))
+                        + self._footer_bytes(self._n_cameras() + new_camera))
             limit = _file_size_limit()
             if f.received + promised > limit:
                 why = (StopReason.FILE_SIZE_LIMIT,
@@ -697,6 +399,68 @@ class RrdLogger:
             self.errors += 1
             self.stop(StopReason.RERUN_ERROR,
                       f"recording failed ({type(exc).__name__}: {exc}); stopped")
+
+    def close(self) -> None:
+        """Flush and finish the file (footer included): the ``.rrd`` is complete after this,
+        within ``finish_timeout_s``. Never raises."""
+        if self._closed:
+            return
+        self._closed = True
+        if self.stopped is not None:
+            return  # already finished
+        if self._file.failure is None:  # its room is in the footer's reserve
+            try:
+                self._set_time(None)
+                self.rec.log("service", rr.TextLog("evcal service stopped", level="INFO"))
+            except Exception:  # noqa: BLE001
+                self.errors += 1
+        self._finish()
+        if self._file.failure is not None:
+            self.stopped, self.reason = self._file.failure[1], self._file.failure[0]
+
+
+
+
+class RrdLogger(RrdStream):
+    """What a service run logs to its ``.rrd`` (the entities of the module docstring);
+    implements :class:`evcal.service.core.Observer`. The file, its limits and its end are
+    :class:`RrdStream`'s; the service's ``cameras`` reply shows :meth:`state`."""
+
+    def __init__(self, path: str | Path, *, map_period_s: float = 2.0,
+                 recon_period_s: float = 2.0, recon_frames: int = 5,
+                 scalar_period_s: float = 0.2, max_image_bytes: int = 300 << 20,
+                 max_recon_events: int = 5_000_000, recording_id: str | None = None,
+                 min_free_bytes: int = 64 << 20,
+                 disk_free: Callable[[Path], int] = disk_free,
+                 max_unflushed_bytes: int = 4 << 20, finish_timeout_s: float = 3.0,
+                 truth: dict[str, tuple[np.ndarray, np.ndarray]] | None = None,
+                 serve_port: int | None = None, connect_url: str | None = None,
+                 app_id: str = APP_ID, started: str = "evcal service started"):
+        self.map_period_us = int(map_period_s * 1e6)
+        self.recon_period_us = int(recon_period_s * 1e6)
+        self.recon_frames = int(recon_frames)
+        self.scalar_period_us = int(scalar_period_s * 1e6)
+        self.max_image_bytes = int(max_image_bytes)
+        self.max_recon_events = int(max_recon_events)
+        self.image_bytes = 0
+        self._images_stopped = False
+        self._cams: dict[str, _CameraLog] = {}
+        self._lock = threading.Lock()
+        # camera -> (true c, true b) maps: error maps and c/b MAE curves are logged for them
+        self.truth = {k: (np.asarray(c, np.float64), np.asarray(b, np.float64))
+                      for k, (c, b) in (truth or {}).items()}
+        super().__init__(path, recording_id=recording_id, min_free_bytes=min_free_bytes,
+                         disk_free=disk_free, max_unflushed_bytes=max_unflushed_bytes,
+                         finish_timeout_s=finish_timeout_s, serve_port=serve_port,
+                         connect_url=connect_url, app_id=app_id, started=started,
+                         default_blueprint=make_blueprint([]))
+
+    def _n_cameras(self) -> int:
+        return len(self._cams)
+
+    def state(self) -> dict[str, Any]:
+        return super().state() | {"image_bytes": self.image_bytes}
+
 
     def _image_budget(self, nbytes: int, camera: str) -> bool:
         with self._lock:
@@ -950,23 +714,6 @@ class RrdLogger:
             self._set_time(None)
             self.rec.log(entity(camera, "log"), rr.TextLog(text, level=level))
 
-    def close(self) -> None:
-        """Flush and finish the file (footer included): the ``.rrd`` is complete after this,
-        within ``finish_timeout_s``. Never raises."""
-        if self._closed:
-            return
-        self._closed = True
-        if self.stopped is not None:
-            return  # already finished
-        if self._file.failure is None:  # its room is in the footer's reserve
-            try:
-                self._set_time(None)
-                self.rec.log("service", rr.TextLog("evcal service stopped", level="INFO"))
-            except Exception:  # noqa: BLE001
-                self.errors += 1
-        self._finish()
-        if self._file.failure is not None:
-            self.stopped, self.reason = self._file.failure[1], self._file.failure[0]
 
 
 def write_review(path: str | Path, rec: Recording, cal: Calibration, *,
