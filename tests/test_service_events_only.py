@@ -469,4 +469,46 @@ def test_events_only_noise_rate_published_queried_and_recorded(tmp_path: Path) -
             np.testing.assert_array_equal(sub["noise_rate_hz"], maps["noise_rate_hz"])
         assert sp.stop() == 0, sp.log_text()
     ents = read_entities(rrd)
-    assert ents.get(f"/cameras/{cam}/maps/noise_rate_hz", 0) >= 1, sorted(ents)
+    for name in ("maps/noise_rate_hz", "events", "recon/calibrated", "recon/di"):
+        assert ents.get(f"/cameras/{cam}/{name}", 0) >= 1, (name, sorted(ents))
+
+
+def test_events_only_review_integrates_the_events_between_maps(tmp_path: Path) -> None:
+    """The review of an events-only camera: between two map logs, its events' ON/OFF image
+    and their integration with the calibration (c P + b E) and with DI (0.1 P), on one
+    scale around mid-grey; a camera whose frames come stops counting for it."""
+    pytest.importorskip("rerun")
+    from rerun.chunk import RrdReader  # noqa: PLC0415
+
+    from evcal.service.rrdlog import RrdLogger, read_entities  # noqa: PLC0415
+
+    sensor = SensorSize(height=6, width=8)
+    ev = biased_events(sensor, 20_000, 2_000_000, seed=9)
+    cal = offe(Recording(sensor, ev, None))
+    log = RrdLogger(tmp_path / "eo.rrd", map_period_s=0.0, scalar_period_s=0.0)
+    status = {"method": "offe"}
+    noise = {"noise_rate_hz": np.ones(sensor.shape, np.float32)}
+    log.updated("eo", cal, 0, status, noise)  # starts counting
+    half = ev[: ev.size // 2]
+    log.events("eo", half)
+    log.updated("eo", cal, 1_000_000, status, noise)  # logs what came since
+    log.close()
+    ents = read_entities(log.path)
+    assert ents["/cameras/eo/recon/calibrated"] == ents["/cameras/eo/recon/di"] == 1
+    assert ents["/cameras/eo/events"] == 1
+    # the calibrated integration, as logged: c P + b E of the events, 128 where none
+    reader = RrdReader(str(log.path))
+    (store,) = reader.recordings()
+    logged = None
+    for chunk in reader.stream(store=store).collect().stream():
+        if str(chunk.entity_path) == "/cameras/eo/recon/calibrated":
+            batch = chunk.to_record_batch()
+            col = next(c for c in batch.schema.names if c.endswith(":buffer"))
+            logged = np.asarray(batch.column(col)[0].as_py()[0], np.uint8)
+    assert logged is not None
+    pix = half["y"].astype(np.int64) * sensor.width + half["x"]
+    p = np.bincount(pix, weights=half["p"], minlength=sensor.n_pixels).reshape(sensor.shape)
+    e = np.bincount(pix, minlength=sensor.n_pixels).reshape(sensor.shape)
+    expected = cal.contrast * p + cal.bias * e
+    order = np.argsort(expected.ravel())
+    assert np.all(np.diff(logged.astype(int)[order]) >= 0)  # monotone in c P + b E

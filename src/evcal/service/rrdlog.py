@@ -17,6 +17,11 @@ Entities, per camera (``<cam>`` is the camera id, which may have several chunks)
     cameras/<cam>/recon/calibrated   Image: events integrated with the live calibration
     cameras/<cam>/recon/di           Image: the same with direct integration (c=0.1, b=0)
     cameras/<cam>/recon/frame        Image: the reference frame at the end of the window
+    cameras/<cam>/maps/noise_rate_hz DepthImage: an events-only camera's events/s per pixel
+                                     (in its tab, in place of the reference frame); its
+                                     ``events`` and ``recon/calibrated``, ``recon/di`` are
+                                     the events between two of its map logs, integrated
+                                     with c P + b E and with 0.1 P (no frames)
     cameras/<cam>/series/<name>      Scalars: event_rate_hz, latency_ms, valid_fraction,
                                      psnr_calibrated_db, psnr_di_db, psnr_gain_db, errors,
                                      c_mae and b_mae (with the truth); each in a view of its
@@ -548,18 +553,43 @@ class RrdLogger(RrdStream):
             counts, cl.event_counts = cl.event_counts, None
             h, w = cl.shape
             if self._image_budget(3 * h * w, camera):
-                busy = counts[counts > 0]
-                scale = max(1.0, float(np.percentile(busy, 99))) if busy.size else 1.0
-                rgb = np.zeros((h, w, 3), np.uint8)
-                rgb[..., 0] = np.clip(counts[0] * (255.0 / scale), 0, 255).reshape(h, w)
-                rgb[..., 2] = np.clip(counts[1] * (255.0 / scale), 0, 255).reshape(h, w)
                 self._set_time(t_us)
-                self.rec.log(entity(camera, "events"), rr.Image(rgb))
+                self._log_counts(camera, cl.shape, counts)
             cl.last_events_t_us = t_us
             return
         if not self._images_stopped and (cl.last_events_t_us is None
                                          or t_us - cl.last_events_t_us >= self.map_period_us):
             cl.event_counts = np.zeros((2, cl.shape[0] * cl.shape[1]), np.int64)
+
+    def _log_counts(self, camera: str, shape: tuple[int, int], counts: np.ndarray) -> None:
+        """The ON (red) / OFF (blue) counts ``[2, pixels]`` of an interval as one image."""
+        h, w = shape
+        busy = counts[counts > 0]
+        scale = max(1.0, float(np.percentile(busy, 99))) if busy.size else 1.0
+        rgb = np.zeros((h, w, 3), np.uint8)
+        rgb[..., 0] = np.clip(counts[0] * (255.0 / scale), 0, 255).reshape(h, w)
+        rgb[..., 2] = np.clip(counts[1] * (255.0 / scale), 0, 255).reshape(h, w)
+        self.rec.log(entity(camera, "events"), rr.Image(rgb))
+
+    def _events_only_review(self, camera: str, cl: _CameraLog, cal: Calibration) -> None:
+        """An events-only camera (no frames to integrate between): the events since its
+        previous maps, their ON/OFF image and their integration, with the calibration (the
+        OffE model's log-intensity change ``c P + b E``, ``P`` the polarity sum and ``E`` the
+        count of each pixel) and with DI (``0.1 P``), both on one scale around mid-grey; then
+        counting starts again."""
+        counts, cl.event_counts = cl.event_counts, np.zeros((2, cal.contrast.size), np.int64)
+        if counts is None or not counts.any():
+            return
+        p = (counts[0] - counts[1]).reshape(cal.shape).astype(np.float64)
+        e = (counts[0] + counts[1]).reshape(cal.shape).astype(np.float64)
+        calibrated = cal.contrast * p + cal.bias * e
+        di = 0.1 * p
+        scale = max(float(np.percentile(np.abs(calibrated), 99)),
+                    float(np.percentile(np.abs(di), 99)), 1e-6)
+        self._log_counts(camera, cl.shape, counts)
+        for name, img in (("calibrated", calibrated), ("di", di)):
+            self.rec.log(entity(camera, "recon", name), rr.Image(
+                np.clip(np.rint(127.5 + 127.5 * img / scale), 0, 255).astype(np.uint8)))
 
     def _log_reconstruction(self, camera: str, r: Reconstruction) -> None:
         """Log what the core's :class:`~evcal.reconstruct.StreamingEvaluator` computed."""
@@ -583,8 +613,9 @@ class RrdLogger(RrdStream):
         extra = dict(extra_maps or {})
         maps = (cl is None or cl.last_map_t_us is None
                 or t_us - cl.last_map_t_us >= self.map_period_us)
-        nbytes = ((7 + (15 + len(extra)) * maps) * _ROW_BYTES
-                  + (31 + 4 * len(extra)) * int(cal.contrast.size) * maps)
+        events_only = status.get("method") == "offe"  # its events' image and integrations
+        nbytes = ((7 + (15 + len(extra) + 3 * events_only) * maps) * _ROW_BYTES
+                  + (31 + 4 * len(extra) + 5 * events_only) * int(cal.contrast.size) * maps)
         if cl is None:
             nbytes += 9 * _ROW_BYTES
         if cl is None or cl.method != status.get("method"):
@@ -609,6 +640,8 @@ class RrdLogger(RrdStream):
                                                   if method == "offe" else ""),
                     level="INFO"))
             new_view = (method == "offe") != (cl.method == "offe")
+            if cl.method == "offe":
+                cl.event_counts = None  # counted for the events-only review: frames came
             cl.method = method
             if new_view:  # the noise-rate view replaces the reference frame's, or leaves
                 self._send_blueprint()
@@ -625,12 +658,16 @@ class RrdLogger(RrdStream):
         if cl.last_map_t_us is not None and t_us - cl.last_map_t_us < self.map_period_us:
             return
         n_maps = 4 + 2 * (camera in self.truth)  # c, b, their errors (and vs truth)
+        events_only = method == "offe"  # and its events: an RGB image, two uint8 images
         if not self._image_budget(n_maps * (cal.contrast.size * 5) + cal.special.nbytes
-                                  + 4 * cal.contrast.size * len(extra_maps),
+                                  + (4 * len(extra_maps) + 5 * events_only)
+                                  * cal.contrast.size,
                                   camera):  # each a float32 map and a uint8 mask
             return
         cl.last_map_t_us = t_us
         self._log_maps(camera, cal)
+        if events_only:
+            self._events_only_review(camera, cl, cal)
         noise = extra_maps.get("noise_rate_hz")
         if noise is not None and noise.shape == cal.shape:
             # events/s per pixel: on a still scene the noise rate; the scale stops at the
