@@ -1,5 +1,6 @@
-"""The service's allocator policy (evcal.service.mallocpolicy), applied in a child process:
-freed memory is kept and every thread allocates from one arena."""
+"""The allocator policies (evcal.mallocpolicy), each applied in a child process: the
+service's keeps freed memory and has every thread allocate from one arena; the gap
+workflow's hands freed arrays back."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ from evcal.testing import python_env
 
 CHILD = """
 import threading, numpy as np
-from evcal.service.mallocpolicy import keep_freed_memory
+from evcal.mallocpolicy import keep_freed_memory
 print(keep_freed_memory())
 
 def faults():
@@ -50,3 +51,42 @@ def test_a_thread_reuses_freed_memory_instead_of_faulting_fresh_pages():
     assert int(kept[1]) < 1000
     off = _run({"EVCAL_MALLOC_KEEP": "0"})
     assert off[0] == "off (EVCAL_MALLOC_KEEP=0)"
+
+
+RETURN_CHILD = """
+import numpy as np
+from evcal.mallocpolicy import return_freed_memory
+print(return_freed_memory())
+
+def rss_mib():
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * 4096 / 2**20
+
+a = np.ones(16 << 20, np.uint8)
+del a  # glibc's adaptive threshold now serves arrays up to 16 MiB from the heap
+held = [np.ones(8 << 20, np.uint8) for _ in range(50)]
+# larger than any free chunk, so from the heap's top, above them: a heap shrinks from its
+# top only
+top = np.ones(12 << 20, np.uint8)
+before = rss_mib()
+del held
+print(before - rss_mib())
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux") or not ctypes.util.find_library("c"),
+                    reason="glibc's mallopt and /proc/self/statm")
+def test_the_batch_policy_hands_freed_arrays_back():
+    def freed(env_extra: dict[str, str]) -> tuple[str, float]:
+        env = dict(python_env(), **env_extra)
+        res = subprocess.run([sys.executable, "-c", RETURN_CHILD], capture_output=True,
+                             text=True, env=env, timeout=60, check=True)
+        what, mib = res.stdout.split("\n")[:2]
+        return what, float(mib)
+
+    what, mib = freed({})
+    assert what.startswith("returned:")
+    assert mib > 350  # the 400 MiB freed under a live array left the process
+    what, mib = freed({"EVCAL_MALLOC_RETURN": "0"})
+    assert what == "off (EVCAL_MALLOC_RETURN=0)"
+    assert mib < 50  # glibc's default: kept in the heap, under ``top``

@@ -292,7 +292,7 @@ def main_serve(argv: Sequence[str] | None = None) -> int:
         print(f"evcal serve: {exc}", file=sys.stderr)
         return 2
     warn_if_scouting(zopts, config.prefix)
-    from .mallocpolicy import keep_freed_memory
+    from ..mallocpolicy import keep_freed_memory
     from .server import run
 
     malloc = keep_freed_memory()  # freed maps and messages reused: no page faults per update
