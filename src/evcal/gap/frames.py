@@ -29,7 +29,8 @@ import numpy as np
 
 from ..recording import Frames, Recording
 from ..sim.effects import ApsFpn, Effect, Exposure
-from .stats import Observation, fit_from_sums, residual_from_sums, window_sums
+from .pixelfit import fit_from_sums, residual_from_sums, window_sums
+from .stats import Observation
 
 if TYPE_CHECKING:
     from .model import Model

@@ -1,0 +1,478 @@
+"""Moment estimators of the candidate effects ``refractory``, ``shot_noise``,
+``hot_pixels``, ``threshold_noise``, ``bandwidth``, ``log_offset``, ``timestamp_jitter``
+and ``timestamp_quantisation`` (fitters of :data:`evcal.gap.model.FITTERS`; those of the
+APS frames are in :mod:`evcal.gap.frames`, of ``leak``, ``threshold_light`` and
+``row_noise`` in :mod:`evcal.gap.fitters_events`).
+
+Each takes the measured observation, the current model's simulations, the model and the
+recording, and returns the effect with estimated parameters, or ``None`` when the data show
+none of it (e.g. no excess of events where the effect would add them). Most compare a
+statistic of the measurement with the same statistic of the simulations, so what the frames
+and the interpolation do to it alike in both cancels.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from ..errors import CalibrationError
+from ..offline import OffEIConfig, estimate_log_offset
+from ..recording import Recording
+from ..sim.effects import (
+    Bandwidth,
+    Effect,
+    HotPixels,
+    LogOffset,
+    Refractory,
+    ShotNoise,
+    ThresholdNoise,
+    TimestampJitter,
+    TimestampQuantisation,
+)
+from ..stream import event_windows
+from .pixelfit import fit_from_sums, lowpass_log_changes, residual_from_sums, window_sums
+from .stats import (
+    NOMINAL_LOG_OFFSET_DN,
+    Observation,
+    StatValue,
+    _fit,
+    _iei,
+    _static,
+    discrepancy,
+    every_nth_row,
+    timestamp_quantum,
+)
+
+if TYPE_CHECKING:
+    from .model import Model
+
+
+def _hot_excess(meas: Observation, sims: list[Observation]) -> Any:
+    n = meas.n_pixels
+    dur = (meas.frame_t_us[-1] - meas.frame_t_us[0]) * 1e-6
+    cm = np.bincount(meas.pix, minlength=n).astype(np.float64)
+    cs = np.mean([np.bincount(s.pix, minlength=n) for s in sims], axis=0)
+    ex = cm - cs
+    z = ex / np.sqrt(cs + 1.0 + (0.3 * cs) ** 2)
+    return cm, cs, ex, z, dur
+
+
+def fit_refractory(meas: Observation, sims: list[Observation], model: Model,
+                   rec: Recording) -> Effect | None:
+    cm, cs, ex, z, dur = _hot_excess(meas, sims)
+    keep = cm <= np.quantile(cm, 0.99)
+    iei_m, _, pix_pairs = _iei(meas)
+    iei_m = iei_m[keep[pix_pairs]]
+    iei_s = np.concatenate([_iei(s)[0] for s in sims])
+    if iei_m.size < 50 or iei_s.size < 50:
+        return None
+    k = max(5, int(1e-4 * iei_m.size))
+    p = float(np.partition(iei_m, k)[k])
+    if np.mean(iei_s < p) < 2e-3 or p < 2:
+        # nothing is missing below the shortest intervals: unless noise events (which a
+        # sensor's dead time does not hold back the same way, and which the model may
+        # already make) fill them, while the pairs of signal events are missing
+        p_def = _refractory_deficit(iei_m, [_iei(s)[0][keep[_iei(s)[2]]] for s in sims])
+        if p_def is None:
+            return None
+        p = p_def
+    pile_m = np.mean((iei_m >= p) & (iei_m < 1.05 * p + 2))
+    pile_s = np.mean((iei_s >= p) & (iei_s < 1.05 * p + 2))
+    mode = "delay" if pile_m > 3 * pile_s + 2e-3 else "drop"
+    return Refractory(period_us=round(p, 1), mode=mode)
+
+
+def _refractory_deficit(iei_m: np.ndarray, iei_s: list[np.ndarray], *,
+                        per_decade: int = 32) -> float | None:
+    """A dead time seen as the same-pixel pairs the measurement lacks at short intervals,
+    when noise events fill the very shortest intervals of both (so the shortest interval
+    says nothing). The missing pairs below ``x``, ``D(x) = N_sim(< x) - N_meas(< x)`` (the
+    simulations' count scaled to the measured number of pairs), grow with ``x`` up to the
+    period and no further: above it the sensor makes pairs as the model does (``drop``: a
+    plateau) or piles the delayed ones there (``delay``: ``D`` falls). The period is the
+    shortest ``x`` where ``D`` is within its counting noise (2 sigma, plus 2 %) of its
+    maximum; ``None`` unless the pairs missing there are at least 30 % of the simulated ones
+    and 5 sigma of their count."""
+    if iei_m.size < 50 or not iei_s or min(x.size for x in iei_s) < 50:
+        return None
+    grid = 10 ** np.arange(1.0, 4.6 + 1e-9, 1.0 / per_decade)  # 10 us .. 40 ms
+    n_m = np.searchsorted(np.sort(iei_m), grid).astype(np.float64)
+    n_s = np.mean([np.searchsorted(np.sort(x), grid) * (iei_m.size / x.size)
+                   for x in iei_s], axis=0)
+    d = n_s - n_m
+    j_max = int(np.argmax(d))
+    if d[j_max] <= 0:
+        return None
+    tol = 2.0 * np.sqrt(max(float(n_s[j_max]), 1.0)) + 0.02 * float(d[j_max])
+    j = int(np.flatnonzero(d >= d[j_max] - tol)[0])
+    if d[j] < 0.3 * n_s[j] or d[j] < 5 * np.sqrt(max(n_s[j], 1.0)):
+        return None
+    return float(grid[j])
+
+
+def _static_excess(meas: Observation, sims: list[Observation], pol: int) -> Any:
+    st = _static(meas)
+    if st.sum() < 50:
+        return None
+    cnt_m = meas.on if pol > 0 else meas.off
+    cnt_s = np.mean([(s.on if pol > 0 else s.off) for s in sims], axis=0)
+    cm, cs, ex, z, dur = _hot_excess(meas, sims)
+    keep = (cm <= np.quantile(cm, 0.99))[None, :] & st
+    i_mid = 0.5 * (meas.intensity[1:] + meas.intensity[:-1])
+    ws = np.broadcast_to(meas.window_s[:, None], st.shape)
+    return (cnt_m - cnt_s)[keep], i_mid[keep], ws[keep]
+
+
+def fit_shot_noise(meas: Observation, sims: list[Observation], model: Model,
+                   rec: Recording) -> Effect | None:
+    # rate(I) = r (ref / I)**e, half of the events of each sign: per exponent on a grid,
+    # r by least squares of the still windows' excess counts; the exponent whose fit leaves
+    # the least residual (both signs together), r the smaller sign's (a leak adds ON)
+    ref = ShotNoise().ref_dn
+    parts = []
+    for pol in (+1, -1):
+        r = _static_excess(meas, sims, pol)
+        if r is None:
+            return None
+        parts.append(r)
+    best: tuple[float, float, float] | None = None
+    for e in np.arange(0.0, 1.51, 0.25):
+        rates, ss = [], 0.0
+        for ex, i, ws in parts:
+            x = 0.5 * (ref / np.maximum(i, ShotNoise().min_dn)) ** e * ws
+            r_e = float((x * ex).sum() / max((x * x).sum(), 1e-12))
+            rates.append(r_e)
+            ss += float(((ex - r_e * x) ** 2).sum())
+        if best is None or ss < best[0]:
+            best = (ss, float(e), min(rates))
+    assert best is not None
+    _, e, rate = best
+    if rate <= 0:
+        return None
+    return ShotNoise(rate_hz=round(rate, 4), ref_dn=ref, light_exponent=e)
+
+
+def fit_hot_pixels(meas: Observation, sims: list[Observation], model: Model,
+                   rec: Recording) -> Effect | None:
+    # hot pixels fire when the scene is still: compare per-pixel counts in still windows
+    st = _static(meas)
+    t_still = (st * meas.window_s[:, None]).sum(0)
+    if t_still.max() <= 0:
+        return None
+    em = ((meas.on + meas.off) * st).sum(0).astype(np.float64)
+    es = np.mean([((s.on + s.off) * st).sum(0) for s in sims], axis=0)
+    ex = em - es
+    z = ex / np.sqrt(es + 1.0 + (0.3 * es) ** 2)
+    hot = (z > 5) & (ex > 10.0 * t_still) & (t_still > 0.05 * t_still.max())
+    if not hot.any():
+        return None
+    rate = float(np.median(ex[hot] / t_still[hot]))
+    pm = ((meas.on - meas.off) * st).sum(0)[hot].sum()
+    ps = np.mean([((s.on - s.off) * st).sum(0)[hot].sum() for s in sims])
+    on_frac = float(np.clip(0.5 + 0.5 * (pm - ps) / max(ex[hot].sum(), 1), 0, 1))
+    # pixels never still cannot be tested: the fraction is that of the testable ones
+    frac = float(hot.sum() / max((t_still > 0.05 * t_still.max()).sum(), 1))
+    return HotPixels(fraction=round(frac, 6), rate_hz=round(rate, 3),
+                     on_fraction=round(on_frac, 3))
+
+
+def _threshold_slope(obs: Observation) -> float:
+    f = _fit(obs)
+    m = np.isfinite(f["res"]) & (f["E"] > 0)
+    c = np.where(f["ok"], f["c"], np.nan)
+    y = (f["res"] / c[None, :]) ** 2
+    y, x = y[m], f["E"][m]
+    good = np.isfinite(y)
+    y, x = y[good], x[good]
+    if x.size < 20:
+        return float("nan")
+    xm, ym = x.mean(), y.mean()
+    return float(((x - xm) * (y - ym)).sum() / max(((x - xm) ** 2).sum(), 1e-12))
+
+
+def fit_threshold_noise(meas: Observation, sims: list[Observation], model: Model,
+                        rec: Recording) -> Effect | None:
+    sm = _threshold_slope(meas)
+    ss = np.nanmean([_threshold_slope(s) for s in sims])
+    d = sm - ss
+    if not np.isfinite(d) or d <= 0:
+        return None
+    if d > 1.0:
+        # no threshold noise (sigma <= 1) makes this much residual: something else does
+        return None
+    return ThresholdNoise(sigma=round(float(np.sqrt(d)), 4))
+
+
+def _filter_fit_error(obs: Observation, cutoff_hz: float, offset: float) -> float:
+    """Unexplained fraction of ``dLf = c P + b E`` where ``Lf`` is the frames' log intensity
+    through the bandwidth low-pass with this cutoff (per pixel, at frame rate). Kept in
+    ``obs.extra`` (the measurement's is asked for again every round)."""
+    key = f"bandwidth_fit_error/{float(cutoff_hz)!r}/{float(offset)!r}"
+    if key in obs.extra:
+        cached: float = obs.extra[key]
+        return cached
+    f = _fit(obs)
+    dlf = lowpass_log_changes(np.ascontiguousarray(obs.intensity),
+                              np.ascontiguousarray(obs.window_s, np.float64), float(offset),
+                              float(cutoff_hz), float(Bandwidth().ref_dn))
+    sums = window_sums(f["P"], f["E"], dlf, obs.usable.astype(np.float64))
+    c, b, ok = fit_from_sums(*sums[:6])
+    ssr = residual_from_sums(sums, np.nan_to_num(c), np.nan_to_num(b))
+    err = float(ssr[ok].sum() / max(float(sums[6][ok].sum()), 1e-12))
+    obs.extra[key] = err
+    return err
+
+
+def fit_bandwidth(meas: Observation, sims: list[Observation], model: Model,
+                  rec: Recording) -> Effect | None:
+    grid = np.geomspace(2.0, 2000.0, 19)
+    err = np.array([_filter_fit_error(meas, g, model.log_offset) for g in grid])
+    i = int(np.argmin(err))
+    if i == grid.size - 1:
+        return None  # the faster the better: no bandwidth limit visible
+    f = float(grid[i])
+    if 0 < i:
+        x = np.log(grid[i - 1 : i + 2])
+        y = err[i - 1 : i + 2]
+        den = y[0] - 2 * y[1] + y[2]
+        if den > 0:
+            f = float(np.exp(x[1] + 0.5 * (x[1] - x[0]) * (y[0] - y[2]) / den))
+    return Bandwidth(cutoff_hz=round(f, 3))
+
+
+def fit_log_offset(meas: Observation, sims: list[Observation], model: Model,
+                   rec: Recording) -> Effect | None:
+    cfg = OffEIConfig(window_frames=max(1, min(5, len(rec.frames) // 4)))
+    try:
+        o, _ = estimate_log_offset(rec, cfg)
+    except (CalibrationError, ValueError):
+        return None
+    if o < 2 * NOMINAL_LOG_OFFSET_DN:
+        return None
+    return LogOffset(dark_dn=round(float(o), 3))
+
+
+def _jitter_times(t_us: np.ndarray, sigma_us: float, quantum_us: int,
+                  rng: np.random.Generator) -> np.ndarray:
+    """Event times (us) with Gaussian jitter ``sigma_us``, then quantised to ``quantum_us``."""
+    t = t_us + np.rint(rng.normal(0, sigma_us, t_us.size)).astype(np.int64)
+    if quantum_us > 1:
+        t = (t // quantum_us) * quantum_us
+    return t
+
+
+def _short_iei_stats(pix: np.ndarray, t_us: np.ndarray) -> dict[str, StatValue]:
+    """log10 of the share of same-pixel IEIs below 3, 10, 30, 100, 300 us, and the timestamp
+    quantum statistic, of events in any order."""
+    x = np.array([3.0, 10.0, 30.0, 100.0, 300.0])
+    if t_us.size < 2:
+        frac = np.zeros(5)
+    else:
+        t_rel = t_us - t_us.min()
+        if t_rel.max() < 1 << 40:
+            # one sort of (pixel, time) packed in an int64 (times up to 12 days)
+            key = np.sort((pix.astype(np.int64) << 40) | t_rel)
+            same = (key[1:] >> 40) == (key[:-1] >> 40)
+            iei = np.diff(key)[same]
+        else:
+            order = np.lexsort((t_rel, pix))
+            same = pix[order][1:] == pix[order][:-1]
+            iei = np.diff(t_rel[order])[same]
+        frac = np.array([np.mean(iei < v) for v in x]) if iei.size else np.zeros(5)
+    short = StatValue("short_iei", np.log10(frac + 1e-5), [f"IEI < {v:g} us" for v in x], 0.02)
+    return {"short_iei": short, "timestamp_quantum": timestamp_quantum(t_us)}
+
+
+SPILL_DL_EDGES = np.array([-np.inf, 0.05, 0.15, 0.3, 0.6, np.inf])
+
+
+class _SpillResidual:
+    """RMS of the per-window fit residual ``dL - c P - b E`` in bins of abs(dL) (the fit
+    redone per pixel), after moving the events of ``obs`` to new times.
+
+    Jittered events cross frame boundaries into the neighbouring window, one threshold of
+    residual each; how many do is first order in the event rate at the boundaries. Frame times
+    fall at random phases of the scene's motion, so that rate is the same for measured events
+    and for simulations driven by interpolated frames, however either spreads its events
+    within a frame interval (pair statistics such as short IEIs are not: linear
+    interpolation spaces a pixel's events more evenly than a real edge does).
+
+    The fit needs per-pixel sums only; they are kept per (abs(dL) bin, pixel) and updated
+    in the windows that moved events leave or enter, so a new set of times costs in
+    proportion to the events that change window.
+    """
+
+    # per cell: P P, P E, E E, P dL, E dL, E, dL dL (weighted by usable)
+    _N_SUMS = 7
+
+    def __init__(self, obs: Observation):
+        f = _fit(obs)
+        n_w, npix = obs.on.shape
+        self.ft = obs.frame_t_us
+        self.npix = npix
+        self.n_cells = n_w * npix
+        self.pix = obs.pix.astype(np.int64)
+        self.pol = obs.p.astype(np.float64)
+        win = event_windows(obs.t_us, self.ft)
+        # events outside the frames go to a spare last cell
+        self.key0 = np.where((win >= 0) & (win < n_w), win * npix + self.pix, self.n_cells)
+        self.P = f["P"].ravel()
+        self.E = f["E"].ravel()
+        self.dL = f["dL"].ravel()
+        self.w = obs.usable.astype(np.float64).ravel()
+        self.nb = SPILL_DL_EDGES.size - 1
+        b = np.clip(np.searchsorted(SPILL_DL_EDGES, np.abs(self.dL), side="right") - 1,
+                    0, self.nb - 1)
+        # (bin, pixel) index of every cell
+        self.bp = b * npix + np.tile(np.arange(npix), n_w)
+        self.sums = self._cell_sums(np.arange(self.n_cells), self.P, self.E)
+        self.count = np.bincount(self.bp, weights=self.w, minlength=self.nb * npix
+                                 ).reshape(self.nb, npix)
+
+    def _cell_sums(self, cells: np.ndarray, P: np.ndarray, E: np.ndarray) -> np.ndarray:
+        w, y, bp = self.w[cells], self.dL[cells], self.bp[cells]
+        terms = (P * P, P * E, E * E, P * y, E * y, E, y * y)
+        n = self.nb * self.npix
+        return np.stack([np.bincount(bp, weights=w * t, minlength=n) for t in terms]
+                        ).reshape(self._N_SUMS, self.nb, self.npix)
+
+    def stat(self, t_us: np.ndarray | None = None) -> StatValue:
+        sums = self.sums
+        if t_us is not None:
+            n_w = self.ft.size - 1
+            win = event_windows(t_us, self.ft)
+            key = np.where((win >= 0) & (win < n_w), win * self.npix + self.pix, self.n_cells)
+            moved = np.flatnonzero(key != self.key0)
+            if moved.size:
+                keys = np.concatenate([key[moved], self.key0[moved]])
+                cells, inv = np.unique(keys, return_inverse=True)
+                k = moved.size
+                dp = np.bincount(inv, weights=np.concatenate([self.pol[moved],
+                                                              -self.pol[moved]]))
+                de = np.bincount(inv, weights=np.concatenate([np.ones(k), -np.ones(k)]))
+                inside = cells < self.n_cells
+                cells, dp, de = cells[inside], dp[inside], de[inside]
+                p0, e0 = self.P[cells], self.E[cells]
+                sums = (sums + self._cell_sums(cells, p0 + dp, e0 + de)
+                        - self._cell_sums(cells, p0, e0))
+        spp, spe, see, spy, sey, sev, syy = sums
+        c, b, ok = fit_from_sums(spp.sum(0), spe.sum(0), see.sum(0), spy.sum(0), sey.sum(0),
+                                 sev.sum(0))
+        c, b = np.where(ok, c, 0.0), np.where(ok, b, 0.0)
+        # sum of squared residuals per (bin, pixel), expanded
+        ss = (syy - 2 * c * spy - 2 * b * sey + c * c * spp + 2 * c * b * spe + b * b * see)
+        n_bin = (self.count * ok).sum(1)
+        v = np.sqrt(np.maximum((ss * ok).sum(1), 0.0) / np.maximum(n_bin, 1))
+        labels = [f"|dL| {lo:.3g}..{hi:.3g}" for lo, hi in zip(SPILL_DL_EDGES[:-1],
+                                                               SPILL_DL_EDGES[1:], strict=True)]
+        return StatValue("spill_residual", v, labels, 0.003)
+
+
+def _grid_minimum(grid: np.ndarray, gaps: np.ndarray) -> float:
+    """Grid point of the smallest gap, refined by a parabola in log(grid)."""
+    i = int(np.argmin(gaps))
+    sigma = float(grid[i])
+    if 1 < i < grid.size - 1:
+        x = np.log(grid[i - 1 : i + 2])
+        y = gaps[i - 1 : i + 2]
+        den = y[0] - 2 * y[1] + y[2]
+        if den > 0:
+            sigma = float(np.exp(x[1] + 0.5 * (x[1] - x[0]) * (y[0] - y[2]) / den))
+    return sigma
+
+
+# a drop of the spill residual's discrepancy (mean z^2) below which it does not see the jitter
+SPILL_MIN_DROP = 1.0
+# how far the spill estimate may lie from the short-IEI one (which interpolated frames bias by
+# up to about 1.5x) and still be taken as the size of the same jitter
+SPILL_IEI_RATIO = 2.0
+JITTER_EVENTS = 500_000  # measured events the jitter fitter's curves are made of, about
+JITTER_GRID_US = np.concatenate([[0.0], np.geomspace(3, 3000, 16)])
+
+
+def _jitter_curves(meas: Observation, sims: list[Observation], q_hat: int
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Gaps of the short-IEI statistics and of the spill residual against the simulated
+    events jittered by each sigma of :data:`JITTER_GRID_US` (and quantised to ``q_hat``)."""
+    rng = np.random.default_rng(12345)
+    m_iei = _short_iei_stats(meas.pix, meas.t_us)
+    m_spill = {"spill_residual": _SpillResidual(meas).stat()}
+    spills = [_SpillResidual(s) for s in sims]
+    g_iei, g_spill = [], []
+    for sg in JITTER_GRID_US:
+        ts = [_jitter_times(s.t_us, sg, q_hat, rng) for s in sims]
+        g_iei.append(discrepancy(m_iei, [_short_iei_stats(s.pix, t)
+                                         for s, t in zip(sims, ts, strict=True)]).gap)
+        g_spill.append(discrepancy(m_spill, [{"spill_residual": sp.stat(t)}
+                                             for sp, t in zip(spills, ts, strict=True)]).gap)
+    return np.asarray(g_iei), np.asarray(g_spill)
+
+
+def fit_timestamp_jitter(meas: Observation, sims: list[Observation], model: Model,
+                         rec: Recording) -> Effect | None:
+    """Quantum from the residues of the timestamps; sigma by jittering the simulated events on
+    a grid (no re-simulation) and matching two statistics.
+
+    The short IEIs (below 300 us) say whether there is jitter and roughly how much, but the
+    frame interpolation biases them: its events are spaced more evenly than real ones, so the
+    simulations have fewer close pairs for the jitter to bring together and need a larger
+    sigma (about 1.4x at 500 us). The spill residual (:class:`_SpillResidual`) measures sigma
+    without that bias but also grows with other effects (bandwidth, refractory), so it gives
+    sigma only where it sees a change and agrees with the IEIs within a factor
+    :data:`SPILL_IEI_RATIO`; otherwise the IEI estimate stands.
+    """
+    t = meas.t_us
+    q_hat = 1
+    for q in (2, 5, 10, 20, 50, 100, 200, 500, 1000):
+        res = t % q
+        share = np.bincount(res, minlength=q).max() / max(t.size, 1)
+        if share >= 0.99:
+            q_hat = q
+    # the curves are per-pixel statistics: a sample of rows holding about JITTER_EVENTS
+    # events gives them (the grid jitters every event of it again for each sigma)
+    n = int(np.clip(np.ceil(meas.t_us.size / JITTER_EVENTS), 1, 8))
+    g_iei, g_spill = _jitter_curves(every_nth_row(meas, n), [every_nth_row(s, n) for s in sims],
+                                    q_hat)
+    if int(np.argmin(g_iei)) == 0 and q_hat == 1:
+        return None
+    sigma = _grid_minimum(JITTER_GRID_US, g_iei)
+    s_spill = _grid_minimum(JITTER_GRID_US, g_spill)
+    if (g_spill[0] - g_spill.min() > SPILL_MIN_DROP
+            and sigma / SPILL_IEI_RATIO <= s_spill <= sigma * SPILL_IEI_RATIO):
+        sigma = s_spill
+    return TimestampJitter(sigma_us=round(sigma, 2), quantum_us=int(q_hat))
+
+
+def fit_timestamp_quantisation(meas: Observation, sims: list[Observation], model: Model,
+                               rec: Recording) -> Effect | None:
+    """Step and phase from the timestamps that many events share: a frame-driven simulator
+    gives the events of a step a few shared times (fractions of the step; the busiest pixel's
+    last event, and with ``scheme="end"`` every event, the step's end), so the most crowded
+    timestamps lie on a grid. The step is the most common spacing of the crowded timestamps,
+    the phase the residue of the most distinct timestamps (each step's end); the effect is
+    proposed only if many more measured events than simulated ones lie on that grid."""
+    t = meas.t_us
+    u, cnt = np.unique(t, return_counts=True)
+    if u.size < 50:
+        return None
+    top = u[cnt >= max(float(np.quantile(cnt, 0.95)), 3.0)]
+    d = np.diff(top)
+    d = d[(d > 0) & (d <= 1_000_000)]
+    if d.size < 10:
+        return None
+    step = int(np.bincount(d).argmax())
+    if step < 2:
+        return None
+    # every step with events has one at its end, whatever its n_max: the residue shared by
+    # the most distinct timestamps
+    phase = int(np.bincount(u % step, minlength=step).argmax())
+    on_grid = float(np.mean(t % step == phase))
+    sim_on_grid = float(np.mean([np.mean(s.t_us % step == phase) for s in sims])) \
+        if sims else 1.0 / step
+    if on_grid < 5 * sim_on_grid + 0.02:
+        return None
+    t0 = int(rec.frames.t_us[0])
+    return TimestampQuantisation(step_us=float(step), scheme="end" if on_grid > 0.9
+                                 else "spread", phase_us=float((phase - t0) % step))

@@ -1,0 +1,115 @@
+"""The per-pixel fit ``dL = c P + b E`` over frame windows, from per-pixel weighted sums.
+
+Per window and pixel ``P = ON - OFF``, ``E = ON + OFF`` and ``dL`` the change of the frames'
+log intensity (see :mod:`evcal.gap.stats`). :func:`window_sums` adds up, per pixel and in
+one pass over the windows, the weighted products the least squares needs;
+:func:`fit_from_sums` solves them with the estimators' solve (:mod:`evcal.solver`) and
+:func:`residual_from_sums` gives the sum of squared residuals without a second pass. The
+statistics (:func:`evcal.gap.stats._fit`), the APS-frame fitters (:mod:`evcal.gap.frames`)
+and the bandwidth fitter (:mod:`evcal.gap.fitters`, through
+:func:`lowpass_log_changes`) all fit through here.
+"""
+
+# @numba.njit is untyped (the kernels themselves are annotated), as for the modules listed
+# in pyproject.toml's mypy overrides
+# mypy: disallow-untyped-decorators=False
+
+from __future__ import annotations
+
+from typing import Any
+
+import numba
+import numpy as np
+
+from ..solver import NormalEquations, SolveLimits, solve_pixels
+
+MIN_FIT_EVENTS = 10
+
+
+@numba.njit(cache=True, nogil=True)
+def _window_sums(P: np.ndarray, E: np.ndarray, dL: np.ndarray, w: np.ndarray, split: int
+                 ) -> Any:  # pragma: no cover - compiled
+    """Per pixel, over the windows before ``split`` ([0]) and from it on ([1]): the weighted
+    sums of P P, P E, E E, P dL, E dL, E and dL dL (one pass over the windows)."""
+    n_w, npix = P.shape
+    out = np.zeros((2, 7, npix))
+    for k in range(n_w):
+        h = 0 if k < split else 1
+        for i in range(npix):
+            wi = np.float64(w[k, i])
+            if wi == 0.0:
+                continue
+            p = np.float64(P[k, i])
+            e = np.float64(E[k, i])
+            y = np.float64(dL[k, i])
+            out[h, 0, i] += wi * p * p
+            out[h, 1, i] += wi * p * e
+            out[h, 2, i] += wi * e * e
+            out[h, 3, i] += wi * p * y
+            out[h, 4, i] += wi * e * y
+            out[h, 5, i] += wi * e
+            out[h, 6, i] += wi * y * y
+    return out
+
+
+def window_sums(P: np.ndarray, E: np.ndarray, dL: np.ndarray, wgt: np.ndarray,
+                split: int | None = None) -> np.ndarray:
+    """Per-pixel weighted sums ``[7, npix]`` of P P, P E, E E, P dL, E dL, E, dL dL over the
+    windows (``[2, 7, npix]``: before and from window ``split``, when given)."""
+    arrs = [np.ascontiguousarray(a) for a in (P, E, dL, wgt)]
+    n_w = arrs[0].shape[0]
+    out: np.ndarray = _window_sums(*arrs, n_w if split is None else int(split))
+    return out[0] if split is None else out
+
+
+@numba.njit(cache=True, nogil=True)
+def lowpass_log_changes(intensity: Any, window_s: Any, offset: float, cutoff_hz: float,
+                         ref_dn: float) -> Any:  # pragma: no cover - compiled
+    """Per window and pixel, the change of the frames' log intensity (``[K, N]`` DN, log of
+    ``I + offset``) through the bandwidth low-pass of cutoff ``cutoff_hz (I + offset) /
+    ref_dn`` (at least 0.5 Hz), sampled at frame rate: ``[K - 1, N]``."""
+    k_n, n = intensity.shape
+    out = np.empty((max(k_n - 1, 0), n))
+    for i in range(n):
+        lf = np.log(np.float64(intensity[0, i]) + offset)
+        for k in range(1, k_n):
+            x = np.float64(intensity[k, i]) + offset
+            fc = max(0.5, cutoff_hz * x / ref_dn)
+            alpha = 1.0 - np.exp(-2.0 * np.pi * fc * window_s[k - 1])
+            new = lf + alpha * (np.log(x) - lf)
+            out[k - 1, i] = new - lf
+            lf = new
+    return out
+
+
+def fit_pixels(P: np.ndarray, E: np.ndarray, dL: np.ndarray, wgt: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Closed-form per-pixel least squares of ``dL = c P + b E``; returns ``c, b, ok``."""
+    return fit_from_sums(*window_sums(P, E, dL, wgt)[:6])
+
+
+def residual_from_sums(sums: np.ndarray, c: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Per pixel, the weighted sum of squared residuals ``dL - c P - b E`` from the sums of
+    :func:`window_sums` (expanded: no second pass over the windows)."""
+    spp, spe, see, spy, sey, _, syy = sums
+    ss = syy - 2 * c * spy - 2 * b * sey + c * c * spp + 2 * c * b * spe + b * b * see
+    out: np.ndarray = np.maximum(ss, 0.0)
+    return out
+
+
+def fit_from_sums(spp: np.ndarray, spe: np.ndarray, see: np.ndarray, spy: np.ndarray,
+                  sey: np.ndarray, n_ev: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`fit_pixels` from the per-pixel weighted sums of ``P P``, ``P E``, ``E E``,
+    ``P dL``, ``E dL`` and ``E``: the estimators' solve (:func:`evcal.solver.solve_pixels`,
+    no residual correction, at least :data:`MIN_FIT_EVENTS` events), NaN where not trusted."""
+    n = int(np.size(spp))
+    ne = NormalEquations(n)
+    for name, v in (("pp", spp), ("pe", spe), ("ee", see), ("py", spy), ("ey", sey)):
+        getattr(ne, name)[:] = np.ravel(v)
+    sol = solve_pixels(ne, np.floor(np.ravel(n_ev)).astype(np.int64),
+                       limits=SolveLimits(min_events=MIN_FIT_EVENTS, min_equations=0.0))
+    ok = sol.valid.reshape(np.shape(spp))
+    c = np.where(ok, sol.c.reshape(ok.shape), np.nan)
+    b = np.where(ok, sol.b.reshape(ok.shape), np.nan)
+    return c, b, ok
