@@ -11,7 +11,7 @@ import numpy as np
 from ..errors import ErrorReason
 from ..events import EVENTS_DTYPE, SensorSize
 from ..jsonable import dumps
-from ..recording import RecordingError
+from ..recording import Frames, Recording, RecordingError
 from ._partial import zip_cut
 
 
@@ -47,6 +47,18 @@ def check_sensor_arg(found: SensorSize, given: SensorSize | None, where: str) ->
             f"{where}: the file declares a {found} sensor, but sensor={given} was given"
         )
     return found
+
+
+def file_recording(path: str | Path, sensor: SensorSize, events: np.ndarray,
+                   frames: Frames | None, metadata: dict[str, Any]) -> Recording:
+    """The :class:`Recording` a reader returns (no frames: an empty :class:`Frames`), a check
+    it fails named after the file it was read from."""
+    try:
+        return Recording(sensor=sensor, events=events,
+                         frames=frames if frames is not None else Frames.empty(0, 0),
+                         metadata=metadata)
+    except RecordingError as exc:
+        raise RecordingError(f"{path}: {exc}") from None
 
 
 def load_npz_arrays(path: str | Path, error: type[Exception], what: str = ""

@@ -36,7 +36,7 @@ from ._partial import (
     refuse_empty_file,
     report_cut,
 )
-from ._util import check_sensor_arg
+from ._util import check_sensor_arg, file_recording
 
 AEDAT4_MAGIC = b"#!AER-DAT4.0\r\n"
 _COMPRESSIONS = {0: "none", 1: "lz4", 2: "lz4", 3: "zstd", 4: "zstd"}
@@ -295,9 +295,4 @@ def read_aedat4(path: str | os.PathLike[str], *, sensor: SensorSize | None = Non
     }
     if truncated is not None:
         metadata["truncated"] = truncated
-    try:
-        return Recording(sensor=found, events=events,
-                         frames=frames if frames is not None else Frames.empty(0, 0),
-                         metadata=metadata)
-    except RecordingError as exc:
-        raise RecordingError(f"{path}: {exc}") from None
+    return file_recording(path, found, events, frames, metadata)

@@ -34,7 +34,7 @@ from ..events import SensorSize
 from ..recording import Frames, Recording, RecordingError, concat_events
 from ._mcap_partial import McapPrefix, mcap_is_whole, scan_mcap_prefix
 from ._partial import nothing_whole, report_cut
-from ._util import check_sensor_arg, metadata_from_json, metadata_to_json
+from ._util import check_sensor_arg, file_recording, metadata_from_json, metadata_to_json
 from .wire import WireError, decode_events, decode_frame, encode_events, encode_frame
 
 EVENTS_TOPIC = "/events"
@@ -46,16 +46,20 @@ EVENTS_SCHEMA_NAME = "evcal.EventChunk"
 FRAME_SCHEMA_NAME = "evcal.Frame"
 
 _BIN = {"type": "string", "contentEncoding": "binary"}  # msgpack bin
+# the fields every message's envelope starts with (io.wire)
+_ENVELOPE: dict[str, Any] = {
+    "version": {"type": "integer", "const": 1},
+    "height": {"type": "integer", "minimum": 1, "maximum": 65535},
+    "width": {"type": "integer", "minimum": 1, "maximum": 65535},
+    "seq": {"type": "integer", "minimum": 0},
+}
 EVENTS_SCHEMA: dict[str, Any] = {
     "title": EVENTS_SCHEMA_NAME,
     "description": "msgpack map; t_us/x/y/p are raw little-endian arrays of n values "
                    "(<i8, <u2, <u2, i1 with p in {-1, +1}), sorted by t_us",
     "type": "object",
     "properties": {
-        "version": {"type": "integer", "const": 1},
-        "height": {"type": "integer", "minimum": 1, "maximum": 65535},
-        "width": {"type": "integer", "minimum": 1, "maximum": 65535},
-        "seq": {"type": "integer", "minimum": 0},
+        **_ENVELOPE,
         "n": {"type": "integer", "minimum": 0},
         "t_us": _BIN, "x": _BIN, "y": _BIN, "p": _BIN,
     },
@@ -67,10 +71,7 @@ FRAME_SCHEMA: dict[str, Any] = {
                    "of dtype (little-endian); t_us is the middle of the exposure",
     "type": "object",
     "properties": {
-        "version": {"type": "integer", "const": 1},
-        "height": {"type": "integer", "minimum": 1, "maximum": 65535},
-        "width": {"type": "integer", "minimum": 1, "maximum": 65535},
-        "seq": {"type": "integer", "minimum": 0},
+        **_ENVELOPE,
         "t_us": {"type": "integer"},
         "exposure_us": {"type": "integer", "minimum": 0},
         "dtype": {"enum": ["uint8", "float32"]},
@@ -490,9 +491,4 @@ def read_mcap(path: str | os.PathLike[str], *, sensor: SensorSize | None = None,
     metadata["source"] = str(path)
     if truncated is not None:
         metadata["truncated"] = truncated
-    try:
-        return Recording(sensor=found, events=concat_events([events[s] for s in seqs]),
-                         frames=fr if fr is not None else Frames.empty(0, 0),
-                         metadata=metadata)
-    except RecordingError as exc:
-        raise RecordingError(f"{path}: {exc}") from None
+    return file_recording(path, found, concat_events([events[s] for s in seqs]), fr, metadata)

@@ -22,7 +22,13 @@ import numpy as np
 
 from ..events import EVENTS_DTYPE, SensorSize
 from ..recording import Frames, Recording, RecordingError
-from ._util import check_sensor_arg, load_npz_arrays, metadata_from_json, metadata_to_json
+from ._util import (
+    check_sensor_arg,
+    file_recording,
+    load_npz_arrays,
+    metadata_from_json,
+    metadata_to_json,
+)
 
 _FRAME_KEYS = ("frame_t_us", "frame_images", "frame_exposure_us")
 
@@ -149,9 +155,4 @@ def read_npz(path: str | os.PathLike[str], *, sensor: SensorSize | None = None) 
         metadata = metadata_from_json(str(meta_arr), where)
     metadata["format"] = "npz"
     metadata["source"] = str(path)
-    try:
-        return Recording(sensor=found, events=events,
-                         frames=frames if frames is not None else Frames.empty(0, 0),
-                         metadata=metadata)
-    except RecordingError as exc:
-        raise RecordingError(f"{path}: {exc}") from None
+    return file_recording(path, found, events, frames, metadata)
