@@ -564,49 +564,85 @@ def overlap_standard_errors(ne: NormalEquations, sol: PixelSolution, lam: float,
     are those of ``sol``, unchanged.
     """
     kappa = noise_overlap(noise, sol.c, sol.b, sol.valid, lam)
-    a11, a12, a22, r1, r2, yy = ne.system(lam)
-    c, b, n = sol.c, sol.b, ne.n_eq
-    m_p, m_e = noise.moments
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+    var_c, var_b, u1, u2, lam_dev, lam_noise = _overlap_terms(
+        ne.m, np.ascontiguousarray(noise.moments[0]), np.ascontiguousarray(noise.moments[1]),
+        sol.c, sol.b, float(lam), float(kappa))
+    use = sol.valid & np.isfinite(lam_dev) & np.isfinite(lam_noise)
+    tau2 = (max(float(np.var(lam_dev[use])) - float(np.mean(lam_noise[use])), 0.0)
+            if int(use.sum()) > 1 else 0.0)
+    se_c, se_b = _overlap_errors(var_c, var_b, u1, u2, sol.valid, tau2)
+    return se_c, se_b, kappa, float(np.sqrt(tau2))
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _overlap_terms(m: np.ndarray, m_p: np.ndarray, m_e: np.ndarray, c: np.ndarray,
+                   b: np.ndarray, lam: float, kappa: float) -> Any:  # pragma: no cover
+    """Per pixel, the terms of :func:`overlap_standard_errors`: the noise variances of ``c``
+    and ``b`` (``kappa sigma^2 G^-1 S G^-1``), ``u`` and the one-pixel estimate of the
+    residual-correction factor's deviation with its noise variance (NaN where it has none)."""
+    n_px = m.shape[1]
+    var_c = np.empty(n_px)
+    var_b = np.empty(n_px)
+    u1_out = np.empty(n_px)
+    u2_out = np.empty(n_px)
+    dev = np.empty(n_px)
+    dev_noise = np.empty(n_px)
+    for i in range(n_px):
+        a11, a12, a22, r1, r2, _, _, _, _ = _pixel_fit(m, i, lam, 0.0)
+        ci, bi, n = c[i], b[i], m[15, i]
+        pq, pa, eq, ea, qq, qa, aa, qy, ay = (m[2, i], m[3, i], m[5, i], m[6, i], m[7, i],
+                                                m[8, i], m[9, i], m[12, i], m[13, i])
         det = a11 * a22 - a12 * a12
-        i11, i12, i22 = a22 / det, -a12 / det, a11 / det
-        rss = np.maximum(yy - 2 * (c * r1 + b * r2) + c * c * a11 + 2 * c * b * a12
-                         + b * b * a22, 0.0)
+        i11 = a22 / det
+        i12 = -a12 / det
+        i22 = a11 / det
+        rss = (m[14, i] - 2 * (ci * r1 + bi * r2) + ci * ci * a11 + 2 * ci * bi * a12
+               + bi * bi * a22)
+        rss = 0.0 if rss < 0.0 else rss
         n_eff = n / kappa
-        sigma2 = np.where(n_eff > 2.0, rss / n * n_eff / (n_eff - 2.0), np.inf)
+        sigma2 = rss / n * n_eff / (n_eff - 2.0) if n_eff > 2.0 else np.inf
         # the regressors' spread about their mean (weights 0 or 1: positive semi-definite);
         # Q and A telescope (their sums over the windows are those of the last d frames less
         # the first d, at most 2 d), so P + lam Q and E + lam A have the means of P and E
-        mean1 = m_p / n
-        mean2 = m_e / n
+        mean1 = m_p[i] / n
+        mean2 = m_e[i] / n
         s11 = a11 - n * mean1 * mean1
         s12 = a12 - n * mean1 * mean2
         s22 = a22 - n * mean2 * mean2
-        v11 = i11 * (i11 * s11 + i12 * s12) + i12 * (i11 * s12 + i12 * s22)
-        v22 = i12 * (i12 * s11 + i22 * s12) + i22 * (i12 * s12 + i22 * s22)
-        # the residual correction's factor, one per pixel: u and the one-pixel estimates
-        t1 = c * (ne.pq + lam * ne.qq) + b * (ne.pa + lam * ne.qa)
-        t2 = c * (ne.eq + lam * ne.qa) + b * (ne.ea + lam * ne.aa)
+        var_c[i] = kappa * sigma2 * (i11 * (i11 * s11 + i12 * s12)
+                                     + i12 * (i11 * s12 + i12 * s22))
+        var_b[i] = kappa * sigma2 * (i12 * (i12 * s11 + i22 * s12)
+                                     + i22 * (i12 * s12 + i22 * s22))
+        # the residual correction's factor, one per pixel: u and the one-pixel estimate
+        t1 = ci * (pq + lam * qq) + bi * (pa + lam * qa)
+        t2 = ci * (eq + lam * qa) + bi * (ea + lam * aa)
         u1 = i11 * t1 + i12 * t2
         u2 = i12 * t1 + i22 * t2
-        den = c * c * ne.qq + 2 * c * b * ne.qa + b * b * ne.aa - (t1 * u1 + t2 * u2)
-        z_res = (c * (ne.qy - c * (ne.pq + lam * ne.qq) - b * (ne.eq + lam * ne.qa))
-                 + b * (ne.ay - c * (ne.pa + lam * ne.qa) - b * (ne.ea + lam * ne.aa)))
-        lam_dev = z_res / den
-        lam_noise = kappa * sigma2 / den
-    use = sol.valid & (den > 0) & np.isfinite(lam_dev) & np.isfinite(lam_noise)
-    tau2 = (max(float(np.var(lam_dev[use])) - float(np.mean(lam_noise[use])), 0.0)
-            if int(use.sum()) > 1 else 0.0)
-    with np.errstate(invalid="ignore", over="ignore"):
-        var_c = kappa * sigma2 * v11 + tau2 * u1 * u1
-        var_b = kappa * sigma2 * v22 + tau2 * u2 * u2
-    ok_c = sol.valid & np.isfinite(var_c) & (var_c >= 0)
-    ok_b = sol.valid & np.isfinite(var_b) & (var_b >= 0)
-    se_c = np.full(c.shape, np.inf)
-    se_b = np.full(c.shape, np.inf)
-    se_c[ok_c] = np.sqrt(var_c[ok_c])
-    se_b[ok_b] = np.sqrt(var_b[ok_b])
-    return se_c, se_b, kappa, float(np.sqrt(tau2))
+        u1_out[i] = u1
+        u2_out[i] = u2
+        den = ci * ci * qq + 2 * ci * bi * qa + bi * bi * aa - (t1 * u1 + t2 * u2)
+        z_res = (ci * (qy - ci * (pq + lam * qq) - bi * (eq + lam * qa))
+                 + bi * (ay - ci * (pa + lam * qa) - bi * (ea + lam * aa)))
+        ok = den > 0.0
+        dev[i] = z_res / den if ok else np.nan
+        dev_noise[i] = kappa * sigma2 / den if ok else np.nan
+    return var_c, var_b, u1_out, u2_out, dev, dev_noise
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _overlap_errors(var_c: np.ndarray, var_b: np.ndarray, u1: np.ndarray, u2: np.ndarray,
+                    valid: np.ndarray, tau2: float) -> Any:  # pragma: no cover - compiled
+    """``sqrt(noise variance + tau^2 u^2)`` of ``c`` and ``b``; ``inf`` where not valid or
+    not finite."""
+    n = var_c.size
+    se_c = np.empty(n)
+    se_b = np.empty(n)
+    for i in range(n):
+        vc = var_c[i] + tau2 * u1[i] * u1[i]
+        vb = var_b[i] + tau2 * u2[i] * u2[i]
+        se_c[i] = np.sqrt(vc) if valid[i] & np.isfinite(vc) & (vc >= 0.0) else np.inf
+        se_b[i] = np.sqrt(vb) if valid[i] & np.isfinite(vb) & (vb >= 0.0) else np.inf
+    return se_c, se_b
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
