@@ -270,6 +270,15 @@ def _read_metadata(reader: Any, path: Path) -> dict[str, str] | None:
     return None
 
 
+def _metadata_sensor(meta: dict[str, str], path: Path) -> SensorSize:
+    """The sensor the 'evcal' metadata record declares."""
+    try:
+        return SensorSize.parse(meta["sensor"])
+    except (KeyError, ValueError) as exc:
+        raise RecordingError(f"{path}: the 'evcal' metadata record has no valid sensor "
+                             f"({exc})") from None
+
+
 def is_ros2_event_mcap(path: str | os.PathLike[str]) -> bool:
     """True when an MCAP file holds ``event_camera_msgs/msg/EventPacket`` messages."""
     from mcap.reader import make_reader
@@ -326,11 +335,7 @@ def iter_mcap(path: str | os.PathLike[str], *, sensor: SensorSize | None = None,
             raise RecordingError(f"{path}: cannot read as MCAP (corrupt file?): "
                                  f"{type(exc).__name__}: {exc}") from None
     if meta is not None:
-        try:
-            found = SensorSize.parse(meta["sensor"])
-        except (KeyError, ValueError) as exc:
-            raise RecordingError(f"{path}: the 'evcal' metadata record has no valid sensor "
-                                 f"({exc})") from None
+        found = _metadata_sensor(meta, path)
         found = check_sensor_arg(found, sensor, str(path))
     elif sensor is not None:
         found = sensor
@@ -445,11 +450,7 @@ def read_mcap(path: str | os.PathLike[str], *, sensor: SensorSize | None = None,
     found: SensorSize | None = None
     metadata: dict[str, Any] = {}
     if meta_record is not None:
-        try:
-            found = SensorSize.parse(meta_record["sensor"])
-        except (KeyError, ValueError) as exc:
-            raise RecordingError(f"{path}: the 'evcal' metadata record has no valid sensor "
-                                 f"({exc})") from None
+        found = _metadata_sensor(meta_record, path)
         metadata = metadata_from_json(meta_record.get("metadata_json", ""), str(path))
     if found is None and sizes:
         h, w = next(iter(sizes))
