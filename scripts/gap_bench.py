@@ -24,7 +24,7 @@ import time
 from typing import Any
 
 from evcal.events import SensorSize
-from evcal.gap.workflow import GapConfig, n_simulations, run_gap
+from evcal.gap.workflow import GapConfig, n_simulations, run_gap, working_window
 from evcal.progress import Progress
 from evcal.sim.effects import (
     Bandwidth,
@@ -76,14 +76,16 @@ SPEED_CASES = {
 }
 
 
+SPEED_EFFECTS = [ShotNoise(rate_hz=0.5), Refractory(period_us=800.0)]  # hidden in the cases
+
+
 def _build_case(name: str, path: str) -> None:
     """A simulated speed case written to ``path`` (in a process of its own: the simulator's
     memory is not the workflow's)."""
     from evcal.io import write_recording  # noqa: PLC0415
 
     size, dur, rate = SPEED_CASES[name]
-    write_recording(build(SensorSize.parse(size), dur, rate, 7,
-                          [ShotNoise(rate_hz=0.5), Refractory(period_us=800.0)]), path)
+    write_recording(build(SensorSize.parse(size), dur, rate, 7, SPEED_EFFECTS), path)
 
 
 def _speed_case(name: str, path: str, out: Any) -> None:
@@ -92,10 +94,14 @@ def _speed_case(name: str, path: str, out: Any) -> None:
     import resource  # noqa: PLC0415
 
     from evcal.io import open_recording  # noqa: PLC0415
+    from evcal.mallocpolicy import return_freed_memory  # noqa: PLC0415
 
-
-    rec = open_recording(path)
+    return_freed_memory()  # as `evcal gap` does
     cfg = GapConfig()
+    t0 = time.perf_counter()
+    # as `evcal gap` does: cut to the working window at once, the whole recording let go
+    rec, window = working_window(open_recording(path), cfg.max_pixel_steps,
+                                 cfg.internal_rate_hz, cfg.max_events)
     # the estimates of the whole run's duration that `evcal gap` would show: its first line
     # (10 s in) and at a quarter of the run (found afterwards from the samples)
     prog = Progress(n_simulations(cfg), "gap", unit="simulations", quiet=True, skip_first=True)
@@ -109,22 +115,24 @@ def _speed_case(name: str, path: str, out: Any) -> None:
             rate = (prog.done - first[1]) / max(time.monotonic() - first[0], 1e-9)
             samples.append((now, now + (prog.total - prog.done) / rate))
 
-    t0 = time.perf_counter()
-    res = run_gap(rec, cfg, progress=tick, plan=prog.plan)
+    res = run_gap(rec, cfg, progress=tick, plan=prog.plan, window=window)
     dt = time.perf_counter() - t0
 
     def estimate_at(at_s: float) -> float:
         return next((est for el, est in samples if el >= at_s), float("nan"))
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     h, w = rec.sensor.shape
-    win = res.recording_info["window"]
-    out.put({"case": name, "sensor": str(rec.sensor), "duration_s": rec.duration_s,
-             "events": rec.n_events, "seconds": dt, "simulations":
-             res.recording_info["simulations"], "named": res.named_effects,
-             "gap": (res.initial.gap, res.final.gap), "peak_mib": peak,
-             "s_per_mevent": dt / max(rec.n_events / 1e6, 1e-9),
-             "s_per_mpix_s": dt / (h * w / 1e6 * rec.duration_s),
-             "window_frames": f"{win['frames']}/{win['of_frames']}",
+    info = res.recording_info
+    n_events, duration_s = info["n_events"], info["duration_s"]
+    named = [f"{s.effect.name} {s.effect.primary}="
+             f"{s.effect.parameters()[s.effect.primary]:.4g}" for s in res.steps]
+    out.put({"case": name, "sensor": str(rec.sensor), "duration_s": duration_s,
+             "events": n_events, "seconds": dt, "simulations": info["simulations"],
+             "named": named, "gap": (res.initial.gap, res.final.gap), "peak_mib": peak,
+             "s_per_mevent": dt / max(n_events / 1e6, 1e-9),
+             "s_per_mpix_s": dt / (h * w / 1e6 * duration_s),
+             "window_frames": f"{window['frames']}/{window['of_frames']} "
+                              f"({window.get('events', n_events):,} events)",
              "eta_first_s": estimate_at(10.0), "eta_quarter_s": estimate_at(0.25 * dt)})
 
 
@@ -133,7 +141,9 @@ def speed(cases: list[str]) -> int:
 
     ctx = mp.get_context("spawn")
     print(f"load average before: {os.getloadavg()[0]:.2f} (1 min), "
-          f"{os.cpu_count()} cores")
+          f"{os.cpu_count()} cores; hidden in the simulated cases: "
+          + ", ".join(f"{e.name} {e.primary}={e.parameters()[e.primary]:g}"
+                      for e in SPEED_EFFECTS))
     print("| case | sensor | duration | events | analysed frames | simulations | wall | "
           "s / M events | s / megapixel-second | peak memory | named | gap | "
           "duration estimated at 10 s / at a quarter |")

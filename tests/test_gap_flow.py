@@ -271,15 +271,16 @@ def test_refinement_stops_at_the_edge_of_a_parameter_range() -> None:
     """A moment estimate at the top of its range (threshold_noise sigma 1.0, seen on v2e's
     noisy preset) once crashed the loop: the search's next point, 1/0.7 of it, is not a valid
     effect. The moment estimate now stands."""
+    from evcal.gap.finish import refine  # noqa: PLC0415
     from evcal.gap.model import fit_base  # noqa: PLC0415
-    from evcal.gap.workflow import _Runner  # noqa: PLC0415
+    from evcal.gap.runner import Runner  # noqa: PLC0415
     from evcal.sim.effects import ThresholdNoise  # noqa: PLC0415
 
     rec = recording("none", 1).recording
-    run = _Runner(rec, GapConfig(n_seeds=2), lambda _what: None)
+    run = Runner(rec, GapConfig(n_seeds=2), lambda _what: None)
     base = fit_base(rec)
     edge = ThresholdNoise(sigma=1.0)
     best = run.evaluate(run.candidate_model(base, edge), "edge")
-    eff, ev = run.refine(base, best, edge)
+    eff, ev = refine(run, base, best, edge)
     assert eff == edge
     assert ev is best

@@ -10,8 +10,10 @@ import pytest
 from evcal.gap.explain import sentence, summary, unexplained
 from evcal.gap.model import SimSettings, fit_base, latent_frames, simulate_model
 from evcal.gap.render import RenderCache
+from evcal.gap.runner import Runner
+from evcal.gap.search import best_candidate, best_pair
 from evcal.gap.stats import StatValue, discrepancy, observe, summarise
-from evcal.gap.workflow import GapConfig, _Runner, working_window
+from evcal.gap.workflow import GapConfig, working_window
 from evcal.recording import Frames, Recording
 from evcal.sim.effects import LogOffset, Refractory, ShotNoise
 from evcal.sim.ideal import SimConfig
@@ -116,6 +118,29 @@ def test_a_long_recording_is_cut_to_its_busiest_frames() -> None:
     assert cut.n_events == info["events"]
     assert (cut.events["t_us"] >= t0).all()
     assert (cut.events["t_us"] <= t1).all()
+    # the whole recording's figures stay in the description (the report says what was kept)
+    assert info["of_events"] == rec.n_events
+    assert info["of_duration_s"] == rec.duration_s
+
+
+def test_a_busy_recording_is_cut_to_an_event_budget() -> None:
+    rec = small_recording(9, [], duration_s=2.0)
+    t = rec.frames.t_us
+    between = int(np.searchsorted(rec.events["t_us"], t[-1]) - np.searchsorted(rec.events["t_us"],
+                                                                               t[0]))
+    budget = between // 3
+    cut, info = working_window(rec, 10**9, 1000.0, max_events=budget)
+    assert info["cut"]
+    assert info["events"] <= budget + 1  # the events at the last frame's stamp
+    assert info["frames"] >= 4
+    # the busiest stretch of that many events: no window of as many frames holds more
+    k = info["frames"] - 1
+    at = np.searchsorted(rec.events["t_us"], t, side="left")
+    counts = at[k:] - at[:-k]
+    assert info["events"] >= counts[counts <= budget].max() - 1
+    # no budget, or one above what it holds: the recording as it is
+    assert working_window(rec, 10**9, 1000.0, max_events=None)[0] is rec
+    assert working_window(rec, 10**9, 1000.0, max_events=between)[0] is rec
 
 
 def test_read_noise_of_still_pixels_is_taken_out_and_motion_kept() -> None:
@@ -143,12 +168,12 @@ def test_the_beam_names_a_pair_together() -> None:
     rec = small_recording(13, truth, duration_s=1.5, frame_rate_hz=200.0)
     cfg = GapConfig(n_seeds=2, seed=3, beam_width=3,
                     candidates=("shot_noise", "log_offset", "leak", "refractory"))
-    run = _Runner(rec, cfg, lambda _m: None)
+    run = Runner(rec, cfg, lambda _m: None)
     base = run.evaluate(fit_base(rec), "base")
     tried: dict = {}
-    best = run.best_candidate(base, tried, skip="")
+    best = best_candidate(run, base, tried, skip="")
     assert best is not None
-    pair = run.best_pair(base, tried)
+    pair = best_pair(run, base, tried)
     assert pair is not None
     score, steps = pair
     assert {e.name for e, _ in steps} == {"shot_noise", "log_offset"}

@@ -83,7 +83,8 @@ def write_markdown(result: GapResult, out_dir: Path, *, plots: bool = True) -> P
     win = info.get("window") or {}
     if win.get("cut"):
         lines += [f"Analysed: its busiest {win['frames']} of {win['of_frames']} frames "
-                  f"({win['events']} of {win['of_events']} events; `--max-pixel-steps`).", ""]
+                  f"({win['events']} of {win['of_events']} events; `--max-events`, "
+                  "`--max-pixel-steps`).", ""]
     named = result.named_effects
     lines += [f"**Named effects** (in the order added): {', '.join(named) if named else 'none'}",
               "", f"Gap (mean standardised discrepancy, about 1 when the model explains the "
