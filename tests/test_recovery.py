@@ -19,6 +19,7 @@ from evcal.online import OnEIConfig, OnlineCalibrator, onei
 from evcal.reconstruct import evaluate
 from evcal.recording import Frames, Recording
 from evcal.sim.ideal import SimConfig, simulate_ideal
+from evcal.solver import OverlapNoise, noise_overlap
 
 
 @pytest.fixture(scope="module")
@@ -86,6 +87,28 @@ def test_standard_errors_are_calibrated(seed, sim, offei_cal):
     assert 0.9 < float(np.std(zb)) < 1.25
     # measured 1.84: far less than the d = 5 windows an interval lies in
     assert 1.5 < cal.diagnostics.noise_overlap < 2.2
+
+
+@pytest.mark.parametrize(("kind", "expected"), [("white", 1.0), ("walk", 3.4)])
+def test_noise_overlap_of_known_frame_noise(kind, expected):
+    """kappa of evcal.solver.noise_overlap on frames whose log intensity is the model plus a
+    known noise: noise independent from frame to frame shares nothing between overlapping
+    windows (kappa 1); a random walk is shared as the windows share intervals,
+    1 + 2 sum_l (1 - l/d)^2 = 3.4 for d = 5."""
+    rng = np.random.default_rng(5)
+    n_frames, n_pix, d, c, b = 300, 400, 5, 0.2, 0.02
+    on = np.cumsum(rng.poisson(1.0, (n_frames, n_pix)), axis=0).astype(np.int32)
+    off = np.cumsum(rng.poisson(1.0, (n_frames, n_pix)), axis=0).astype(np.int32)
+    step = rng.normal(0.0, 0.05, (n_frames, n_pix))
+    noise = step if kind == "white" else np.cumsum(step, axis=0)
+    lg = c * (on - off) + b * (on + off) + noise
+    frames = OverlapNoise(window_frames=d, moments=np.zeros((2, n_pix)),
+                          sample=np.arange(n_pix), on=on, off=off,
+                          last_p=np.zeros((n_frames, n_pix), np.int8), lg=lg,
+                          ok=np.ones((n_frames, n_pix), bool))
+    kappa = noise_overlap(frames, np.full(n_pix, c), np.full(n_pix, b), np.ones(n_pix, bool),
+                          0.0)
+    assert kappa == pytest.approx(expected, abs=0.15)
 
 
 def test_log_offset_auto_recovers_the_simulated_offset(sim):
