@@ -7,12 +7,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from evcal.gap.compare import discrepancy
 from evcal.gap.explain import sentence, summary, unexplained
 from evcal.gap.model import SimSettings, fit_base, latent_frames, simulate_model
 from evcal.gap.render import RenderCache
 from evcal.gap.runner import Runner
 from evcal.gap.search import best_candidate, best_pair
-from evcal.gap.stats import StatValue, discrepancy, observe, summarise
+from evcal.gap.stats import StatValue, observe, summarise
 from evcal.gap.workflow import GapConfig, working_window
 from evcal.recording import Frames, Recording
 from evcal.sim.effects import LogOffset, Refractory, ShotNoise

@@ -1,6 +1,6 @@
 """What the model still does not explain, in words a sensor engineer reads.
 
-:func:`unexplained` takes a :class:`~.stats.Discrepancy` (usually the final model's) and
+:func:`unexplained` takes a :class:`~.compare.Discrepancy` (usually the final model's) and
 returns, for each statistic whose discrepancy is significant, its worst component as a
 sentence: which statistic, in which regime (the component's label: an intensity bin, an
 interval range, a time bin), in which direction and by how much, e.g.
@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from .stats import Discrepancy
+from .compare import Discrepancy
 
 
 @dataclass(frozen=True)

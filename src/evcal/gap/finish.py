@@ -11,9 +11,10 @@ from typing import Any
 import numpy as np
 
 from ..sim.effects import Effect
+from .compare import discrepancy
 from .model import Model, fit_candidate
 from .runner import Evaluation, Runner, drop_derived
-from .stats import Observation, discrepancy, rows_of, summarise
+from .stats import Observation, rows_of, summarise
 
 DEBIAS_STEPS = 2  # bootstrap steps per named effect (an evaluation each)
 

@@ -32,6 +32,7 @@ from ..sim.effects import (
     TimestampQuantisation,
 )
 from ..stream import event_windows
+from .compare import discrepancy
 from .pixelfit import fit_from_sums, lowpass_log_changes, residual_from_sums, window_sums
 from .stats import (
     NOMINAL_LOG_OFFSET_DN,
@@ -40,7 +41,6 @@ from .stats import (
     _fit,
     _iei,
     _static,
-    discrepancy,
     every_nth_row,
     timestamp_quantum,
 )

@@ -21,6 +21,7 @@ from ..errors import ConfigError
 from ..online import usable_cores
 from ..recording import Recording
 from ..sim.effects import EFFECT_NAMES, Effect
+from .compare import Discrepancy, discrepancy
 from .model import (
     Band,
     Model,
@@ -33,11 +34,9 @@ from .model import (
 )
 from .render import RenderCache
 from .stats import (
-    Discrepancy,
     GapError,
     Observation,
     StatValue,
-    discrepancy,
     observe,
     rows_of,
     summarise,
@@ -80,7 +79,7 @@ class GapConfig:
     # statistics need events, not hours; the rendered frames stay in memory)
     max_pixel_steps: int = 250_000_000
     # ... and at most this many events: each statistic's bins then hold enough events that
-    # the comparison's relative floor (3 % of the simulated mean, see evcal.gap.stats), not
+    # the comparison's relative floor (3 % of the simulated mean, see evcal.gap.compare), not
     # the count, sets its resolution; more events cost memory and time in proportion and
     # sharpen nothing (None: no limit)
     max_events: int | None = 5_000_000

@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import threading
 import weakref
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -294,6 +295,20 @@ def _i_mid(obs: Observation) -> np.ndarray:
     return _shared(obs, "i_mid", lambda: 0.5 * (obs.intensity[1:] + obs.intensity[:-1]))
 
 
+def _plan(obs: Observation, name: str, make: Callable[[], Any]) -> Any:
+    """What a statistic takes from the frames and the trusted mask alone (its windows, their
+    bins, the frame-side sums), made by ``make()`` once per frames and mask and shared by
+    the measurement and every simulation of them: a simulation then only gathers its own
+    counts. Made again for an observation with another mask."""
+    key = f"plan_{name}"
+    hit = obs.shared.get(key)
+    if hit is not None and hit[0] is obs.trusted:
+        return hit[1]
+    plan = make()
+    obs.shared[key] = (obs.trusted, plan)
+    return plan
+
+
 def _quantile_edges(v: np.ndarray, n: int) -> np.ndarray:
     v = v[np.isfinite(v)]
     if v.size == 0:
@@ -305,10 +320,16 @@ def _quantile_edges(v: np.ndarray, n: int) -> np.ndarray:
     return e
 
 
-def _binned(values: np.ndarray, key: np.ndarray, edges: np.ndarray, *, how: str,
+def _bin_of(key: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """The bin of each of ``key`` among ``edges`` (int8: at most a few dozen bins)."""
+    return np.clip(np.searchsorted(edges, key, side="right") - 1, 0,
+                   edges.size - 2).astype(np.int8)
+
+
+def _binned(values: np.ndarray, idx: np.ndarray, nb: int, *, how: str,
             weights: np.ndarray | None = None) -> np.ndarray:
-    idx = np.clip(np.searchsorted(edges, key, side="right") - 1, 0, edges.size - 2)
-    nb = edges.size - 1
+    """The mean (``how="mean"``) or RMS (``"rms"``) of ``values`` in each of ``nb`` bins,
+    ``idx`` each value's bin."""
     wts = np.ones_like(values) if weights is None else weights
     sw = np.bincount(idx, weights=wts, minlength=nb)
     if how == "mean":
@@ -393,20 +414,20 @@ def _static(obs: Observation) -> np.ndarray:
 def _static_bins(obs: Observation, n_bins: int = 4
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Still windows, their intensity bins (``n_bins`` quantiles of the windows' mean
-    intensity), the bin edges and each bin's window seconds; computed once per observation
-    (the rate and the balance both bin the same windows)."""
-    key_name = f"static_bins_{n_bins}"
-    if key_name in obs.extra:
-        cached: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] = obs.extra[key_name]
-        return cached
-    st = _static(obs)
-    key = _i_mid(obs)[st]
-    edges = _quantile_edges(key, n_bins)
-    idx = np.clip(np.searchsorted(edges, key, side="right") - 1, 0, edges.size - 2)
-    ws = np.broadcast_to(obs.window_s[:, None], st.shape)[st]
-    den = np.bincount(idx, weights=ws, minlength=edges.size - 1)
-    obs.extra[key_name] = (st, idx, edges, den)
-    return st, idx, edges, den
+    intensity), the bin edges and each bin's window seconds: frame-side, made once for the
+    frames (:func:`_plan`; the rate and the balance both bin the same windows)."""
+    def make() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        st = _static(obs)
+        key = _i_mid(obs)[st]
+        edges = _quantile_edges(key, n_bins)
+        idx = np.clip(np.searchsorted(edges, key, side="right") - 1, 0, edges.size - 2)
+        ws = np.broadcast_to(obs.window_s[:, None], st.shape)[st]
+        den = np.bincount(idx, weights=ws, minlength=edges.size - 1)
+        return st, idx, edges, den
+
+    result: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] = _plan(
+        obs, f"static_bins_{n_bins}", make)
+    return result
 
 
 def stat_static_rate(obs: Observation) -> StatValue:
@@ -439,24 +460,32 @@ def stat_on_fraction_over_time(obs: Observation, n_bins: int = 6) -> StatValue:
     return StatValue("on_fraction_over_time", v, labels, 0.005)
 
 
+RESIDUAL_DL_EDGES = np.array([-np.inf, 0.05, 0.15, 0.3, 0.6, np.inf])
+RESIDUAL_REL_EDGES = np.array([-np.inf, -0.4, -0.15, 0.0, 0.15, 0.4, np.inf])
+
+
 def stat_residual_vs_dl(obs: Observation) -> StatValue:
     f = _fit(obs)
     m = np.isfinite(f["res"])
-    adl = np.abs(f["dL"])[m]
-    edges = np.array([-np.inf, 0.05, 0.15, 0.3, 0.6, np.inf])
-    v = _binned(f["res"][m], adl, edges, how="rms")
+    edges = RESIDUAL_DL_EDGES
+    idx = _plan(obs, "residual_dl", lambda: _bin_of(np.abs(_dl(obs)), edges))
+    v = _binned(f["res"][m], idx[m], edges.size - 1, how="rms")
     return StatValue("offei_residual_vs_dl", v, _edge_labels(edges, "|dL|"), 0.003)
 
 
 def stat_residual_vs_intensity(obs: Observation) -> StatValue:
     f = _fit(obs)
-    dl = f["dL"]
-    m = np.isfinite(f["res"]) & (np.abs(dl) > 0.1)
-    lmid = 0.5 * (obs.log_i[1:] + obs.log_i[:-1])
-    lmed = np.median(obs.log_i, axis=0)
-    rel = (lmid - lmed[None, :])[m]
-    edges = np.array([-np.inf, -0.4, -0.15, 0.0, 0.15, 0.4, np.inf])
-    v = _binned(f["res"][m] * np.sign(dl[m]), rel, edges, how="mean")
+    edges = RESIDUAL_REL_EDGES
+
+    def make() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        dl = _dl(obs)
+        lmid = 0.5 * (obs.log_i[1:] + obs.log_i[:-1])
+        lmed = np.median(obs.log_i, axis=0)
+        return np.abs(dl) > 0.1, np.sign(dl), _bin_of(lmid - lmed[None, :], edges)
+
+    changing, sign, idx = _plan(obs, "residual_rel", make)
+    m = np.isfinite(f["res"]) & changing
+    v = _binned(f["res"][m] * sign[m], idx[m], edges.size - 1, how="mean")
     return StatValue("offei_residual_vs_intensity", v,
                      _edge_labels(edges, "log I - pixel median"), 0.003)
 
@@ -526,35 +555,35 @@ def stat_rate_tail(obs: Observation) -> StatValue:
     return StatValue("rate_tail", v, labels, 0.05)
 
 
-def _changing_windows(obs: Observation) -> tuple[dict[str, Any], np.ndarray, np.ndarray,
-                                                  np.ndarray]:
-    """The fit, abs(dL), the windows whose frames change by more than 0.1 in log (usable,
-    and trusted where the observation has a mask) and the windows' mean intensity."""
-    f = _fit(obs)
-    adl = np.abs(f["dL"])
+def _changing_windows(obs: Observation) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """abs(dL), the windows whose frames change by more than 0.1 in log (usable, and
+    trusted where the observation has a mask) and the windows' mean intensity."""
+    adl = np.abs(_dl(obs))
     m = obs.usable & (adl > 0.1)
     if obs.trusted is not None:
         m &= obs.trusted
-    i_mid = _i_mid(obs)
-    return f, adl, m, i_mid
+    return adl, m, _i_mid(obs)
 
 
 def stat_speed_response(obs: Observation) -> StatValue:
-    f, adl, m, i_mid = _changing_windows(obs)
-    i_sel = i_mid[m]
-    a_sel = adl[m]
-    speed = (adl / obs.window_s[:, None])[m]
-    ie = _quantile_edges(i_sel, 2)
-    se = _quantile_edges(speed, 2)
-    # every selected window in one (intensity, speed) cell: [ie[a], ie[a + 1]) x [se[s], ..)
-    ok = np.isfinite(i_sel) & np.isfinite(speed)
-    ia = np.searchsorted(ie, i_sel[ok], side="right") - 1
-    js = np.searchsorted(se, speed[ok], side="right") - 1
+    def make() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        adl, m, i_mid = _changing_windows(obs)
+        i_sel = i_mid[m]
+        a_sel = adl[m]
+        speed = (adl / obs.window_s[:, None])[m]
+        ie = _quantile_edges(i_sel, 2)
+        se = _quantile_edges(speed, 2)
+        # every selected window in one (intensity, speed) cell: [ie[a], ie[a + 1]) x [se[s],..)
+        ok = np.isfinite(i_sel) & np.isfinite(speed)
+        ia = np.searchsorted(ie, i_sel[ok], side="right") - 1
+        js = np.searchsorted(se, speed[ok], side="right") - 1
+        cell = ia * (se.size - 1) + js
+        den = np.bincount(cell, weights=a_sel[ok], minlength=(ie.size - 1) * (se.size - 1))
+        return np.flatnonzero(m)[ok], cell, den, ie, se
+
+    at, cell, den, ie, se = _plan(obs, "speed_response", make)
     n_s = se.size - 1
-    cells = (ie.size - 1) * n_s
-    cell = ia * n_s + js
-    den = np.bincount(cell, weights=a_sel[ok], minlength=cells)
-    num = np.bincount(cell, weights=f["E"][m][ok], minlength=cells)
+    num = np.bincount(cell, weights=_fit(obs)["E"].ravel()[at], minlength=den.size)
     vals = np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
     labels = [f"{'dark' if a == 0 else 'bright'} (I split {ie[1]:.3g} DN), "
               f"{'slow' if s == 0 else 'fast'} (|dL|/s split {se[1]:.3g})"
@@ -563,24 +592,29 @@ def stat_speed_response(obs: Observation) -> StatValue:
 
 
 def stat_lag(obs: Observation) -> StatValue:
-    f = _fit(obs)
-    P, dL = f["P"], f["dL"]
-    m = obs.usable[1:] & obs.usable[:-1] & (np.abs(dL[1:]) + np.abs(dL[:-1]) > 0.05)
-    if obs.trusted is not None:
-        m &= obs.trusted[1:] & obs.trusted[:-1]
-    imean = obs.intensity.mean(0)
-    edges = _quantile_edges(imean, 3)
-    pb = np.clip(np.searchsorted(edges, imean, side="right") - 1, 0, edges.size - 2)
-    nb = edges.size - 1
+    def make() -> tuple[np.ndarray, ...]:
+        dL = _dl(obs)
+        m = obs.usable[1:] & obs.usable[:-1] & (np.abs(dL[1:]) + np.abs(dL[:-1]) > 0.05)
+        if obs.trusted is not None:
+            m &= obs.trusted[1:] & obs.trusted[:-1]
+        imean = obs.intensity.mean(0)
+        edges = _quantile_edges(imean, 3)
+        pb = np.clip(np.searchsorted(edges, imean, side="right") - 1, 0, edges.size - 2)
+        nb = edges.size - 1
+        key = np.broadcast_to(pb[None, :], m.shape)[m]
+        x1 = dL[1:][m].astype(np.float64)
+        x2 = dL[:-1][m].astype(np.float64)
+        n = np.bincount(key, minlength=nb)
+        s11, s12, s22 = (np.bincount(key, weights=w, minlength=nb)
+                         for w in (x1 * x1, x1 * x2, x2 * x2))
+        return np.flatnonzero(m), key, x1, x2, edges, n, s11, s12, s22
+
     # the normal equations of P[k] ~ b1 dL[k] + b2 dL[k-1] in each intensity bin, their sums
-    # taken in one pass over the selected windows
-    key = np.broadcast_to(pb[None, :], m.shape)[m]
-    y = P[1:][m].astype(np.float64)
-    x1 = dL[1:][m].astype(np.float64)
-    x2 = dL[:-1][m].astype(np.float64)
-    n = np.bincount(key, minlength=nb)
-    s11, s12, s22, s1y, s2y = (np.bincount(key, weights=w, minlength=nb)
-                               for w in (x1 * x1, x1 * x2, x2 * x2, x1 * y, x2 * y))
+    # taken in one pass over the selected windows (the frame side's once for the frames)
+    at, key, x1, x2, edges, n, s11, s12, s22 = _plan(obs, "lag", make)
+    nb = edges.size - 1
+    y = _fit(obs)["P"][1:].ravel()[at].astype(np.float64)
+    s1y, s2y = (np.bincount(key, weights=w, minlength=nb) for w in (x1 * y, x2 * y))
     vals = []
     for j in range(nb):
         a = np.array([[s11[j], s12[j]], [s12[j], s22[j]]])
@@ -613,13 +647,17 @@ def stat_sensitivity_vs_intensity(obs: Observation, n_bins: int = 5) -> StatValu
     ``I / (I + d)``: flat in the bright, falling below ``d``) from thresholds that scale with
     light as a power (``I^e``: the same slope in log I everywhere); the per-pixel residual
     against the pixel's own median (:func:`stat_residual_vs_intensity`) sees both alike."""
-    f, adl, m, i_mid = _changing_windows(obs)
-    key = np.log(np.maximum(i_mid[m].astype(np.float64), 0.0) + NOMINAL_LOG_OFFSET_DN)
-    edges = _quantile_edges(key, n_bins)
-    idx = np.clip(np.searchsorted(edges, key, side="right") - 1, 0, edges.size - 2)
+    def make() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        adl, m, i_mid = _changing_windows(obs)
+        key = np.log(np.maximum(i_mid[m].astype(np.float64), 0.0) + NOMINAL_LOG_OFFSET_DN)
+        edges = _quantile_edges(key, n_bins)
+        idx = np.clip(np.searchsorted(edges, key, side="right") - 1, 0, edges.size - 2)
+        dl = np.bincount(idx, weights=adl[m], minlength=edges.size - 1)
+        return np.flatnonzero(m), idx, edges, dl
+
+    at, idx, edges, dl = _plan(obs, f"sensitivity_{n_bins}", make)
     nb = edges.size - 1
-    ev = np.bincount(idx, weights=f["E"][m], minlength=nb)
-    dl = np.bincount(idx, weights=adl[m], minlength=nb)
+    ev = np.bincount(idx, weights=_fit(obs)["E"].ravel()[at], minlength=nb)
     total = ev.sum() / max(dl.sum(), 1e-12)
     v = np.where(dl > 0, ev / np.maximum(dl, 1e-12), 0.0) / max(total, 1e-12)
     lab_edges = np.exp(edges) - NOMINAL_LOG_OFFSET_DN
@@ -718,72 +756,3 @@ def summarise(obs: Observation) -> dict[str, StatValue]:
         out[s.name] = StatValue(s.name, np.nan_to_num(np.asarray(s.values, np.float64)),
                                 s.labels, s.floor)
     return out
-
-
-# ------------------------------------------------------------------------------ discrepancy
-
-REL_FLOOR = 0.03  # a relative difference below this is never significant
-
-
-@dataclass
-class Discrepancy:
-    """Standardised discrepancy of measured statistics against simulated ones.
-
-    Per component ``z = (m - mean_sim) / s`` with
-    ``s^2 = var_sim (1 + 1/n) + (REL_FLOOR * |mean_sim|)^2 + floor^2``: the spread over the
-    simulation seeds (the measured value is one more draw), plus floors that keep a handful of
-    seeds from declaring tiny differences significant. A statistic's discrepancy is ``mean z^2``
-    over its components (about 1 when the model explains the data); the gap is the mean of
-    those over statistics.
-    """
-
-    measured: dict[str, np.ndarray]
-    sim_mean: dict[str, np.ndarray]
-    sim_std: dict[str, np.ndarray]
-    z: dict[str, np.ndarray]
-    per_stat: dict[str, float]
-    labels: dict[str, list[str]]
-    n_sims: int = 0  # the simulations (seeds) the spread is from
-
-    @property
-    def gap(self) -> float:
-        return float(np.mean(list(self.per_stat.values())))
-
-    def where(self, name: str) -> str:
-        z = self.z[name]
-        k = int(np.argmax(np.abs(z)))
-        return f"{self.labels[name][k]} (z = {z[k]:+.1f})"
-
-
-def discrepancy(measured: dict[str, StatValue], sims: list[dict[str, StatValue]], *,
-                spread: Discrepancy | None = None) -> Discrepancy:
-    """The discrepancy of ``measured`` against the simulations ``sims``.
-
-    With one simulation (a candidate screened on one seed) the seed-to-seed variance is
-    taken from ``spread``, an evaluation of a neighbouring model on several seeds (the spread
-    of a statistic changes little between the models one round compares); the mean of one
-    simulation is one draw, so ``1 + 1/n`` is 2 there. Without ``spread`` one simulation has
-    no spread (its floors only).
-
-    A component that is NaN (too little data for it) in the measurement or in any simulation
-    is left out (z = 0); a statistic with none left counts D = 1, what a model that explains
-    the data gives, so it neither raises nor dilutes the gap."""
-    n = len(sims)
-    meas, mean, std, z, per, labels = {}, {}, {}, {}, {}, {}
-    for name, mv in measured.items():
-        arr = np.stack([s[name].values for s in sims])
-        ok = np.isfinite(mv.values) & np.isfinite(arr).all(0)
-        with np.errstate(invalid="ignore"):
-            mu = arr.mean(0)
-            if n > 1:
-                var = arr.var(0, ddof=1)
-            elif spread is not None:
-                var = spread.sim_std[name] ** 2
-            else:
-                var = np.zeros_like(mu)
-            sd = np.sqrt(var * (1 + 1 / n) + (REL_FLOOR * np.abs(mu)) ** 2 + mv.floor ** 2)
-            zz = np.where(ok, (mv.values - mu) / np.where(ok, sd, 1.0), 0.0)
-        meas[name], mean[name], std[name], z[name] = mv.values, mu, np.sqrt(var), zz
-        per[name] = float(np.mean(zz[ok] ** 2)) if ok.any() else 1.0
-        labels[name] = mv.labels
-    return Discrepancy(meas, mean, std, z, per, labels, n)
