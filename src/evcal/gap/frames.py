@@ -342,6 +342,12 @@ def _lag_pixel_sums(obs: Observation, lags_us: np.ndarray) -> tuple[np.ndarray, 
     return ssr, tss
 
 
+def _at_grid_end(r: np.ndarray) -> bool:
+    """Whether the least of the residuals ``r`` over the lag grid is at either end of it."""
+    i = int(np.nanargmin(r))
+    return i == 0 or i == r.size - 1
+
+
 def _lag_minimum(lags: np.ndarray, r: np.ndarray) -> float:
     """The lag of the least residual, refined by a parabola through its neighbours."""
     i = int(np.nanargmin(r))
@@ -362,7 +368,10 @@ def fit_exposure(meas: Observation, sims: list[Observation], model: Model,
     simulations (driven by the frames at their stamps, they show what the interpolation
     alone puts there). The exposure time is the recording's (median of
     ``Frames.exposure_us``). ``None`` when the lag is within one grid step of the
-    simulations'."""
+    simulations', when the measurement's least residual lies at an end of the grid (a
+    minimum the grid does not bracket is no estimate: a delay longer than a frame's timing
+    is taken to explain, as a slow photoreceptor's in the dark), or when it differs between
+    dark and bright pixels (:data:`LAG_LIGHT_RATIO`)."""
     if not sims:
         return None
     ft = meas.frame_t_us
@@ -373,7 +382,7 @@ def fit_exposure(meas: Observation, sims: list[Observation], model: Model,
     scale = max(exp_us, 0.25 * interval)
     lags = LAG_GRID * scale
     rm = lag_residuals(meas, lags)
-    if not np.isfinite(rm).any():
+    if not np.isfinite(rm).any() or _at_grid_end(rm):
         return None
     lm = _lag_minimum(lags, rm)
     ls = [_lag_minimum(lags, r) for r in (lag_residuals(s, lags) for s in sims)
@@ -401,7 +410,9 @@ LAG_LIGHT_RATIO = 2.0
 def _lag_by_light(meas: Observation, sims: list[Observation], lags: np.ndarray
                   ) -> list[float] | None:
     """The lag (measured less simulated) in each third of the pixels by their mean
-    intensity, or ``None`` when a third has no minimum."""
+    intensity, or ``None`` when a third has no minimum; a third whose measured minimum is
+    at an end of the grid counts as infinitely delayed (a delay the grid does not bracket,
+    which no frame timing shared by every pixel explains)."""
     imean = meas.intensity.mean(0)
     edges = np.quantile(imean, [0.0, 1 / 3, 2 / 3, 1.0])
     out = []
@@ -412,6 +423,9 @@ def _lag_by_light(meas: Observation, sims: list[Observation], lags: np.ndarray
         rs = [lag_residuals(s, lags, px) for s in sims]
         if not np.isfinite(rm).any() or not all(np.isfinite(r).any() for r in rs):
             return None
+        if _at_grid_end(rm):
+            out.append(float(np.inf) if int(np.nanargmin(rm)) else -float(np.inf))
+            continue
         out.append(_lag_minimum(lags, rm) - float(np.mean([_lag_minimum(lags, r)
                                                            for r in rs])))
     return out
