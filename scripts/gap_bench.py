@@ -94,9 +94,7 @@ def _speed_case(name: str, path: str, out: Any) -> None:
     import resource  # noqa: PLC0415
 
     from evcal.io import open_recording  # noqa: PLC0415
-    from evcal.mallocpolicy import return_freed_memory  # noqa: PLC0415
-
-    return_freed_memory()  # as `evcal gap` does
+    from evcal.mallocpolicy import trim_freed_memory  # noqa: PLC0415
     cfg = GapConfig()
     t0 = time.perf_counter()
     # as `evcal gap` does: cut to the working window at once, the whole recording let go
@@ -115,7 +113,8 @@ def _speed_case(name: str, path: str, out: Any) -> None:
             rate = (prog.done - first[1]) / max(time.monotonic() - first[0], 1e-9)
             samples.append((now, now + (prog.total - prog.done) / rate))
 
-    res = run_gap(rec, cfg, progress=tick, plan=prog.plan, window=window)
+    res = run_gap(rec, cfg, progress=tick, plan=prog.plan, window=window,
+                  released=trim_freed_memory)  # as `evcal gap` does
     dt = time.perf_counter() - t0
 
     def estimate_at(at_s: float) -> float:

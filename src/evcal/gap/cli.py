@@ -39,7 +39,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--interpolation", choices=("flow", "linear"), default="flow",
                    help="latent intensity between frames: motion-compensated (flow, default) "
                         "or a linear blend")
-    p.add_argument("--max-events", type=float, default=5e6,
+    p.add_argument("--max-events", type=float, default=4e6,
                    help="analyse at most this many events: a longer recording is cut to its "
                         "busiest frames that hold them (default %(default).0e; 0: no limit)")
     p.add_argument("--max-pixel-steps", type=float, default=2.5e8,
@@ -93,10 +93,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"evcal gap: {', '.join(missing)} missing: pip install 'evcal[gap]' (or pass "
               "--interpolation linear, --no-plots, --no-rrd)", file=sys.stderr)
         return 1
-    from ..mallocpolicy import return_freed_memory  # noqa: PLC0415
-
-    # the run's peak is its cost: freed simulations go back to the system, not to a heap
-    return_freed_memory()
+    from ..mallocpolicy import trim_freed_memory  # noqa: PLC0415
     try:
         # cut at once: the whole recording (800 MB for 30 s of a busy DAVIS346) is not held
         # during the run
@@ -113,7 +110,8 @@ def run(args: argparse.Namespace) -> int:
     progress = Progress(n_simulations(cfg), "gap", unit="simulations planned",
                         quiet=args.quiet, decimals=1, skip_first=True)
     try:
-        result = run_gap(rec, cfg, progress=progress.update, plan=progress.plan, window=window)
+        result = run_gap(rec, cfg, progress=progress.update, plan=progress.plan, window=window,
+                         released=trim_freed_memory)
     except GapError as exc:
         print(f"evcal gap: {args.recording}: {exc}", file=sys.stderr)
         return 1

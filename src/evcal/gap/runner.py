@@ -82,7 +82,7 @@ class GapConfig:
     # the comparison's relative floor (3 % of the simulated mean, see evcal.gap.compare), not
     # the count, sets its resolution; more events cost memory and time in proportion and
     # sharpen nothing (None: no limit)
-    max_events: int | None = 5_000_000
+    max_events: int | None = 4_000_000
     # threads that simulate at once (None: the usable cores)
     workers: int | None = None
     # screening on a band of sensor rows: this share of the rows (the busiest contiguous
@@ -133,8 +133,12 @@ class Evaluation:
 
 
 class Runner:
-    def __init__(self, rec: Recording, cfg: GapConfig, tick: Callable[[float], None]):
+    def __init__(self, rec: Recording, cfg: GapConfig, tick: Callable[[float], None],
+                 released: Callable[[], object] | None = None):
         self.rec = rec
+        # called whenever the run has let go of simulations (the command line hands the
+        # freed memory back to the system there)
+        self.released = released or (lambda: None)
         self.cfg = cfg
         self.tick = tick
         self.trusted = None
@@ -322,6 +326,7 @@ class Runner:
                 [ev for _, _, ev in self.confirmed]:
             if id(ev) not in kept:
                 ev.sims.clear()
+        self.released()
 
     def evaluate_many(self, models: list[tuple[Effect, Model]], current: Evaluation
                       ) -> list[Evaluation]:

@@ -195,12 +195,14 @@ def working_window(rec: Recording, max_pixel_steps: int, internal_rate_hz: float
 def run_gap(rec: Recording, config: GapConfig | None = None, *,
             progress: Callable[[float], None] | None = None,
             plan: Callable[[float], None] | None = None,
-            window: dict[str, Any] | None = None) -> GapResult:
+            window: dict[str, Any] | None = None,
+            released: Callable[[], object] | None = None) -> GapResult:
     """Run the gap workflow on ``rec`` (measured or simulated; it needs frames).
 
     ``rec`` is first cut to its working window (:func:`working_window`). A caller that cut
     it already gives ``window`` (the description that returned): the whole recording need
-    not stay in memory during the run.
+    not stay in memory during the run. ``released()`` is called whenever the run has let go
+    of simulations (``evcal gap`` hands the freed memory back to the system there).
 
     ``progress(work)`` is called after every simulation with its share of a simulation of
     the whole sensor (a screening on a band of rows is less); ``plan(total)`` with the work
@@ -220,7 +222,7 @@ def run_gap(rec: Recording, config: GapConfig | None = None, *,
     if window is None:
         rec, window = working_window(rec, cfg.max_pixel_steps, cfg.internal_rate_hz,
                                      cfg.max_events)
-    run = Runner(rec, cfg, tick)
+    run = Runner(rec, cfg, tick, released)
     share = 1.0 if run.band is None else run.band.share
     if plan is not None:
         plan(n_simulations(cfg, band_share=share))
