@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import functools
 import os
 from typing import Any
 
@@ -51,22 +52,33 @@ MMAP_THRESHOLD_BYTES = 256 << 20  # allocations up to this come from the heap
 TRIM_THRESHOLD_BYTES = 1 << 30  # free memory at the heap's top kept up to this
 
 
+@functools.cache
+def _glibc() -> Any:
+    """glibc (with ``mallopt`` and ``malloc_trim``), or None without it."""
+    try:
+        lib = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        lib.mallopt  # noqa: B018 - glibc's, not another C library's
+        lib.malloc_trim  # noqa: B018
+    except (OSError, AttributeError):
+        return None
+    return lib
 
 
-_LIBC: list[Any] = []
-
-
-def _libc() -> Any:
-    """glibc, or None without it (looked up once)."""
-    if not _LIBC:
-        name = ctypes.util.find_library("c")
-        try:
-            lib = ctypes.CDLL(name or "libc.so.6")
-            lib.malloc_trim  # noqa: B018 - glibc's, not another C library's
-        except (OSError, AttributeError):
-            lib = None
-        _LIBC.append(lib)
-    return _LIBC[0]
+def keep_freed_memory() -> str:
+    """Apply the service's policy to this process; returns what was done (for its info)."""
+    if os.environ.get("EVCAL_MALLOC_KEEP", "1") == "0":
+        return "off (EVCAL_MALLOC_KEEP=0)"
+    lib = _glibc()
+    if lib is None:
+        return "not available (no glibc mallopt)"
+    ok = True
+    for param, value in ((M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES),
+                         (M_TRIM_THRESHOLD, TRIM_THRESHOLD_BYTES), (M_ARENA_MAX, 1)):
+        ok = lib.mallopt(param, value) == 1 and ok
+    if not ok:
+        return "refused by mallopt"
+    return (f"kept: mmap threshold {MMAP_THRESHOLD_BYTES >> 20} MiB, trim threshold "
+            f"{TRIM_THRESHOLD_BYTES >> 20} MiB, one arena")
 
 
 def trim_freed_memory() -> bool:
@@ -75,34 +87,8 @@ def trim_freed_memory() -> bool:
     rounds): the heaps keep serving its arrays without fresh pages in between."""
     if os.environ.get("EVCAL_MALLOC_RETURN", "1") == "0":
         return False
-    lib = _libc()
+    lib = _glibc()
     if lib is None:
         return False
     lib.malloc_trim(0)
     return True
-
-
-def _mallopt(settings: list[tuple[int, int]]) -> str | None:
-    """Apply ``settings`` (parameter, value); None when done, else why not."""
-    name = ctypes.util.find_library("c")
-    try:
-        libc = ctypes.CDLL(name or "libc.so.6")
-        mallopt = libc.mallopt
-    except (OSError, AttributeError):
-        return "not available (no glibc mallopt)"
-    ok = True
-    for param, value in settings:
-        ok = mallopt(param, value) == 1 and ok
-    return None if ok else "refused by mallopt"
-
-
-def keep_freed_memory() -> str:
-    """Apply the service's policy to this process; returns what was done (for its info)."""
-    if os.environ.get("EVCAL_MALLOC_KEEP", "1") == "0":
-        return "off (EVCAL_MALLOC_KEEP=0)"
-    failed = _mallopt([(M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES),
-                       (M_TRIM_THRESHOLD, TRIM_THRESHOLD_BYTES), (M_ARENA_MAX, 1)])
-    if failed:
-        return failed
-    return (f"kept: mmap threshold {MMAP_THRESHOLD_BYTES >> 20} MiB, trim threshold "
-            f"{TRIM_THRESHOLD_BYTES >> 20} MiB, one arena")

@@ -397,7 +397,7 @@ def fit_exposure(meas: Observation, sims: list[Observation], model: Model,
     per_light = _lag_by_light(meas, sims, lags)
     if per_light is not None:
         lo, hi = min(per_light), max(per_light)
-        if lo * lag <= 0 or abs(hi) > LAG_LIGHT_RATIO * abs(lo):
+        if not np.isfinite(hi) or lo * lag <= 0 or abs(hi) > LAG_LIGHT_RATIO * abs(lo):
             return None
     return Exposure(lag_us=round(lag, 1), exposure_us=exp_us)
 
@@ -410,9 +410,9 @@ LAG_LIGHT_RATIO = 2.0
 def _lag_by_light(meas: Observation, sims: list[Observation], lags: np.ndarray
                   ) -> list[float] | None:
     """The lag (measured less simulated) in each third of the pixels by their mean
-    intensity, or ``None`` when a third has no minimum; a third whose measured minimum is
-    at an end of the grid counts as infinitely delayed (a delay the grid does not bracket,
-    which no frame timing shared by every pixel explains)."""
+    intensity, or ``None`` when a third has no minimum; ``inf`` for a third whose measured
+    minimum is at an end of the grid (a delay the grid does not bracket, which no frame
+    timing shared by every pixel explains)."""
     imean = meas.intensity.mean(0)
     edges = np.quantile(imean, [0.0, 1 / 3, 2 / 3, 1.0])
     out = []
@@ -420,12 +420,12 @@ def _lag_by_light(meas: Observation, sims: list[Observation], lags: np.ndarray
         px = (imean >= edges[j]) & (imean <= edges[j + 1]) if j == 2 else \
             (imean >= edges[j]) & (imean < edges[j + 1])
         rm = lag_residuals(meas, lags, px)
+        if np.isfinite(rm).any() and _at_grid_end(rm):
+            out.append(float(np.inf))
+            continue
         rs = [lag_residuals(s, lags, px) for s in sims]
         if not np.isfinite(rm).any() or not all(np.isfinite(r).any() for r in rs):
             return None
-        if _at_grid_end(rm):
-            out.append(float(np.inf) if int(np.nanargmin(rm)) else -float(np.inf))
-            continue
         out.append(_lag_minimum(lags, rm) - float(np.mean([_lag_minimum(lags, r)
                                                            for r in rs])))
     return out

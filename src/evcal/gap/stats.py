@@ -420,7 +420,7 @@ def _static_bins(obs: Observation, n_bins: int = 4
         st = _static(obs)
         key = _i_mid(obs)[st]
         edges = _quantile_edges(key, n_bins)
-        idx = np.clip(np.searchsorted(edges, key, side="right") - 1, 0, edges.size - 2)
+        idx = _bin_of(key, edges)
         ws = np.broadcast_to(obs.window_s[:, None], st.shape)[st]
         den = np.bincount(idx, weights=ws, minlength=edges.size - 1)
         return st, idx, edges, den
@@ -599,7 +599,7 @@ def stat_lag(obs: Observation) -> StatValue:
             m &= obs.trusted[1:] & obs.trusted[:-1]
         imean = obs.intensity.mean(0)
         edges = _quantile_edges(imean, 3)
-        pb = np.clip(np.searchsorted(edges, imean, side="right") - 1, 0, edges.size - 2)
+        pb = _bin_of(imean, edges)
         nb = edges.size - 1
         key = np.broadcast_to(pb[None, :], m.shape)[m]
         x1 = dL[1:][m].astype(np.float64)
@@ -651,7 +651,7 @@ def stat_sensitivity_vs_intensity(obs: Observation, n_bins: int = 5) -> StatValu
         adl, m, i_mid = _changing_windows(obs)
         key = np.log(np.maximum(i_mid[m].astype(np.float64), 0.0) + NOMINAL_LOG_OFFSET_DN)
         edges = _quantile_edges(key, n_bins)
-        idx = np.clip(np.searchsorted(edges, key, side="right") - 1, 0, edges.size - 2)
+        idx = _bin_of(key, edges)
         dl = np.bincount(idx, weights=adl[m], minlength=edges.size - 1)
         return np.flatnonzero(m), idx, edges, dl
 
