@@ -103,11 +103,21 @@ def command_blocks(markdown: str) -> list[Block]:
 PRELUDE = """\
 set -euo pipefail
 __bg=()
+# A job forked but not yet exec'd still runs the shell's own TERM handler, which the exec
+# then forgets: the signal would be lost. So wait (1 s at most) until it is its own program.
+__execd() {
+    local p=$1 n=0 me
+    me=$(readlink /proc/$$/exe 2>/dev/null) || return 0
+    while (( n < 20 )) && [ "$(readlink "/proc/$p/exe" 2>/dev/null)" = "$me" ]; do
+        sleep 0.05; n=$((n + 1))
+    done
+}
 __stop() {
     local rc=$? i p s waited
     set +e
     for (( i=${#__bg[@]}-1; i>=0; i-- )); do
         p=${__bg[i]}
+        __execd "$p"
         kill -TERM "$p" 2>/dev/null
         waited=0
         while kill -0 "$p" 2>/dev/null && (( waited < STOP_TIMEOUT_DS )); do
