@@ -164,6 +164,8 @@ class Runner:
         # confirmed on every seed, best first
         self.screened_pool: dict[str, tuple[Effect, Evaluation]] = {}
         self.confirmed: list[tuple[float, Effect, Evaluation]] = []
+        # the gap the round's screenings are compared with (the band's, on a band)
+        self.screen_base = math.inf
         self.band = screening_band(rec, cfg)
         if self.band is not None:
             rows = self.band.rows

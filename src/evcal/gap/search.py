@@ -4,6 +4,7 @@ runner-up, and pairs of the best singles when no single one qualifies."""
 
 from __future__ import annotations
 
+import math
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
@@ -40,6 +41,7 @@ def best_candidate(run: Runner, current: Evaluation, tried: dict[str, dict[str, 
     and compared on that."""
     run.screened_pool = {}
     run.confirmed = []
+    run.screen_base = math.inf
     fitted: list[tuple[str, Effect]] = []
     evals: list[Evaluation] = []
     names = [n for n in run.cfg.candidates if n not in current.model.effects and n != skip]
@@ -122,6 +124,7 @@ def _confirm_ranked(run: Runner, current: Evaluation, fitted: list[tuple[str, Ef
     cfg = run.cfg
     pen = cfg.penalty_per_parameter
     base = run.band_spread(current).gap if run.band is not None else current.gap
+    run.screen_base = base
     need = max(cfg.min_improvement, cfg.min_relative_improvement * (base - 1.0))
     todo: list[int] = []
     for i in ranked[:cfg.confirm_top]:
@@ -146,19 +149,39 @@ def beam_top(run: Runner, tried: dict[str, dict[str, Any]]) -> list[str]:
     return [n for _, n in singles[:run.cfg.beam_width]]
 
 
-def runner_up(run: Runner, best: tuple[float, Effect, Evaluation]
+# effects that explain the same signature, the second's moment estimate biased far from its
+# value (a first-order low-pass of the photoreceptor delays events much as a late frame
+# stamp does, and the bandwidth fitter reads 0.2-0.5x the cutoff): when the first is the
+# best, the second is finished beside it whatever its screening says
+SAME_SIGNATURE = {"exposure": "bandwidth"}
+
+
+def runner_up(run: Runner, best: tuple[float, Effect, Evaluation], current: Evaluation
               ) -> tuple[float, Effect, Evaluation] | None:
     """The confirmed candidate of another effect whose score is within ``close_margin``
     of ``best``'s (or ``close_relative`` of its gap above 1): moment estimates can be
     biased (a threshold that grows in the dark reads 0.8x its exponent, a bandwidth
     limit 0.5x its cutoff, and a frame lag then explains its delay better), so two
     effects that explain the data about as well are compared once both are
-    bias-corrected."""
+    bias-corrected. When ``best`` has an alternative of the same signature
+    (:data:`SAME_SIGNATURE`) that was fitted this round, that one, confirmed on every
+    seed, however far its moment estimate's screening fell behind, when it at least
+    improved on ``current``."""
     margin = max(run.cfg.close_margin, run.cfg.close_relative * (best[0] - 1.0))
     for c in run.confirmed:
         if c[1].name != best[1].name and c[0] <= best[0] + margin:
             return c
-    return None
+    alt = SAME_SIGNATURE.get(best[1].name)
+    if alt is None or alt not in run.screened_pool:
+        return None
+    eff, ev = run.screened_pool[alt]
+    if ev.gap + run.cfg.penalty_per_parameter * eff.n_fitted >= \
+            (run.screen_base if ev.on_band else current.gap):
+        # it explains the data worse than the model without it: a cutoff that far off is
+        # not what the lag stands for (and on a big sensor its simulations cost minutes)
+        return None
+    ev = run.confirm(ev, f"confirm {alt} (same signature as {best[1].name})")
+    return ev.gap + run.cfg.penalty_per_parameter * eff.n_fitted, eff, ev
 
 
 def best_pair(run: Runner, current: Evaluation, tried: dict[str, dict[str, Any]]

@@ -290,7 +290,7 @@ def run_gap(rec: Recording, config: GapConfig | None = None, *,
                 current = moved_on(current, ev_pair)
                 run.let_go(current)
                 continue
-        close = runner_up(run, best)
+        close = runner_up(run, best, current)
         run.let_go(current, best[2], None if close is None else close[2])
         _, eff, ev = best
         eff, ev = finish(run, current, ev, eff, tried)
