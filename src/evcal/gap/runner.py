@@ -65,6 +65,9 @@ class GapConfig:
     # from the current model's seeds) and only the best ``confirm_top`` with all of them
     screen: bool = True
     confirm_top: int = 2
+    # ... those after the best only when their screened score is within this many close
+    # margins (close_margin, close_relative) of the best's (inf: all of the top)
+    confirm_within: float = 2.0
     # when no single candidate qualifies and the gap is still above this, pairs of the best
     # ``beam_width`` singles are tried together (two effects that explain the data only
     # together are named together)
@@ -96,6 +99,8 @@ class GapConfig:
             raise ConfigError(f"max_effects={self.max_effects} must be >= 0")
         if self.n_seeds < 2:
             raise ConfigError(f"n_seeds={self.n_seeds} must be >= 2 (the spread needs two)")
+        if not self.confirm_within >= 0.0:
+            raise ConfigError(f"confirm_within={self.confirm_within} must be >= 0")
         if self.confirm_top < 1 or self.beam_width < 0:
             raise ConfigError(f"confirm_top={self.confirm_top} must be >= 1 and "
                              f"beam_width={self.beam_width} >= 0")
