@@ -9,8 +9,10 @@ recording, the model predicts that bias, and this module removes it:
 1. Fit OffEI on the measurement (``c_m``, ``b_m``), at the model's log offset when it names
    one.
 2. Simulate the measurement under the model, with maps ``c0``, ``b0`` (the fit shrunk towards
-   the population by its standard errors, so estimation noise is not simulated as fixed
-   pattern), ``n_seeds`` times, and fit each simulation exactly as the measurement.
+   the population by its standard errors, scaled to the fit's scatter on the recording as
+   the gap's base model is, :func:`evcal.gap.model.noise_scale`; so estimation noise is not
+   simulated as fixed pattern), ``n_seeds`` times, and fit each simulation exactly as the
+   measurement.
 3. Per pixel, the simulated fits give a gain ``a = mean(c_s) / c0`` and an offset
    ``o = mean(b_s) - a b0`` (the fit of a pixel is ``c_fit = a c``, ``b_fit = a b + o``).
    Single pixels are too noisy for that, so ``a`` and ``o`` are taken as medians over cells of
@@ -52,7 +54,14 @@ from ..offline import OffEIConfig, offei
 from ..online import usable_cores
 from ..recording import Recording
 from ..sim.effects import Effect, LogOffset, effect_set, make_effect
-from .model import Model, SimSettings, _shrink, estimate_read_noise, simulate_model
+from .model import (
+    Model,
+    SimSettings,
+    _shrink,
+    estimate_read_noise,
+    noise_scale,
+    simulate_model,
+)
 from .render import RenderCache
 from .stats import NOMINAL_LOG_OFFSET_DN
 
@@ -242,11 +251,15 @@ def model_corrected(rec: Recording, effects: Mapping[str, Effect] | list[Effect]
     cells = act * cfg.intensity_bins + _quantile_bins(light, valid, cfg.intensity_bins)
     shape = rec.sensor.shape
 
+    # the fit's errors scaled to its scatter on this recording, as the gap's base model
+    # (evcal.gap.model.noise_scale), measured once: every iteration keeps cal_m's errors
+    scale = noise_scale(rec, sim_cfg, cal_m, Model(*_shrink(cal_m, offset), offset),
+                        settings=settings, render=render)
     cur = cal_m
     gain = np.ones(c_m.shape)
     shift = np.zeros(c_m.shape)
     for _ in range(cfg.iterations):
-        c0, b0 = _shrink(cur, offset)
+        c0, b0 = _shrink(cur, offset, scale)
         fits = {}
         ok = valid.copy()
         for label, with_eff in (("effects", dict(eff)), ("ideal", {})):
@@ -287,6 +300,8 @@ def model_corrected(rec: Recording, effects: Mapping[str, Effect] | list[Effect]
         "still_max_dl": still_dl,
         "denoise_kept_fraction": rec.n_events / n_in if n_in else 1.0,
         "cells": int(np.unique(cells).size),
+        "noise_scale": {"contrast": scale.contrast, "bias": scale.bias,
+                        "n_pixels": scale.n_pixels, "reason": scale.reason},
         "gain_median": float(np.median(gain[valid])) if valid.any() else 1.0,
         "gain_range": [float(gain[valid].min()), float(gain[valid].max())]
         if valid.any() else [1.0, 1.0],
