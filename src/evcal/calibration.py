@@ -213,6 +213,11 @@ class OffEIDiagnostics(Diagnostics):
     residual_correction: str | float = "auto"
     log_offset_estimation: Mapping[str, Any] = field(default_factory=dict)
     n_frames: int = 0
+    # the standard errors' noise model (evcal.solver.overlap_standard_errors): how many
+    # windows' worth of noise overlapping windows share, and the spread of the pixels' own
+    # residual-correction factors about residual_lambda
+    noise_overlap: float = 0.0
+    lambda_spread: float = 0.0
     # evcal.gap.correct: the effects whose bias was removed and the gains/offsets applied
     model_correction: Mapping[str, Any] = field(default_factory=dict)
 

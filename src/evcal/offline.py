@@ -22,8 +22,10 @@ Moving that expected part into the regressors gives::
 explained by ``q_k - q_j`` (one step, :meth:`NormalEquations.residual_lambda`). All cross
 products are accumulated in one pass, so this costs no second pass over the events.
 
-Windows overlap (every pair ``(k - d, k)``), as in the paper; the standard errors account
-for the overlap by counting ``n / d`` independent equations.
+Windows overlap (every pair ``(k - d, k)``), as in the paper. The noise of an equation is the
+difference of the residuals at its two frames, so overlapping windows share it only as far as
+a residual persists from frame to frame, and it telescopes along the regressors' mean; the
+standard errors say so (:func:`~evcal.solver.overlap_standard_errors`).
 """
 
 from __future__ import annotations
@@ -31,7 +33,7 @@ from __future__ import annotations
 import os
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numba
@@ -44,11 +46,14 @@ from .events import SensorSize
 from .recording import Frames, Recording, RecordingError, concat_events
 from .solver import (
     NormalEquations,
+    OverlapNoise,
     SolveLimits,
     WindowRing,
+    calibration_from_solution,
     correction_lambda,
     log_intensity,
-    solve_normal_equations,
+    overlap_standard_errors,
+    solve_pixels,
     usable,
 )
 from .stream import frame_cut, frame_intervals
@@ -121,6 +126,12 @@ def offei(rec: Recording, config: OffEIConfig | None = None) -> Calibration:
     return acc.result()
 
 
+# the pixels and consecutive windows on which the correlation of overlapping windows' noise is
+# measured (:func:`evcal.solver.noise_overlap`): about 10 MB whatever the recording's length
+NOISE_SAMPLE_PIXELS = 2048
+NOISE_SAMPLE_WINDOWS = 256
+
+
 class OffEIStream:
     """OffEI fed in time order, for recordings that do not fit in memory: :meth:`events`
     (validated chunks, each before the next frame), :meth:`frame`, then :meth:`result`.
@@ -148,6 +159,10 @@ class OffEIStream:
         self._hi = np.full(n, -np.inf)
         self.n_frames = 0
         self.n_events = 0
+        # the first frames of a sample of pixels, evenly spread over the sensor
+        self._sample = np.unique(np.linspace(0, n - 1, min(n, NOISE_SAMPLE_PIXELS))
+                                 .astype(np.int64))
+        self._sample_frames: list[tuple[np.ndarray, ...]] = []
 
     def events(self, chunk: np.ndarray) -> None:
         """Events before the next frame (``t_us`` below it), validated and in time order."""
@@ -171,6 +186,10 @@ class OffEIStream:
         ok = np.empty(flat.size, np.bool_)
         _frame_maps(flat, float(lo_dn), float(hi_dn), self.offset, lut, self._clipped,
                     self._lo, self._hi, lg, ok)
+        if len(self._sample_frames) < NOISE_SAMPLE_WINDOWS + int(self.cfg.window_frames):
+            i = self._sample
+            self._sample_frames.append((self._acc.on[i], self._acc.off[i], self._acc.last_p[i],
+                                        lg[i], ok[i]))
         if self._ring.push(self._acc.on, self._acc.off, self._acc.last_p, lg, ok):
             self._ring.flush(self._ne)
         self.n_frames += 1
@@ -191,13 +210,19 @@ class OffEIStream:
         flags = np.zeros(self.sensor.n_pixels, np.uint8)
         flags[self._hi == self._lo] = Reason.CONSTANT
         flags[self._clipped > self.n_frames // 2] = Reason.SATURATED
+        sol = solve_pixels(self._ne, n_events, limits=cfg.limits, overlap=float(d),
+                           extra_reason=flags, residual_lambda=lam)
+        on, off, last_p, lg, ok = (np.stack(a) for a in zip(*self._sample_frames, strict=True))
+        noise = OverlapNoise(window_frames=d, moments=self._ring.moments, sample=self._sample,
+                             on=on, off=off, last_p=last_p, lg=lg, ok=ok)
+        se_c, se_b, kappa, tau = overlap_standard_errors(self._ne, sol, lam, noise)
         diagnostics = OffEIDiagnostics(
             residual_lambda=lam, window_frames=d, residual_correction=cfg.residual_correction,
-            log_offset_estimation=self.offset_info, n_frames=self.n_frames)
-        return solve_normal_equations(
-            self._ne, n_events, self.sensor.shape, limits=cfg.limits, overlap=float(d),
-            log_offset=self.offset, method="offei", diagnostics=diagnostics,
-            extra_reason=flags, residual_lambda=lam)
+            log_offset_estimation=self.offset_info, n_frames=self.n_frames,
+            noise_overlap=kappa, lambda_spread=tau)
+        return calibration_from_solution(replace(sol, se_c=se_c, se_b=se_b), n_events,
+                                         self.sensor.shape, log_offset=self.offset,
+                                         method="offei", diagnostics=diagnostics)
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")

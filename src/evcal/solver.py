@@ -10,7 +10,7 @@ plain fit). :class:`NormalEquations` keeps every cross product per pixel, so an 
 added or removed exactly and ``lam`` chosen after the pass over the data;
 :func:`solve_pixels` is the 2x2 solve with validity reasons and standard errors, one compiled
 pass over the pixels. OffEI (:mod:`evcal.offline`), OnEI (:mod:`evcal.online`) and the gap
-workflow's fits (:mod:`evcal.gap.pixelfit`) all solve through here.
+workflow's fits (:mod:`evcal.gap.stats`) all solve through here.
 """
 
 from __future__ import annotations
@@ -110,8 +110,9 @@ class NormalEquations:
     def add_windows(self, ring: WindowRing, rows_j: np.ndarray, rows_k: np.ndarray) -> None:
         """:meth:`add` of the dense windows ``rows_j -> rows_k`` of ``ring``, weight 1 where
         both frames are usable (else 0): one compiled pass for the batch. The same sums as
-        ``add(P, E, Q, A, dL, w)`` window by window, up to the order of the additions."""
-        _add_windows(self.m, ring.on, ring.off, ring.q, ring.lg, ring.ok,
+        ``add(P, E, Q, A, dL, w)`` window by window, up to the order of the additions; the
+        same pass adds the windows' ``P`` and ``E`` to ``ring.moments``."""
+        _add_windows(self.m, ring.moments, ring.on, ring.off, ring.q, ring.lg, ring.ok,
                      np.ascontiguousarray(rows_j, np.int64),
                      np.ascontiguousarray(rows_k, np.int64))
 
@@ -183,20 +184,21 @@ RING_BLOCK = 128
 
 
 @numba.njit(cache=True, nogil=True)
-def _add_windows(m: np.ndarray, on: np.ndarray, off: np.ndarray, q: np.ndarray,
-                 lg: np.ndarray, ok: np.ndarray, rows_j: np.ndarray, rows_k: np.ndarray
-                 ) -> Any:  # pragma: no cover - compiled
+def _add_windows(m: np.ndarray, mom: np.ndarray, on: np.ndarray, off: np.ndarray,
+                 q: np.ndarray, lg: np.ndarray, ok: np.ndarray, rows_j: np.ndarray,
+                 rows_k: np.ndarray) -> Any:  # pragma: no cover - compiled
     """The dense windows ``rows_j[w] -> rows_k[w]`` of ring buffers ``[block, row, pixel of
     the block]`` (running ON/OFF counts, last polarity, log intensity, usable), a block of
     pixels at a time: each pixel's 16 sums over all the windows are formed in a block-sized
     scratch and added to ``m`` once, so ``m`` (128 bytes a pixel) streams through memory once
     per batch, and the inner loop over a block's pixels is vectorised. The products are those
     of :meth:`NormalEquations.add` with weight 1 or 0 (unusable windows add exact zeros, so
-    the sums equal the window-by-window ones bit for bit)."""
+    the sums equal the window-by-window ones bit for bit). Rows 16 and 17 of the scratch are
+    the windows' ``P`` and ``E``, added to ``mom`` (:attr:`WindowRing.moments`)."""
     n = m.shape[1]
     n_w = rows_j.size
     size_b = on.shape[2]
-    s = np.zeros((16, size_b))
+    s = np.zeros((18, size_b))
     for blk in range(on.shape[0]):
         i0 = blk * size_b
         nb = min(size_b, n - i0)
@@ -232,9 +234,14 @@ def _add_windows(m: np.ndarray, on: np.ndarray, off: np.ndarray, q: np.ndarray,
                 s[13, t] += a * dl
                 s[14, t] += dl * dl
                 s[15, t] += 1.0 if use else 0.0
+                s[16, t] += p
+                s[17, t] += e
         for k in range(16):
             for t in range(nb):
                 m[k, i0 + t] += s[k, t]
+        for k in range(2):
+            for t in range(nb):
+                mom[k, i0 + t] += s[16 + k, t]
 
 
 class WindowRing:
@@ -259,6 +266,9 @@ class WindowRing:
         self.ok = np.zeros(shape, np.bool_)
         self.n = 0  # frames pushed
         self.pending: list[int] = []  # frame numbers k whose window (k - d, k) is pending
+        # sums over the added windows of w P and w E (flat maps): the regressors' means that
+        # the standard errors need (:class:`OverlapNoise`)
+        self.moments = np.zeros((2, self.n_pixels), np.float64)
 
     def push(self, on: np.ndarray, off: np.ndarray, last_p: np.ndarray, lg: np.ndarray,
              ok: np.ndarray) -> bool:
@@ -441,7 +451,14 @@ def solve_normal_equations(
     """
     sol = solve_pixels(ne, n_events, limits=limits, overlap=overlap,
                        extra_reason=extra_reason, residual_lambda=residual_lambda)
+    return calibration_from_solution(sol, n_events, shape, log_offset=log_offset,
+                                     method=method, diagnostics=diagnostics)
 
+
+def calibration_from_solution(sol: PixelSolution, n_events: np.ndarray,
+                              shape: tuple[int, int], *, log_offset: float, method: str,
+                              diagnostics: Diagnostics | None = None) -> Calibration:
+    """The :class:`Calibration` of a per-pixel solve: its maps, special pixels classified."""
     special = classify(sol.c, sol.b, sol.se_c, sol.se_b, sol.valid)
     return Calibration(
         contrast=sol.c.reshape(shape),
@@ -456,6 +473,176 @@ def solve_normal_equations(
         n_events=np.asarray(n_events, np.int64).reshape(shape),
         diagnostics=diagnostics if diagnostics is not None else Diagnostics(),
     )
+
+
+# ----------------------------------------------------------------------------------------
+# standard errors of overlapping windows
+
+
+@dataclass(frozen=True)
+class OverlapNoise:
+    """What the standard errors of overlapping windows need besides the normal equations.
+
+    ``moments``: (2, n) sums over the equations of ``w P`` and ``w E``
+    (:attr:`WindowRing.moments`). ``sample``: flat indices of a pixel sample; ``on``, ``off``,
+    ``last_p``, ``lg``, ``ok``: their running ON and OFF counts, last polarities, log
+    intensities and usable masks at consecutive frames (``[frame, sample pixel]``), from which
+    the correlation of overlapping windows' noise is measured. ``window_frames``: ``d``.
+    """
+
+    window_frames: int
+    moments: np.ndarray
+    sample: np.ndarray
+    on: np.ndarray
+    off: np.ndarray
+    last_p: np.ndarray
+    lg: np.ndarray
+    ok: np.ndarray
+
+
+def noise_overlap(noise: OverlapNoise, c: np.ndarray, b: np.ndarray, valid: np.ndarray,
+                  lam: float) -> float:
+    """``kappa = 1 + 2 sum_{l<d} rho(l) (1 - l/d)``: how many windows' worth of noise the
+    ``d`` windows overlapping one interval share.
+
+    ``rho(l)`` is the correlation of the residuals of two windows ``l`` frames apart, the
+    mean over the valid pixels of the sample of each pixel's own (so that each pixel counts
+    alike, as in a spread of z-scores over pixels); ``1 - l/d`` is how much two such windows'
+    regressors share (sums over ``d`` intervals, ``d - l`` of them common). ``d`` when there is
+    nothing to measure it on (the bound: noise shared whole by the ``d`` windows); clipped to
+    ``[1, d]``.
+    """
+    d = int(noise.window_frames)
+    keep = valid[noise.sample]
+    n_w = noise.on.shape[0] - d
+    if d <= 1 or n_w <= d or not keep.any():
+        return float(d)
+    pix = noise.sample[keep]
+    on = noise.on[:, keep]
+    off = noise.off[:, keep]
+    q = noise.last_p[:, keep].astype(np.float64)
+    lg, ok = noise.lg[:, keep], noise.ok[:, keep]
+    # [window, sample pixel]
+    n_on = (on[d:] - on[:-d]).astype(np.float64)
+    n_off = (off[d:] - off[:-d]).astype(np.float64)
+    x1 = n_on - n_off + lam * (q[d:] - q[:-d])
+    x2 = n_on + n_off + lam * (np.abs(q[d:]) - np.abs(q[:-d]))
+    with np.errstate(invalid="ignore"):  # -inf - -inf at black pixels (unusable)
+        res = np.where(ok[d:] & ok[:-d], lg[d:] - lg[:-d] - c[pix] * x1 - b[pix] * x2, 0.0)
+    g0 = np.einsum("ij,ij->j", res, res)
+    res, g0 = res[:, g0 > 0], g0[g0 > 0]
+    if not g0.size:
+        return float(d)
+    kappa = 1.0
+    for lag in range(1, d):
+        rho = np.einsum("ij,ij->j", res[lag:], res[:-lag]) / g0
+        kappa += 2.0 * float(rho.mean()) * (1.0 - lag / d)
+    return float(np.clip(kappa, 1.0, d))
+
+
+def overlap_standard_errors(ne: NormalEquations, sol: PixelSolution, lam: float,
+                            noise: OverlapNoise) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """``(se_c, se_b, kappa, tau)`` of OffEI's overlapping windows (``inf`` where invalid).
+
+    The noise of the equation between frames ``j`` and ``k`` is ``r_k - r_j``: the
+    sub-threshold residuals (and frame noise) at its two frames, not a sum over its intervals.
+    So (1) two overlapping windows share no frame, their noises correlate only as far as a
+    residual persists from frame to frame: ``kappa`` (:func:`noise_overlap`) replaces the
+    ``d`` of "every interval is in ``d`` equations"; (2) along the mean of the regressors
+    (``E`` is about ``d`` times the event rate in every window) the noises telescope, ``sum_w
+    (r_k - r_j)`` keeps only the residuals of the first and last ``d`` frames, so only the
+    regressors' spread about their mean, ``S = G - n m m^T``, carries noise (``G`` the
+    regressors' cross products, ``m`` their mean); (3) the residual correction uses one
+    ``lam`` for every pixel, the pixels' own factors spread about it with variance ``tau^2``
+    (the variance over pixels of their one-pixel estimates less the part their noise
+    explains), which moves ``(c, b)`` by ``(lam_pixel - lam) u``, ``u = G^-1 sum_w x_w (c Q_w
+    + b A_w)``. Hence::
+
+        Var(c, b) = kappa sigma^2 G^-1 S G^-1 + tau^2 u u^T
+
+    with ``sigma^2 = RSS / n * n_eff / (n_eff - 2)``, ``n_eff = n / kappa``. The estimates
+    are those of ``sol``, unchanged.
+    """
+    kappa = noise_overlap(noise, sol.c, sol.b, sol.valid, lam)
+    var_c, var_b, u1, u2, lam_dev, lam_noise = _overlap_terms(
+        ne.m, np.ascontiguousarray(noise.moments[0]), np.ascontiguousarray(noise.moments[1]),
+        sol.c, sol.b, float(lam), float(kappa))
+    use = sol.valid & np.isfinite(lam_dev) & np.isfinite(lam_noise)
+    tau2 = (max(float(np.var(lam_dev[use])) - float(np.mean(lam_noise[use])), 0.0)
+            if int(use.sum()) > 1 else 0.0)
+    se_c, se_b = _overlap_errors(var_c, var_b, u1, u2, sol.valid, tau2)
+    return se_c, se_b, kappa, float(np.sqrt(tau2))
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _overlap_terms(m: np.ndarray, m_p: np.ndarray, m_e: np.ndarray, c: np.ndarray,
+                   b: np.ndarray, lam: float, kappa: float) -> Any:  # pragma: no cover
+    """Per pixel, the terms of :func:`overlap_standard_errors`: the noise variances of ``c``
+    and ``b`` (``kappa sigma^2 G^-1 S G^-1``), ``u`` and the one-pixel estimate of the
+    residual-correction factor's deviation with its noise variance (NaN where it has none)."""
+    n_px = m.shape[1]
+    var_c = np.empty(n_px)
+    var_b = np.empty(n_px)
+    u1_out = np.empty(n_px)
+    u2_out = np.empty(n_px)
+    dev = np.empty(n_px)
+    dev_noise = np.empty(n_px)
+    for i in range(n_px):
+        a11, a12, a22, r1, r2, _, _, _, _ = _pixel_fit(m, i, lam, 0.0)
+        ci, bi, n = c[i], b[i], m[15, i]
+        pq, pa, eq, ea, qq, qa, aa, qy, ay = (m[2, i], m[3, i], m[5, i], m[6, i], m[7, i],
+                                                m[8, i], m[9, i], m[12, i], m[13, i])
+        det = a11 * a22 - a12 * a12
+        i11 = a22 / det
+        i12 = -a12 / det
+        i22 = a11 / det
+        rss = (m[14, i] - 2 * (ci * r1 + bi * r2) + ci * ci * a11 + 2 * ci * bi * a12
+               + bi * bi * a22)
+        rss = 0.0 if rss < 0.0 else rss
+        n_eff = n / kappa
+        sigma2 = rss / n * n_eff / (n_eff - 2.0) if n_eff > 2.0 else np.inf
+        # the regressors' spread about their mean (weights 0 or 1: positive semi-definite);
+        # Q and A telescope (their sums over the windows are those of the last d frames less
+        # the first d, at most 2 d), so P + lam Q and E + lam A have the means of P and E
+        mean1 = m_p[i] / n
+        mean2 = m_e[i] / n
+        s11 = a11 - n * mean1 * mean1
+        s12 = a12 - n * mean1 * mean2
+        s22 = a22 - n * mean2 * mean2
+        var_c[i] = kappa * sigma2 * (i11 * (i11 * s11 + i12 * s12)
+                                     + i12 * (i11 * s12 + i12 * s22))
+        var_b[i] = kappa * sigma2 * (i12 * (i12 * s11 + i22 * s12)
+                                     + i22 * (i12 * s12 + i22 * s22))
+        # the residual correction's factor, one per pixel: u and the one-pixel estimate
+        t1 = ci * (pq + lam * qq) + bi * (pa + lam * qa)
+        t2 = ci * (eq + lam * qa) + bi * (ea + lam * aa)
+        u1 = i11 * t1 + i12 * t2
+        u2 = i12 * t1 + i22 * t2
+        u1_out[i] = u1
+        u2_out[i] = u2
+        den = ci * ci * qq + 2 * ci * bi * qa + bi * bi * aa - (t1 * u1 + t2 * u2)
+        z_res = (ci * (qy - ci * (pq + lam * qq) - bi * (eq + lam * qa))
+                 + bi * (ay - ci * (pa + lam * qa) - bi * (ea + lam * aa)))
+        ok = den > 0.0
+        dev[i] = z_res / den if ok else np.nan
+        dev_noise[i] = kappa * sigma2 / den if ok else np.nan
+    return var_c, var_b, u1_out, u2_out, dev, dev_noise
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _overlap_errors(var_c: np.ndarray, var_b: np.ndarray, u1: np.ndarray, u2: np.ndarray,
+                    valid: np.ndarray, tau2: float) -> Any:  # pragma: no cover - compiled
+    """``sqrt(noise variance + tau^2 u^2)`` of ``c`` and ``b``; ``inf`` where not valid or
+    not finite."""
+    n = var_c.size
+    se_c = np.empty(n)
+    se_b = np.empty(n)
+    for i in range(n):
+        vc = var_c[i] + tau2 * u1[i] * u1[i]
+        vb = var_b[i] + tau2 * u2[i] * u2[i]
+        se_c[i] = np.sqrt(vc) if valid[i] & np.isfinite(vc) & (vc >= 0.0) else np.inf
+        se_b[i] = np.sqrt(vb) if valid[i] & np.isfinite(vb) & (vb >= 0.0) else np.inf
+    return se_c, se_b
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
