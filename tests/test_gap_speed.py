@@ -183,6 +183,23 @@ def test_the_beam_names_a_pair_together() -> None:
     assert score == pytest.approx(steps[1][1].gap + 0.1 * sum(e.n_fitted for e, _ in steps))
 
 
+def test_an_evaluation_that_let_go_of_its_simulations_is_extended_anew() -> None:
+    """A round lets go of the simulations of candidates it does not keep; confirming one of
+    them later (a runner-up of the same signature) simulates every seed again rather than
+    counting its first seed's summary twice."""
+    rec = small_recording(17, [])
+    run = Runner(rec, GapConfig(n_seeds=2, seed=1), lambda _m: None)
+    assert run.band is None
+    base = run.evaluate(fit_base(rec), "base")
+    screened = run.evaluate(base.model, "screen", spread=base)
+    assert screened.screened
+    kept = run.extend(screened, 2, "confirm")
+    screened.sims.clear()
+    again = run.extend(screened, 2, "confirm")
+    assert len(again.sims) == len(again.summaries) == 2
+    assert again.gap == pytest.approx(kept.gap, rel=1e-12)
+
+
 def test_what_remains_is_said_in_words() -> None:
     s = sentence("static_rate_vs_intensity", "static, I (DN) 12..31", 0.41, 1.27, -8.2)
     assert s.startswith("still pixels (static, I (DN) 12..31) fire 3.1x fewer events than "

@@ -217,7 +217,11 @@ class Runner:
     def extend(self, ev: Evaluation, n: int, what: str, *, spread: Evaluation | None = None
                ) -> Evaluation:
         """``ev`` with simulations up to ``n`` seeds (the missing ones run in parallel, each
-        summarised in its thread, beside the summaries ``ev`` still lacks)."""
+        summarised in its thread, beside the summaries ``ev`` still lacks). An evaluation
+        that let go of its simulations (a round's candidates not kept) is simulated anew:
+        its summaries would otherwise count its first seed twice."""
+        if len(ev.sims) < len(ev.summaries):
+            ev = Evaluation(ev.model, [], ev.disc, [])
         todo = self.seeds[len(ev.sims):n]
         sims = list(ev.sims)
         unsummarised = sims[len(ev.summaries):]
