@@ -72,7 +72,7 @@ def _bootstrap(run: Runner, eff: Effect, m: float, start: Evaluation,
         if len(again) < max(2, len(cur_ev.sims) // 2):
             info["note"] = "the fitter did not find the effect in its own simulations"
             break
-        f_v = float(np.exp(np.mean(np.log(again))))
+        f_v = float(np.median(again))
         factor = float(np.clip(m / f_v, 0.25, 4.0))
         info["steps"].append({"value": v, "refits": again, "factor": round(factor, 4)})
         if abs(np.log(factor)) < 0.05:
