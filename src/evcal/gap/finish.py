@@ -60,8 +60,9 @@ def _bootstrap(run: Runner, eff: Effect, m: float, start: Evaluation,
                evaluate: Callable[[Effect, Evaluation], Evaluation],
                info: dict[str, Any]) -> tuple[Effect, Evaluation]:
     """The steps of :meth:`debias` from ``start`` (the evaluation at the moment
-    estimate): ``refit`` of each simulation gives ``f(v)``, ``evaluate`` the evaluation
-    at the next value; returns the last value and its evaluation."""
+    estimate): ``refit`` of each simulation gives a value, their median ``f(v)`` (a mean
+    follows one seed's wild refit), ``evaluate`` the evaluation at the next value; returns
+    the last value and its evaluation."""
     key = eff.primary
     cur_eff, cur_ev = eff, start
     for _ in range(DEBIAS_STEPS):
