@@ -19,6 +19,7 @@
 from __future__ import annotations
 
 import logging
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -27,6 +28,7 @@ from ..calibration import Calibration
 from ..errors import CalibrationError, ConfigError
 from ..events import SensorSize
 from ..offline import OffEIConfig, offei
+from ..online import usable_cores
 from ..recording import Frames, Recording
 from ..sim.effects import Effect, Exposure, Refractory
 from ..sim.ideal import SimConfig
@@ -166,12 +168,18 @@ def noise_scale(rec: Recording, config: OffEIConfig, cal: Calibration, model: Mo
     error common to both halves cancels (on the ideal simulator ``f`` 0.58 / 0.74 with
     errors whose ``std(z)`` is 0.99 / 0.98)."""
     settings = settings or SimSettings(read_noise_dn=estimate_read_noise(rec.frames))
+    def fitted(seed: int) -> Calibration | None:
+        try:
+            return offei(simulate_model(model, rec, seed, settings, render), config)
+        except CalibrationError:
+            return None
+
+    with ThreadPoolExecutor(max_workers=max(1, min(len(seeds), usable_cores()))) as pool:
+        fits = list(pool.map(fitted, seeds))
     zc: list[np.ndarray] = []
     zb: list[np.ndarray] = []
-    for seed in seeds:
-        try:
-            fit = offei(simulate_model(model, rec, seed, settings, render), config)
-        except CalibrationError:
+    for fit in fits:
+        if fit is None:
             continue
         ok = fit.valid & cal.valid & (fit.stderr_contrast > 0) & (fit.stderr_bias > 0)
         ok &= np.isfinite(fit.stderr_contrast) & np.isfinite(fit.stderr_bias)
@@ -325,8 +333,11 @@ def simulate_model(model: Model, rec: Recording, seed: int, settings: SimSetting
         if settings.interpolation == "flow":
             from .flow import FlowInterpolator  # noqa: PLC0415
 
+            # the motion is the scene's: the flow of the measured frames serves every model
+            # (a dark-offset map subtracted from the frames would otherwise cost a flow of
+            # its own per candidate, for the same motion)
             return FlowInterpolator(latent, shape, t_origin_us=t0,
-                                    flow_images=drive.images.astype(np.float32))
+                                    flow_images=fr.images.astype(np.float32))
         return FrameInterpolator(latent, shape, t_origin_us=t0)
 
     cache = render if render is not None else RenderCache(max_bytes=0)

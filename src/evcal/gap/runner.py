@@ -171,6 +171,9 @@ class Runner:
         self.confirmed: list[tuple[float, Effect, Evaluation]] = []
         # the gap the round's screenings are compared with (the band's, on a band)
         self.screen_base = math.inf
+        # seconds each candidate's fit and screening took in its last round (the next
+        # round starts the slowest first)
+        self.task_s: dict[str, float] = {}
         self.band = screening_band(rec, cfg)
         if self.band is not None:
             rows = self.band.rows

@@ -5,6 +5,7 @@ runner-up, and pairs of the best singles when no single one qualifies."""
 from __future__ import annotations
 
 import math
+import time
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
@@ -31,6 +32,23 @@ def scheme_candidate(run: Runner, current: Evaluation, tried: dict[str, dict[str
     return eff, ev
 
 
+# the candidates' fit and screening, slowest first, before a run has timed them (their
+# fitters scan grids of offsets, lags or jitters over every pixel, or render frames anew)
+SLOW_FIRST = ("aps_fpn", "bandwidth", "exposure", "timestamp_jitter", "threshold_light",
+              "refractory", "threshold_noise")
+
+
+def longest_first(names: list[str], seconds: dict[str, float]) -> list[str]:
+    """``names`` by their time in ``seconds`` (those timed) or by :data:`SLOW_FIRST`
+    (the others, after them), longest first; ties keep the given order."""
+    def key(item: tuple[int, str]) -> tuple[int, float, int]:
+        i, n = item
+        if n in seconds:
+            return 0, -seconds[n], i
+        return 1, float(SLOW_FIRST.index(n)) if n in SLOW_FIRST else len(SLOW_FIRST), i
+    return [n for _, n in sorted(enumerate(names), key=key)]
+
+
 def best_candidate(run: Runner, current: Evaluation, tried: dict[str, dict[str, Any]], *,
                    skip: str) -> tuple[float, Effect, Evaluation] | None:
     """Every candidate but ``skip`` not in ``current``'s model, fitted from its
@@ -52,21 +70,31 @@ def best_candidate(run: Runner, current: Evaluation, tried: dict[str, dict[str, 
         """A candidate fitted and, when screening, its variants screened at once: the
         fitters (numpy, holding the GIL in part) and the simulations of the candidates
         fitted first (numba, without it) share the cores."""
-        eff = fit_candidate(name, run.meas, current.sims, current.model, run.rec)
-        if eff is None:
-            return None, [], []
-        # discrete alternatives the moment estimate cannot tell: the gap decides
-        alts = variants(eff)
-        if not run.cfg.screen:
-            return eff, alts, []
-        return eff, alts, [run.evaluate(run.candidate_model(current.model, e),
-                                         f"screen {e.name}", spread=current)
-                           for e in alts]
+        t0 = time.perf_counter()
+        try:
+            eff = fit_candidate(name, run.meas, current.sims, current.model, run.rec)
+            if eff is None:
+                return None, [], []
+            # discrete alternatives the moment estimate cannot tell: the gap decides
+            alts = variants(eff)
+            if not run.cfg.screen:
+                return eff, alts, []
+            return eff, alts, [run.evaluate(run.candidate_model(current.model, e),
+                                             f"screen {e.name}", spread=current)
+                               for e in alts]
+        finally:
+            run.task_s[name] = time.perf_counter() - t0
 
     with ThreadPoolExecutor(max_workers=run.workers) as pool:
-        done = list(pool.map(fit_and_screen, names))
+        # longest first (each candidate's time in the last round, else the usual order of
+        # costs): the round ends when its last task does, and a long one started last
+        # leaves the other cores idle while it runs
+        done = dict(zip(longest_first(names, run.task_s),
+                        pool.map(fit_and_screen, longest_first(names, run.task_s)),
+                        strict=True))
+    done_in_order = [done[n] for n in names]
     drop_derived(current.sims)
-    for name, (eff, alts, screened) in zip(names, done, strict=True):
+    for name, (eff, alts, screened) in zip(names, done_in_order, strict=True):
         if eff is None:
             tried[name] = {"parameters": None, "gap": None}
             continue

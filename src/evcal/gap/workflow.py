@@ -22,6 +22,7 @@ them.
 from __future__ import annotations
 
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -222,11 +223,15 @@ def run_gap(rec: Recording, config: GapConfig | None = None, *,
     if window is None:
         rec, window = working_window(rec, cfg.max_pixel_steps, cfg.internal_rate_hz,
                                      cfg.max_events)
-    run = Runner(rec, cfg, tick, released)
-    share = 1.0 if run.band is None else run.band.share
-    if plan is not None:
-        plan(n_simulations(cfg, band_share=share))
-    base = fit_base(rec)
+    # the base fit (its noise scale simulates) does not need the runner's measurement
+    # statistics: each is made while the other waits on numba or OpenCV
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        fitting = pool.submit(fit_base, rec)
+        run = Runner(rec, cfg, tick, released)
+        share = 1.0 if run.band is None else run.band.share
+        if plan is not None:
+            plan(n_simulations(cfg, band_share=share))
+        base = fitting.result()
     current = run.evaluate(base, "base model")
     initial = current
     steps: list[Step] = []
