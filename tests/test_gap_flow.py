@@ -10,12 +10,14 @@ from __future__ import annotations
 
 import json
 from functools import cache
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 from evcal.cli import main as cli_main
 from evcal.gap.correct import ModelFileError, load_model_effects, model_corrected
+from evcal.gap.fitters import late_slot_intervals
 from evcal.gap.flow import FlowInterpolator, trusted_windows
 from evcal.gap.workflow import GapConfig, run_gap
 from evcal.io import load_calibration, write_recording
@@ -128,6 +130,36 @@ def test_a_stepped_dead_time_counts_blocked_crossings_in_the_slots() -> None:
 
 
 # ------------------------------------------------------------------ interpolation
+
+
+def test_held_back_events_give_the_dead_time_from_their_slots() -> None:
+    """A pixel's first event of a step at a later slot (not the last) was held back by the
+    dead time: the time since its previous event lies just above the period, while the
+    pairs of events at short intervals need not be scarce. Without a dead time no event is
+    held back; noise events at a step's last slot do not count."""
+    rng = np.random.default_rng(5)
+    n_pix, span_us = 400, 200_000
+    t = np.sort(rng.integers(0, span_us, 60_000))  # about one crossing per 1.3 ms per pixel
+    pix = rng.integers(0, n_pix, t.size).astype(np.int32)
+    q = TimestampQuantisation(step_us=500.0)
+
+    def stamped(refr: Refractory | None, lab: np.ndarray | None = None) -> SimpleNamespace:
+        out = quantise_events(t, pix, np.ones(t.size, np.int8),
+                              np.zeros(t.size, np.uint8) if lab is None else lab, q, 0,
+                              n_pix=n_pix, t_end_us=float(span_us), refractory=refr)
+        return SimpleNamespace(t_us=out[0], pix=out[1], frame_t_us=np.array([0]))
+
+    for period in (800.0, 1000.0, 2000.0):
+        held = late_slot_intervals(stamped(Refractory(period_us=period, mode="delay")), q)
+        assert held.size > 200
+        assert held.min() >= period - 1.0  # stamps are whole us
+        assert np.percentile(held, 2.0) == pytest.approx(period, rel=0.1)
+    assert late_slot_intervals(stamped(None), q).size == 0
+    # shot noise, stamped at its step's end, is no held-back event
+    noise = np.where(rng.random(t.size) < 0.1, 2, 0).astype(np.uint8)
+    assert late_slot_intervals(stamped(None, noise), q).size == 0
+    assert late_slot_intervals(stamped(None), TimestampQuantisation(step_us=500.0,
+                                                                    scheme="end")).size == 0
 
 
 def test_flow_interpolation_follows_the_motion_between_25_hz_frames() -> None:

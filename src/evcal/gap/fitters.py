@@ -59,8 +59,69 @@ def _hot_excess(meas: Observation, sims: list[Observation]) -> Any:
     return cm, cs, ex, z, dur
 
 
+def late_slot_intervals(obs: Observation, q: TimestampQuantisation) -> np.ndarray:
+    """Under the ``spread`` timestamp scheme ``q``: for each pixel's first event of a step
+    that lies at a later slot than the step's first, other than its last, the time (us)
+    since the pixel's previous event.
+
+    A frame-driven simulator stamps a pixel's events at the first slots of its step
+    (:func:`evcal.sim.effects.quantise_events`), so such an event was held back at the
+    earlier slots: by a dead time that ended between them. These intervals therefore all
+    lie just above the dead time, however sparse the pairs of events are at short
+    intervals otherwise. The last slot is left out: a simulator also stamps its noise
+    events there (v2e's shot noise), which no dead time holds back. A step's slot spacing
+    is the offset of its earliest event from the step's start."""
+    t = np.asarray(obs.t_us, np.int64)
+    if t.size < 2 or q.scheme != "spread":
+        return np.zeros(0)
+    step = float(q.step_us)
+    t0 = int(obs.frame_t_us[0])
+    origin = t0 + float(q.phase_us) % step - step  # as quantise_events
+    k = np.maximum(np.ceil((t - origin) / step).astype(np.int64) - 1, 0)
+    off = t - (origin + k * step)  # in (0, step]
+    ks, first = np.unique(k, return_inverse=True)
+    min_off = np.full(ks.size, np.inf)
+    np.minimum.at(min_off, first, off)
+    n_slots = np.maximum(1, np.rint(step / np.maximum(min_off, 1.0))).astype(np.int64)[first]
+    slot = np.rint(off * n_slots / step).astype(np.int64) - 1
+    order = np.lexsort((t, obs.pix))
+    tp, pp, kp = t[order], np.asarray(obs.pix)[order], k[order]
+    sp, np_ = slot[order], n_slots[order]
+    same = np.r_[False, pp[1:] == pp[:-1]]
+    first_in_step = same & np.r_[False, kp[1:] != kp[:-1]]
+    late = first_in_step & (sp > 0) & (sp < np_ - 1)
+    out: np.ndarray = (tp - np.r_[tp[:1], tp[:-1]])[late].astype(np.float64)
+    return out
+
+
+# a dead time is read off the slots when the measurement holds at least this many held-back
+# events, and this many times the simulations' (which have none without a dead time)
+SLOT_MIN_EVENTS = 50
+SLOT_EXCESS = 3.0
+
+
+def _slot_dead_time(meas: Observation, sims: list[Observation], model: Model
+                    ) -> float | None:
+    """The dead time read off the slots of a ``spread`` timestamp scheme in the current
+    model (:func:`late_slot_intervals`: the 2nd percentile of the held-back events'
+    intervals), or ``None`` when there is no such scheme or too few held-back events."""
+    q = model.effects.get(TimestampQuantisation.name)
+    if not isinstance(q, TimestampQuantisation) or q.scheme != "spread":
+        return None
+    u_m = late_slot_intervals(meas, q)
+    n_s = float(np.mean([late_slot_intervals(s, q).size for s in sims])) if sims else 0.0
+    if u_m.size < SLOT_MIN_EVENTS or u_m.size < SLOT_EXCESS * n_s + SLOT_MIN_EVENTS:
+        return None
+    return float(np.percentile(u_m, 2.0))
+
+
 def fit_refractory(meas: Observation, sims: list[Observation], model: Model,
                    rec: Recording) -> Effect | None:
+    slot_p = _slot_dead_time(meas, sims, model)
+    if slot_p is not None:
+        # the stamps say it directly; blocked crossings stay pending in such a simulator
+        # (the gap workflow also evaluates the other mode, see evcal.gap.model.variants)
+        return Refractory(period_us=round(slot_p, 1), mode="delay")
     cm, cs, ex, z, dur = _hot_excess(meas, sims)
     keep = cm <= np.quantile(cm, 0.99)
     iei_m, _, pix_pairs = _iei(meas)
