@@ -147,7 +147,8 @@ def test_held_back_events_give_the_dead_time_from_their_slots() -> None:
         out = quantise_events(t, pix, np.ones(t.size, np.int8),
                               np.zeros(t.size, np.uint8) if lab is None else lab, q, 0,
                               n_pix=n_pix, t_end_us=float(span_us), refractory=refr)
-        return SimpleNamespace(t_us=out[0], pix=out[1], frame_t_us=np.array([0]))
+        return SimpleNamespace(t_us=out[0], pix=out[1], frame_t_us=np.array([0]),
+                               n_pixels=n_pix, extra={})
 
     for period in (800.0, 1000.0, 2000.0):
         held = late_slot_intervals(stamped(Refractory(period_us=period, mode="delay")), q)

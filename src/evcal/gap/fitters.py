@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ..accumulate import order_by_key
 from ..errors import CalibrationError
 from ..offline import OffEIConfig, estimate_log_offset
 from ..recording import Recording
@@ -70,10 +71,15 @@ def late_slot_intervals(obs: Observation, q: TimestampQuantisation) -> np.ndarra
     lie just above the dead time, however sparse the pairs of events are at short
     intervals otherwise. The last slot is left out: a simulator also stamps its noise
     events there (v2e's shot noise), which no dead time holds back. A step's slot spacing
-    is the offset of its earliest event from the step's start."""
+    is the offset of its earliest event from the step's start. Kept in ``obs.extra`` (the
+    measurement's is asked for every round)."""
     t = np.asarray(obs.t_us, np.int64)
     if t.size < 2 or q.scheme != "spread":
         return np.zeros(0)
+    key = f"late_slot_intervals/{float(q.step_us)!r}/{float(q.phase_us)!r}"
+    cached = obs.extra.get(key)
+    if isinstance(cached, np.ndarray):
+        return cached
     step = float(q.step_us)
     t0 = int(obs.frame_t_us[0])
     origin = t0 + float(q.phase_us) % step - step  # as quantise_events
@@ -84,13 +90,14 @@ def late_slot_intervals(obs: Observation, q: TimestampQuantisation) -> np.ndarra
     np.minimum.at(min_off, first, off)
     n_slots = np.maximum(1, np.rint(step / np.maximum(min_off, 1.0))).astype(np.int64)[first]
     slot = np.rint(off * n_slots / step).astype(np.int64) - 1
-    order = np.lexsort((t, obs.pix))
+    order = order_by_key(obs.pix, obs.n_pixels)  # stable: each pixel's events in time order
     tp, pp, kp = t[order], np.asarray(obs.pix)[order], k[order]
     sp, np_ = slot[order], n_slots[order]
     same = np.r_[False, pp[1:] == pp[:-1]]
     first_in_step = same & np.r_[False, kp[1:] != kp[:-1]]
     late = first_in_step & (sp > 0) & (sp < np_ - 1)
     out: np.ndarray = (tp - np.r_[tp[:1], tp[:-1]])[late].astype(np.float64)
+    obs.extra[key] = out
     return out
 
 

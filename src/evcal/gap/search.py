@@ -89,9 +89,8 @@ def best_candidate(run: Runner, current: Evaluation, tried: dict[str, dict[str, 
         # longest first (each candidate's time in the last round, else the usual order of
         # costs): the round ends when its last task does, and a long one started last
         # leaves the other cores idle while it runs
-        done = dict(zip(longest_first(names, run.task_s),
-                        pool.map(fit_and_screen, longest_first(names, run.task_s)),
-                        strict=True))
+        order = longest_first(names, run.task_s)
+        done = dict(zip(order, pool.map(fit_and_screen, order), strict=True))
     done_in_order = [done[n] for n in names]
     drop_derived(current.sims)
     for name, (eff, alts, screened) in zip(names, done_in_order, strict=True):
