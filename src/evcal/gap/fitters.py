@@ -33,6 +33,7 @@ from ..sim.effects import (
     TimestampQuantisation,
 )
 from ..stream import event_windows
+from . import frames as _frames
 from .compare import discrepancy
 from .pixelfit import fit_from_sums, lowpass_log_changes, residual_from_sums, window_sums
 from .stats import (
@@ -295,6 +296,24 @@ def _filter_fit_error(obs: Observation, cutoff_hz: float, offset: float) -> floa
 
 def fit_bandwidth(meas: Observation, sims: list[Observation], model: Model,
                   rec: Recording) -> Effect | None:
+    """The cutoff at ``ref_dn``: seen by the frames, measured by the events' lag.
+
+    Seen: the cutoff whose first-order low-pass of the frames' log intensity, applied at
+    frame rate, the events explain best must lie below the frame rate (a filter applied at
+    frame rate tells nothing of faster ones; ``None`` when no filter beats none). That
+    filter reads the cutoff several times low (on v2e's 30 Hz low-pass, 16.2 Hz at 128 DN
+    in this law, 3.7-5.7 Hz), so the value is the lag's: a low-pass of cutoff
+    ``f(I) = f_c (I + offset) / ref_dn`` follows a ramp ``1 / (2 pi f(I))`` late, and the
+    lag of the events behind the frames' changes (measured less simulated,
+    :func:`evcal.gap.frames.event_lag`), over pixels weighted by their events, gives
+    ``f_c = ref_dn E[1 / (I + offset)] / (2 pi lag)`` (``I`` a pixel's mean frame value).
+    Without a positive lag (one beyond the lag grid's reach among them), or when the
+    frames see no cutoff below their rate, the frame-rate filter's cutoff (the bias
+    correction makes up part of its error).
+
+    Whatever the frames see, the lag alone is not trusted: with nothing hidden, the
+    simulations driven by interpolated frames leave the events a few grid steps of lag
+    (0.2 ms at 200 Hz frames), which would read as a kHz photoreceptor."""
     grid = np.geomspace(2.0, 2000.0, 19)
     err = np.array([_filter_fit_error(meas, g, model.log_offset) for g in grid])
     i = int(np.argmin(err))
@@ -307,6 +326,16 @@ def fit_bandwidth(meas: Observation, sims: list[Observation], model: Model,
         den = y[0] - 2 * y[1] + y[2]
         if den > 0:
             f = float(np.exp(x[1] + 0.5 * (x[1] - x[0]) * (y[0] - y[2]) / den))
+    frame_rate_hz = 1e6 / float(np.median(np.diff(meas.frame_t_us)))
+    found = _frames.event_lag(meas, sims, rec) if f < frame_rate_hz else None
+    if found is not None and found[0] > 0:
+        ref = float(Bandwidth().ref_dn)
+        light = meas.intensity.mean(0).astype(np.float64) + float(model.log_offset)
+        w = (meas.on.sum(0) + meas.off.sum(0)).astype(np.float64)
+        ok = (light > 0) & (w > 0)
+        if ok.any():
+            inv = float(np.sum(w[ok] / light[ok]) / np.sum(w[ok]))
+            return Bandwidth(cutoff_hz=round(ref * inv / (2.0 * np.pi * found[0] * 1e-6), 3))
     return Bandwidth(cutoff_hz=round(f, 3))
 
 

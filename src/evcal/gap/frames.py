@@ -360,18 +360,13 @@ def _lag_minimum(lags: np.ndarray, r: np.ndarray) -> float:
     return lag
 
 
-def fit_exposure(meas: Observation, sims: list[Observation], model: Model,
-                 rec: Recording) -> Effect | None:
-    """Where the frames' exposure lies: the lag of the frame times at which the measured
-    events best match the frames' changes (:func:`lag_residuals`, a grid of +-1.5 times the
-    larger of the exposure and a quarter of the frame interval), less the same on the
-    simulations (driven by the frames at their stamps, they show what the interpolation
-    alone puts there). The exposure time is the recording's (median of
-    ``Frames.exposure_us``). ``None`` when the lag is within one grid step of the
-    simulations', when the measurement's least residual lies at an end of the grid (a
-    minimum the grid does not bracket is no estimate: a delay longer than a frame's timing
-    is taken to explain, as a slow photoreceptor's in the dark), or when it differs between
-    dark and bright pixels (:data:`LAG_LIGHT_RATIO`)."""
+def event_lag(meas: Observation, sims: list[Observation], rec: Recording
+              ) -> tuple[float, np.ndarray] | None:
+    """How much later than the frames' stamps the measured events follow the frames'
+    changes, less the same on the simulations (us; :func:`lag_residuals` on a grid of
+    +-1.5 times the larger of the exposure and a quarter of the frame interval), and that
+    grid. ``None`` when the measurement's least residual lies at an end of the grid or the
+    lag is within one grid step."""
     if not sims:
         return None
     ft = meas.frame_t_us
@@ -392,6 +387,26 @@ def fit_exposure(meas: Observation, sims: list[Observation], model: Model,
     lag = lm - float(np.mean(ls))
     if abs(lag) < float(lags[1] - lags[0]):
         return None
+    return lag, lags
+
+
+def fit_exposure(meas: Observation, sims: list[Observation], model: Model,
+                 rec: Recording) -> Effect | None:
+    """Where the frames' exposure lies: the lag of the frame times at which the measured
+    events best match the frames' changes (:func:`lag_residuals`, a grid of +-1.5 times the
+    larger of the exposure and a quarter of the frame interval), less the same on the
+    simulations (driven by the frames at their stamps, they show what the interpolation
+    alone puts there). The exposure time is the recording's (median of
+    ``Frames.exposure_us``). ``None`` when the lag is within one grid step of the
+    simulations', when the measurement's least residual lies at an end of the grid (a
+    minimum the grid does not bracket is no estimate: a delay longer than a frame's timing
+    is taken to explain, as a slow photoreceptor's in the dark), or when it differs between
+    dark and bright pixels (:data:`LAG_LIGHT_RATIO`)."""
+    found = event_lag(meas, sims, rec)
+    if found is None:
+        return None
+    lag, lags = found
+    exp_us = float(np.median(rec.frames.exposure_us)) if len(rec.frames) else 0.0
     # a frame's timing moves every pixel's events alike; a slow photoreceptor (bandwidth)
     # delays the dark pixels' events most: the lag must be about the same at every light
     per_light = _lag_by_light(meas, sims, lags)

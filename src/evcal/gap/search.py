@@ -184,11 +184,24 @@ def beam_top(run: Runner, tried: dict[str, dict[str, Any]]) -> list[str]:
     return [n for _, n in singles[:run.cfg.beam_width]]
 
 
-# effects that explain the same signature, the second's moment estimate biased far from its
-# value (a first-order low-pass of the photoreceptor delays events much as a late frame
-# stamp does, and the bandwidth fitter reads 0.2-0.5x the cutoff): when the first is the
-# best, the second is finished beside it whatever its screening says
+# effects that explain the same signature (a first-order low-pass of the photoreceptor
+# delays events much as a late frame stamp does): when either is the best, the other is
+# finished beside it whatever its screening says, and when both are finished the workflow
+# compares them by the round after each (evcal.gap.workflow.lookahead)
 SAME_SIGNATURE = {"exposure": "bandwidth"}
+
+
+def same_signature(a: str, b: str) -> bool:
+    """Whether effects ``a`` and ``b`` explain the same signature (either way round)."""
+    return SAME_SIGNATURE.get(a) == b or SAME_SIGNATURE.get(b) == a
+
+
+def signature_alternative(name: str) -> str | None:
+    """The effect that explains the same signature as ``name`` (either way round)."""
+    for a, b in SAME_SIGNATURE.items():
+        if name in (a, b):
+            return b if name == a else a
+    return None
 
 
 def runner_up(run: Runner, best: tuple[float, Effect, Evaluation], current: Evaluation
@@ -199,15 +212,20 @@ def runner_up(run: Runner, best: tuple[float, Effect, Evaluation], current: Eval
     limit 0.5x its cutoff, and a frame lag then explains its delay better), so two
     effects that explain the data about as well are compared once both are
     bias-corrected. When ``best`` has an alternative of the same signature
-    (:data:`SAME_SIGNATURE`) that was fitted this round, that one, confirmed on every
-    seed, however far its moment estimate's screening fell behind, when it at least
-    improved on ``current``."""
+    (:data:`SAME_SIGNATURE`, either way round) that was fitted this round, that one,
+    confirmed on every seed, however far its moment estimate's screening fell behind, when
+    it at least improved on ``current``."""
     margin = max(run.cfg.close_margin, run.cfg.close_relative * (best[0] - 1.0))
     for c in run.confirmed:
         if c[1].name != best[1].name and c[0] <= best[0] + margin:
             return c
-    alt = SAME_SIGNATURE.get(best[1].name)
-    if alt is None or alt not in run.screened_pool:
+    alt = signature_alternative(best[1].name)
+    if alt is None:
+        return None
+    for c in run.confirmed:
+        if c[1].name == alt:
+            return c
+    if alt not in run.screened_pool:
         return None
     eff, ev = run.screened_pool[alt]
     if ev.gap + run.cfg.penalty_per_parameter * eff.n_fitted >= \

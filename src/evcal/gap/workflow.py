@@ -44,7 +44,7 @@ from .runner import (
     need,
     screening_band,
 )
-from .search import best_candidate, best_pair, runner_up, scheme_candidate
+from .search import best_candidate, best_pair, runner_up, same_signature, scheme_candidate
 from .stats import GapError
 
 __all__ = ["SCHEME_EFFECT", "Evaluation", "GapConfig", "GapResult", "Step", "n_simulations",
@@ -193,6 +193,22 @@ def working_window(rec: Recording, max_pixel_steps: int, internal_rate_hz: float
     return cut, info
 
 
+def lookahead(run: Runner, ev: Evaluation, eff: Effect) -> dict[str, Any]:
+    """Where naming ``eff`` (evaluated as ``ev``) leads: the round after it screened and
+    its best confirmed (:func:`.search.best_candidate`), and the path's score, the next
+    effect's when it would be named, else ``ev``'s own (each with ``eff``'s penalty)."""
+    pen = run.cfg.penalty_per_parameter
+    score = ev.gap + pen * eff.n_fitted
+    nxt = best_candidate(run, ev, {}, skip=SCHEME_EFFECT)
+    out: dict[str, Any] = {"gap": ev.gap, "next": None, "score": score}
+    if nxt is not None:
+        out["next"] = {"effect": nxt[1].name, "parameters": nxt[1].parameters(),
+                       "gap": nxt[2].gap}
+        if gain(ev.gap, nxt[0]) > need(run.cfg, ev):
+            out["score"] = nxt[0] + pen * eff.n_fitted
+    return out
+
+
 def run_gap(rec: Recording, config: GapConfig | None = None, *,
             progress: Callable[[float], None] | None = None,
             plan: Callable[[float], None] | None = None,
@@ -306,8 +322,22 @@ def run_gap(rec: Recording, config: GapConfig | None = None, *,
             finished.append(ev2)
             pen = cfg.penalty_per_parameter
             tried[eff2.name]["finished_gap"] = ev2.gap
-            if ev2.gap + pen * eff2.n_fitted < ev.gap + pen * eff.n_fitted and \
-                    gain(current.gap, ev2.gap + pen * eff2.n_fitted) > need(cfg, current):
+            qualifies = gain(current.gap, ev2.gap + pen * eff2.n_fitted) > need(cfg, current)
+            if qualifies and same_signature(eff.name, eff2.name) and \
+                    n_sensor() + 1 < cfg.max_effects:
+                # two explanations of the same signature (a late frame stamp and a slow
+                # photoreceptor both delay the events): compared by where each leads, the
+                # best of the round after it, not by this round alone
+                if plan is not None:  # two screened rounds more than planned
+                    one = n_simulations(cfg, 1, share) - n_simulations(cfg, 0, share)
+                    plan(run.work + 2 * one + n_simulations(
+                        cfg, cfg.max_effects - n_sensor(), share) - n_simulations(cfg, 0, share))
+                ahead = {e.name: lookahead(run, v, e) for e, v in ((eff, ev), (eff2, ev2))}
+                tried[eff2.name]["lookahead"] = ahead
+                run.let_go(current, ev, ev2)
+                if ahead[eff2.name]["score"] < ahead[eff.name]["score"]:
+                    eff, ev = eff2, ev2
+            elif ev2.gap + pen * eff2.n_fitted < ev.gap + pen * eff.n_fitted and qualifies:
                 eff, ev = eff2, ev2
         steps.append(Step(eff, current, ev, tried))
         current = moved_on(current, ev)
