@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import json
 from functools import cache
+from types import SimpleNamespace
+from typing import Any
 
 import numpy as np
 import pytest
@@ -19,7 +21,7 @@ import pytest
 from evcal.gap.cli import main as gap_main
 from evcal.gap.model import _SpillResidual
 from evcal.gap.report import write_reports
-from evcal.gap.stats import GapError, observe
+from evcal.gap.stats import GapError, mid_quantile, observe, stat_iei_lower_edge
 from evcal.gap.workflow import GapConfig, GapResult, run_gap
 from evcal.io import write_recording
 from evcal.recording import Frames, Recording
@@ -233,3 +235,39 @@ def test_cli_runs_on_a_file_and_rejects_bad_input(tmp_path, capsys) -> None:
     with pytest.raises(GapError, match="frames"):
         run_gap(no_frames)
     assert gap_main([str(path), "--out", str(out), "--candidates", "flicker", "--quiet"]) == 2
+
+
+def test_the_lower_edge_of_intervals_moves_with_the_share_of_ties_not_by_jumps() -> None:
+    """Intervals of a frame-driven simulator come in ties at a step's slots: the 0.1 %
+    quantile must follow the share of the shortest tie smoothly (the plain quantile jumps
+    a whole gap between two ties as that share crosses 0.1 %)."""
+    rng = np.random.default_rng(5)
+    rest = rng.uniform(2.8, 5.0, 100_000)
+    q = np.array([0.001, 0.01, 0.05])
+
+    def edge(n_short: int) -> float:
+        x = np.r_[np.full(n_short, 2.0), np.full(300, 2.7), rest]
+        return float(mid_quantile(x, q)[0])
+
+    shares = [edge(n) for n in (60, 80, 100, 120, 140)]
+    assert all(a > b for a, b in zip(shares, shares[1:], strict=False))  # more ties, lower
+    assert max(np.abs(np.diff(shares))) < 0.3  # no jump across the gap of 0.7
+    # without ties it is the usual quantile
+    z = rng.normal(size=50_000)
+    np.testing.assert_allclose(mid_quantile(z, q), np.quantile(z, q), atol=0.01)
+
+
+def test_the_lower_edge_of_intervals_leaves_simultaneous_pairs_out() -> None:
+    """A pixel cannot fire twice at once: 0 us pairs (a simulator's noise stamped beside a
+    signal event) do not move the lower edge, whatever their share."""
+    def obs(n_zero: int) -> Any:
+        rng = np.random.default_rng(9)
+        t = np.cumsum(rng.integers(400, 5000, 20_000)).astype(np.int64)
+        t = np.sort(np.r_[t, t[:n_zero]])  # n_zero events repeated at the same time
+        pix = np.zeros(t.size, np.int32)
+        return SimpleNamespace(t_us=t, pix=pix, p=np.ones(t.size, np.int8), n_pixels=1,
+                               trusted=None, extra={})
+
+    a = stat_iei_lower_edge(obs(0)).values
+    np.testing.assert_allclose(stat_iei_lower_edge(obs(200)).values, a)
+    assert a[0] == pytest.approx(np.log10(400 + 4600 * 0.001), abs=0.05)

@@ -15,7 +15,8 @@ statistic                      value(s)                                         
 =============================  ======================================================  ======
 iei_distribution               fraction of same-pixel inter-event intervals per        refr.,
                                log10(us) bin                                           jitter
-iei_lower_edge                 log10 of the 0.1, 1, 5 % IEI quantiles (us)             refr.
+iei_lower_edge                 log10 of the 0.1, 1, 5 % IEI quantiles (us), 0 us      refr.
+                               pairs left out
 static_rate_vs_intensity       events / pixel / s in static windows, per intensity     shot, hot
 static_balance_vs_intensity    (ON - OFF) / pixel / s in static windows, per           leak
                                intensity bin
@@ -383,10 +384,27 @@ def stat_iei_distribution(obs: Observation) -> StatValue:
     return StatValue("iei_distribution", frac, labels, 0.004)
 
 
+def mid_quantile(x: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Quantiles ``q`` of ``x`` from its distinct values at their mid-distribution
+    positions (``F(v) - P(v) / 2``), interpolated between them: continuous in the shares of
+    tied values, where the usual quantile jumps a whole gap between two ties when a share
+    crosses ``q``; the usual quantile where there are no ties."""
+    v, n = np.unique(x, return_counts=True)
+    f = (np.cumsum(n) - 0.5 * n) / x.size
+    out: np.ndarray = np.interp(q, f, v)
+    return out
+
+
 def stat_iei_lower_edge(obs: Observation) -> StatValue:
+    """The lower edge of a pixel's intervals (dead time, jitter), without simultaneous
+    pairs: a pixel cannot fire twice at once, so 0 us pairs are a stamping scheme's (a
+    frame-driven simulator's noise event at a step's end beside a signal event there;
+    :func:`stat_timestamp_quantum` sees the scheme). The intervals of such schemes come in
+    ties at the step's slots, hence the mid-distribution quantiles."""
     iei, _, _ = _iei(obs)
+    iei = iei[iei > 0]
     q = np.array([0.001, 0.01, 0.05])
-    v = np.log10(np.maximum(np.quantile(iei, q), 1.0)) if iei.size else np.zeros(3)
+    v = mid_quantile(np.log10(iei), q) if iei.size else np.zeros(3)
     return StatValue("iei_lower_edge", v, [f"IEI quantile {x:g} (log10 us)" for x in q], 0.05)
 
 
