@@ -191,17 +191,17 @@ def beam_top(run: Runner, tried: dict[str, dict[str, Any]]) -> list[str]:
 SAME_SIGNATURE = {"exposure": "bandwidth"}
 
 
-def same_signature(a: str, b: str) -> bool:
-    """Whether effects ``a`` and ``b`` explain the same signature (either way round)."""
-    return SAME_SIGNATURE.get(a) == b or SAME_SIGNATURE.get(b) == a
-
-
 def signature_alternative(name: str) -> str | None:
     """The effect that explains the same signature as ``name`` (either way round)."""
     for a, b in SAME_SIGNATURE.items():
         if name in (a, b):
             return b if name == a else a
     return None
+
+
+def same_signature(a: str, b: str) -> bool:
+    """Whether effects ``a`` and ``b`` explain the same signature."""
+    return signature_alternative(a) == b
 
 
 def runner_up(run: Runner, best: tuple[float, Effect, Evaluation], current: Evaluation
