@@ -119,7 +119,18 @@ def test_hidden_effect_is_named_first_and_fitted(name: str, seed: int) -> None:
 def test_screening_on_a_band_of_rows_names_the_hidden_effect(name: str, seed: int) -> None:
     truth = CASES[name][0]
     rec = hidden_recording(CASES[name], seed)
-    res = run_gap(rec, GapConfig(max_effects=1, n_seeds=3, seed=1, screen_band_min=1_000_000))
+    ticks: list[float] = []
+    plans: list[float] = []
+    res = run_gap(rec, GapConfig(max_effects=1, n_seeds=3, seed=1, screen_band_min=1_000_000),
+                  progress=ticks.append, plan=plans.append)
+    # the progress counts simulations in whole-sensor units (a band screening 16/48 of
+    # one); the plan is an estimate, within 2x of the work the run took, and its last
+    # value is that work
+    assert len(ticks) == res.recording_info["simulations"]
+    assert any(t == pytest.approx(16 / H) for t in ticks)
+    assert max(ticks) == 1.0
+    assert plans[-1] == pytest.approx(sum(ticks))
+    assert 0.5 * sum(ticks) <= plans[0] <= 2.0 * sum(ticks), (plans, sum(ticks))
     y0, y1 = res.recording_info["screen_band_rows"]
     assert y1 - y0 == 16  # 16 rows at least (a quarter would be 12)
     assert 0 <= y0 < y1 <= H

@@ -120,30 +120,47 @@ def _list(a: np.ndarray) -> list[float | None]:
 ANCHOR_SIMS = 2  # simulations an anchor takes, typically (one of them counted as a seed's)
 
 
-def n_simulations(cfg: GapConfig, rounds: int | None = None, band_share: float = 1.0
-                  ) -> float:
-    """Work the workflow plans, in simulations of the whole sensor (for the progress bar's
-    estimate of the time left): the base model on every seed, then per round every
-    candidate screened (on a band of ``band_share`` of the rows, see
-    :func:`screening_band`), the best confirmed, and the named one's bias correction and
-    refinement; ``rounds`` (default: as many as ``max_effects`` allows, plus the round that
-    names nothing)."""
-    n_rounds = cfg.max_effects + 1 if rounds is None else rounds
+def round_work(cfg: GapConfig, band_share: float, candidates: int, *, names: bool,
+               confirms: bool = True) -> float:
+    """Work one round is expected to take, in simulations of the whole sensor: each of
+    ``candidates`` fitted candidates screened (on a band of ``band_share`` of the rows, see
+    :func:`screening_band`), the best confirmed when it ``confirms`` (a second one only on
+    a close call, which is not planned) and, in a round that ``names`` an effect, its bias
+    correction and refinement."""
     full = ANCHOR_SIMS - 1 + cfg.n_seeds
-    k = len(cfg.candidates)
     screen = ANCHOR_SIMS * band_share if cfg.screen else full
     # a screening on the band is confirmed anew on the whole sensor, one on it is extended
     confirm = (full if band_share < 1.0 else cfg.n_seeds - 1) if cfg.screen else 0
-    total: float = full
-    for i in range(n_rounds):
-        cands = max(k - i, 0)
-        total += cands * screen + cfg.confirm_top * confirm
-        if i < n_rounds - 1:
-            # the named effect: bias correction (its steps on the band with every seed, the
-            # corrected value on the whole sensor), refinement (three screenings)
-            debias = DEBIAS_STEPS * full if band_share >= 1.0 else \
-                DEBIAS_STEPS * (cfg.n_seeds + ANCHOR_SIMS - 1) * band_share + full
-            total += debias + 3 * screen
+    total = candidates * screen + (confirm if confirms else 0)
+    if names:
+        # bias correction (its steps on the band with every seed, the corrected value on
+        # the whole sensor), refinement (three screenings)
+        debias = DEBIAS_STEPS * full if band_share >= 1.0 else \
+            DEBIAS_STEPS * (cfg.n_seeds + ANCHOR_SIMS - 1) * band_share + full
+        total += debias + 3 * screen
+    return total
+
+
+def n_simulations(cfg: GapConfig, rounds: int = 1, band_share: float = 1.0, *,
+                  candidates: int | None = None, named: int = 0, base: bool = True
+                  ) -> float:
+    """Work the workflow expects, in simulations of the whole sensor (for the progress
+    bar's estimate of the time left): the base model on every seed (``base``), ``rounds``
+    rounds that name an effect, and the round that names nothing, which ends the run (its
+    screenings: a screening that gains too little to name is not confirmed; none when
+    ``max_effects`` stops the run first; ``named``: the sensor effects named already).
+
+    An estimate, not a bound: the workflow plans anew at every round, from the candidates
+    the last round's fitters found evidence for (``candidates``; all of
+    ``cfg.candidates`` before the first round), which are most often far fewer. Planning
+    every round that ``max_effects`` allows put the estimate of a run at 2.6x its length."""
+    k = len(cfg.candidates) if candidates is None else candidates
+    total: float = ANCHOR_SIMS - 1 + cfg.n_seeds if base else 0.0
+    rounds = min(rounds, max(cfg.max_effects - named, 0))
+    for i in range(rounds):
+        total += round_work(cfg, band_share, max(k - i, 0), names=True)
+    if named + rounds < cfg.max_effects:
+        total += round_work(cfg, band_share, max(k - rounds, 0), names=False, confirms=False)
     return total
 
 
@@ -256,10 +273,12 @@ def run_gap(rec: Recording, config: GapConfig | None = None, *,
     def n_sensor() -> int:  # max_effects counts sensor effects, not the timestamp scheme
         return sum(s.effect.name != SCHEME_EFFECT for s in steps)
 
+    fitted: int | None = None  # candidates the last round's fitters found evidence for
+
     while n_sensor() < cfg.max_effects:
-        if plan is not None:
-            plan(run.work + n_simulations(cfg, cfg.max_effects - n_sensor() + 1, share)
-                 - n_simulations(cfg, 0, share))
+        if plan is not None:  # this round and the one that names nothing
+            plan(run.work + n_simulations(cfg, 1, share, candidates=fitted, named=n_sensor(),
+                                          base=False))
         tried: dict[str, dict[str, Any]] = {}
         # the timestamp scheme first: once the timestamps are seen to lie on a step grid,
         # every sensor candidate is fitted and simulated with the scheme (how a frame-driven
@@ -268,6 +287,9 @@ def run_gap(rec: Recording, config: GapConfig | None = None, *,
         scheme = scheme_candidate(run, current, tried)
         on = scheme[1] if scheme is not None else current
         best = best_candidate(run, on, tried, skip=SCHEME_EFFECT)
+        fitted_now = [k for k, v in tried.items() if k != SCHEME_EFFECT and " + " not in k and
+                      v.get("parameters") is not None]
+        fitted = max(len(fitted_now) - 1, 0)  # the next round's: one of them is named
         if scheme is not None:
             eff_q, ev_q = scheme
             pen_q = cfg.penalty_per_parameter * eff_q.n_fitted
@@ -328,10 +350,11 @@ def run_gap(rec: Recording, config: GapConfig | None = None, *,
                 # two explanations of the same signature (a late frame stamp and a slow
                 # photoreceptor both delay the events): compared by where each leads, the
                 # best of the round after it, not by this round alone
-                if plan is not None:  # two screened rounds more than planned
-                    one = n_simulations(cfg, 1, share) - n_simulations(cfg, 0, share)
+                if plan is not None:  # a screened round on each, then the rest as planned
+                    one = round_work(cfg, share, len(fitted_now), names=False)
                     plan(run.work + 2 * one + n_simulations(
-                        cfg, cfg.max_effects - n_sensor(), share) - n_simulations(cfg, 0, share))
+                        cfg, 1, share, candidates=len(fitted_now) - 1, named=n_sensor() + 1,
+                        base=False))
                 ahead = {e.name: lookahead(run, v, e) for e, v in ((eff, ev), (eff2, ev2))}
                 tried[eff2.name]["lookahead"] = ahead
                 run.let_go(current, ev, ev2)
