@@ -204,7 +204,9 @@ def test_reports_follow_the_schema(tmp_path) -> None:
         assert item["discrepancy"] >= 2.0
         assert item["sentence"]
     step = doc["steps"][0]
-    assert set(step) == {"effect", "parameters", "gap_before", "gap_after", "moved_statistics"}
+    assert set(step) == {"effect", "parameters", "gap_before", "gap_after", "moved_statistics",
+                         "refit"}
+    assert step["refit"] is None  # the last effect named is not refitted
     assert step["effect"] in EFFECT_NAMES
     assert "dark_dn" in step["parameters"]
     assert len(doc["statistics"]) >= 8

@@ -97,6 +97,18 @@ def write_markdown(result: GapResult, out_dir: Path, *, plots: bool = True) -> P
             lines.append(f"| {i} | {s.effect.name} | {params} | {s.before.gap:.2f} | "
                          f"{s.after.gap:.2f} | {', '.join(s.moved_statistics())} |")
         lines.append("")
+        refits = [s for s in result.steps if s.refit is not None]
+        if refits:
+            lines += ["Refitted in the final model (an effect named before others is "
+                      "searched again once they are in; the table gives the values kept):", ""]
+            for s in refits:
+                r = s.refit
+                assert r is not None
+                now = s.effect.parameters()[r["parameter"]]
+                what = "kept" if now == r["named_value"] else f"-> {now}"
+                lines.append(f"- {s.effect.name} {r['parameter']} {r['named_value']} {what} "
+                             f"(final gap {r['gap_before']:.2f} -> {r['gap_after']:.2f})")
+            lines.append("")
         for i, s in enumerate(result.steps, 1):
             lines += [f"Candidates at step {i} (gap with the candidate added; — : the data "
                       "show none of it):", ""]

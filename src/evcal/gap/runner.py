@@ -57,6 +57,10 @@ class GapConfig:
     min_improvement: float = 0.3
     min_relative_improvement: float = 0.25
     refine: bool = True
+    # once nothing more is named, each sensor effect named before the last is refined
+    # again (the three-point search) in the final model: its value was settled in a model
+    # that lacked the effects named after it, which may explain part of what it took on
+    refit_named: bool = True
     # bias-correct each named effect's moment estimate by refitting it on the simulations
     # made with it (see evcal.gap.finish.debias)
     debias: bool = True
