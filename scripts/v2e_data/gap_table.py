@@ -44,7 +44,11 @@ SHOT_NOISE_INTEN_FACTOR = 0.25  # v2e emulator.py:210
 
 def _step(s: dict[str, Any]) -> str:
     params = ", ".join(f"{k}={v}" for k, v in s["parameters"].items())
-    return f"{s['effect']}({params}) -> {s['gap_after']:.1f}"
+    r = s.get("refit")
+    refit = "" if r is None or r["named_value"] == s["parameters"][r["parameter"]] else \
+        f" [named at {r['parameter']}={r['named_value']}; refitted: {r['gap_before']:.1f} " \
+        f"-> {r['gap_after']:.1f}]"
+    return f"{s['effect']}({params}) -> {s['gap_after']:.1f}{refit}"
 
 
 def _shot_ratio(rec: Any, z: Any, eff: ShotNoise) -> float:
