@@ -251,7 +251,7 @@ def test_gap_names_the_effects_of_v2e_realistic_mix() -> None:
     spread 0.05) on astronaut: the low-pass, the shot noise and the dead time, each near
     v2e's value, and a final gap within the aim of 3. Measured: 18.08 Hz at 128 DN (+12 %),
     shot noise 0.99x v2e's mean rate over the still pixels, 1000 us (delay); gap 1199 ->
-    2.2 (the other scenes in docs/GAP.md: 3.5, 3.1 and 6.5)."""
+    2.2 (the other scenes in docs/GAP.md: 1.7, 2.5 and 6.5)."""
     res = gap_run("mix", "astronaut")
     sensor = {s.effect.name: s.effect for s in res.steps
               if s.effect.name != "timestamp_quantisation"}
