@@ -360,6 +360,11 @@ def _lag_minimum(lags: np.ndarray, r: np.ndarray) -> float:
     return lag
 
 
+def _exposure_us(rec: Recording) -> float:
+    """The recording's exposure time (median of ``Frames.exposure_us``; 0 without frames)."""
+    return float(np.median(rec.frames.exposure_us)) if len(rec.frames) else 0.0
+
+
 def event_lag(meas: Observation, sims: list[Observation], rec: Recording
               ) -> tuple[float, np.ndarray] | None:
     """How much later than the frames' stamps the measured events follow the frames'
@@ -371,7 +376,7 @@ def event_lag(meas: Observation, sims: list[Observation], rec: Recording
         return None
     ft = meas.frame_t_us
     interval = float(np.median(np.diff(ft)))
-    exp_us = float(np.median(rec.frames.exposure_us)) if len(rec.frames) else 0.0
+    exp_us = _exposure_us(rec)
     # a lag of a quarter of the interval and more is seen: a DAVIS's events and its
     # frames' stamps may disagree by several ms, far beyond a short exposure
     scale = max(exp_us, 0.25 * interval)
@@ -406,7 +411,6 @@ def fit_exposure(meas: Observation, sims: list[Observation], model: Model,
     if found is None:
         return None
     lag, lags = found
-    exp_us = float(np.median(rec.frames.exposure_us)) if len(rec.frames) else 0.0
     # a frame's timing moves every pixel's events alike; a slow photoreceptor (bandwidth)
     # delays the dark pixels' events most: the lag must be about the same at every light
     per_light = _lag_by_light(meas, sims, lags)
@@ -414,7 +418,7 @@ def fit_exposure(meas: Observation, sims: list[Observation], model: Model,
         lo, hi = min(per_light), max(per_light)
         if not np.isfinite(hi) or lo * lag <= 0 or abs(hi) > LAG_LIGHT_RATIO * abs(lo):
             return None
-    return Exposure(lag_us=round(lag, 1), exposure_us=exp_us)
+    return Exposure(lag_us=round(lag, 1), exposure_us=_exposure_us(rec))
 
 
 # the largest ratio between the lags of the dark and the bright pixels that a frame's timing

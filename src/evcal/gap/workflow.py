@@ -309,9 +309,8 @@ def run_gap(rec: Recording, config: GapConfig | None = None, *,
         scheme = scheme_candidate(run, current, tried)
         on = scheme[1] if scheme is not None else current
         best = best_candidate(run, on, tried, skip=SCHEME_EFFECT)
-        fitted_now = [k for k, v in tried.items() if k != SCHEME_EFFECT and " + " not in k and
-                      v.get("parameters") is not None]
-        fitted = max(len(fitted_now) - 1, 0)  # the next round's: one of them is named
+        n_fitted = len(run.screened_pool)  # the candidates fitted this round
+        fitted = max(n_fitted - 1, 0)  # the next round's: one of them is named
         if scheme is not None:
             eff_q, ev_q = scheme
             pen_q = cfg.penalty_per_parameter * eff_q.n_fitted
@@ -373,10 +372,9 @@ def run_gap(rec: Recording, config: GapConfig | None = None, *,
                 # photoreceptor both delay the events): compared by where each leads, the
                 # best of the round after it, not by this round alone
                 if plan is not None:  # a screened round on each, then the rest as planned
-                    one = round_work(cfg, share, len(fitted_now), names=False)
+                    one = round_work(cfg, share, n_fitted, names=False)
                     plan(run.work + 2 * one + n_simulations(
-                        cfg, 1, share, candidates=len(fitted_now) - 1, named=n_sensor() + 1,
-                        base=False))
+                        cfg, 1, share, candidates=fitted, named=n_sensor() + 1, base=False))
                 ahead = {e.name: lookahead(run, v, e) for e, v in ((eff, ev), (eff2, ev2))}
                 tried[eff2.name]["lookahead"] = ahead
                 run.let_go(current, ev, ev2)
