@@ -21,7 +21,13 @@ import pytest
 from evcal.gap.cli import main as gap_main
 from evcal.gap.model import _SpillResidual
 from evcal.gap.report import write_reports
-from evcal.gap.stats import GapError, mid_quantile, observe, stat_iei_lower_edge
+from evcal.gap.stats import (
+    GapError,
+    histogram_sorted_edges,
+    mid_quantile,
+    observe,
+    stat_iei_lower_edge,
+)
 from evcal.gap.workflow import GapConfig, GapResult, run_gap
 from evcal.io import write_recording
 from evcal.recording import Frames, Recording
@@ -268,6 +274,45 @@ def test_the_lower_edge_of_intervals_moves_with_the_share_of_ties_not_by_jumps()
     # without ties it is the usual quantile
     z = rng.normal(size=50_000)
     np.testing.assert_allclose(mid_quantile(z, q), np.quantile(z, q), atol=0.01)
+
+
+def test_mid_quantile_of_the_lower_tail_is_that_of_every_value() -> None:
+    """The lower quantiles are read off a partition of the values up to a little beyond the
+    largest; with ties, gaps, one value or few values they equal the quantiles of all."""
+    rng = np.random.default_rng(11)
+    q = np.array([0.001, 0.01, 0.05])
+
+    def full(x: np.ndarray) -> np.ndarray:
+        v, n = np.unique(x, return_counts=True)
+        return np.interp(q, (np.cumsum(n) - 0.5 * n) / x.size, v)
+
+    cases = [rng.normal(size=20_000), np.log10(rng.integers(1, 40, 20_000).astype(float)),
+             np.full(5000, 2.0), np.r_[np.full(3000, 1.0), rng.uniform(2, 3, 2000)],
+             np.r_[np.full(40, 0.5), np.full(10_000, 1.5)], rng.normal(size=7)]
+    for x in cases:
+        np.testing.assert_array_equal(mid_quantile(x, q), full(x))
+
+
+def test_short_intervals_of_events_in_pixel_order_are_those_in_time_order() -> None:
+    from evcal.gap.fitters import _short_iei_stats  # noqa: PLC0415
+
+    rng = np.random.default_rng(13)
+    t = np.sort(rng.integers(0, 2_000_000, 50_000))
+    pix = rng.integers(0, 300, t.size).astype(np.int32)
+    jit = t + np.rint(rng.normal(0, 40, t.size)).astype(np.int64)
+    order = np.lexsort((t, pix))
+    a = _short_iei_stats(pix, jit)
+    b = _short_iei_stats(pix[order], jit[order], nearly_sorted=True)
+    for name in a:
+        np.testing.assert_array_equal(a[name].values, b[name].values)
+
+
+def test_histogram_on_sorted_edges_is_numpys() -> None:
+    rng = np.random.default_rng(12)
+    edges = np.array([0.0, 1.0, 1.5, 2.0, 3.5, 7.0])
+    x = np.r_[rng.uniform(-1, 8, 10_000), edges, [7.0, 7.0]]
+    np.testing.assert_array_equal(histogram_sorted_edges(x, edges),
+                                  np.histogram(x, edges)[0].astype(np.float64))
 
 
 def test_the_lower_edge_of_intervals_leaves_simultaneous_pairs_out() -> None:

@@ -87,7 +87,8 @@ def test_the_no_crossing_shortcut_changes_no_event(case: str, monkeypatch) -> No
 
     cfg = SimConfig(**{**CFG.to_dict(), "duration_s": 0.3, "trajectory": CFG.trajectory})
     fast = simulate(cfg, SHORTCUT_CASES[case])
-    monkeypatch.setattr(nonideal, "run_steps", lambda *args: kernel.run_steps(*args, False))
+    monkeypatch.setattr(nonideal, "run_steps",
+                        lambda *args, **kw: kernel.run_steps(*args, False, **kw))
     exact = simulate(cfg, SHORTCUT_CASES[case])
     assert fast.recording.n_events > 1000
     np.testing.assert_array_equal(fast.recording.events, exact.recording.events)
@@ -110,9 +111,39 @@ def test_step_sort_is_a_stable_sort_by_time() -> None:
         expect = np.argsort(t_f, kind="stable")
         key = np.empty(n_keys, np.int64)
         scratch = [np.empty(m, d) for d in (np.int64, np.int32, np.int64, np.int32, np.int8,
-                                            np.uint8)]
+                                            np.uint8, np.float64)]
+        sorted_t = t_f[expect]
         _sort_step(t_f, t_i, *others, 0, m, 500.0, dt, key, *scratch)
         np.testing.assert_array_equal(t_i, expect)
+        np.testing.assert_array_equal(t_f, sorted_t)  # the times too: runs merge by them
+
+
+@pytest.mark.parametrize("case", SHORTCUT_CASES)
+def test_pixel_ranges_in_threads_change_no_event(case: str) -> None:
+    """A run split into ranges of pixels simulated side by side (their events merged by time)
+    gives the events, labels and frames of one run over all pixels, whatever the split."""
+    cfg = SimConfig(**{**CFG.to_dict(), "duration_s": 0.3, "trajectory": CFG.trajectory})
+    one = simulate(cfg, SHORTCUT_CASES[case])
+    assert one.recording.n_events > 1000
+    for threads in (2, 3, 7):
+        split = simulate(cfg, SHORTCUT_CASES[case], threads=threads)
+        np.testing.assert_array_equal(split.recording.events, one.recording.events)
+        np.testing.assert_array_equal(split.truth["labels"], one.truth["labels"])
+        np.testing.assert_array_equal(split.recording.frames.images,
+                                      one.recording.frames.images)
+
+
+def test_merged_runs_put_the_lower_range_first_among_equal_times() -> None:
+    from evcal.sim.kernel import merge_runs  # noqa: PLC0415
+
+    a = [np.array([1.0, 2.0, 2.0, 5.0, 9.0]), np.arange(5, dtype=np.int64),
+         np.zeros(5, np.int32), np.ones(5, np.int8), np.zeros(5, np.uint8)]
+    b = [np.array([0.5, 2.0, 6.0, 99.0]), np.arange(10, 14, dtype=np.int64),
+         np.ones(4, np.int32), -np.ones(4, np.int8), np.ones(4, np.uint8)]
+    t_f, t_i, pix, pol, lab = merge_runs(*a, 5, *b, 3)  # b's last is past its count
+    np.testing.assert_array_equal(t_f, [0.5, 1.0, 2.0, 2.0, 2.0, 5.0, 6.0, 9.0])
+    np.testing.assert_array_equal(t_i, [10, 0, 1, 2, 11, 3, 12, 4])
+    np.testing.assert_array_equal(pix, [1, 0, 0, 0, 1, 0, 1, 0])
 
 
 def test_refractory_drop_removes_short_intervals_and_delay_keeps_the_count() -> None:

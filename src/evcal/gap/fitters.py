@@ -360,9 +360,12 @@ def _jitter_times(t_us: np.ndarray, sigma_us: float, quantum_us: int,
     return t
 
 
-def _short_iei_stats(pix: np.ndarray, t_us: np.ndarray) -> dict[str, StatValue]:
+def _short_iei_stats(pix: np.ndarray, t_us: np.ndarray, *, nearly_sorted: bool = False
+                     ) -> dict[str, StatValue]:
     """log10 of the share of same-pixel IEIs below 3, 10, 30, 100, 300 us, and the timestamp
-    quantum statistic, of events in any order."""
+    quantum statistic, of events in any order (``nearly_sorted``: mostly in pixel, then time
+    order already, as jittered events put in their pixels' order are; the sort then merges
+    runs instead of sorting from scratch, with the same result)."""
     x = np.array([3.0, 10.0, 30.0, 100.0, 300.0])
     if t_us.size < 2:
         frac = np.zeros(5)
@@ -370,7 +373,8 @@ def _short_iei_stats(pix: np.ndarray, t_us: np.ndarray) -> dict[str, StatValue]:
         t_rel = t_us - t_us.min()
         if t_rel.max() < 1 << 40:
             # one sort of (pixel, time) packed in an int64 (times up to 12 days)
-            key = np.sort((pix.astype(np.int64) << 40) | t_rel)
+            key = np.sort((pix.astype(np.int64) << 40) | t_rel,
+                          kind="stable" if nearly_sorted else None)
             same = (key[1:] >> 40) == (key[:-1] >> 40)
             iei = np.diff(key)[same]
         else:
@@ -497,11 +501,16 @@ def _jitter_curves(meas: Observation, sims: list[Observation], q_hat: int
     m_iei = _short_iei_stats(meas.pix, meas.t_us)
     m_spill = {"spill_residual": _SpillResidual(meas).stat()}
     spills = [_SpillResidual(s) for s in sims]
+    # each simulation's events in pixel order (stable: each pixel's in time order), so that
+    # the jittered ones are nearly sorted for the short IEIs
+    orders = [order_by_key(s.pix, s.n_pixels) for s in sims]
+    pix_sorted = [s.pix[o] for s, o in zip(sims, orders, strict=True)]
     g_iei, g_spill = [], []
     for sg in JITTER_GRID_US:
         ts = [_jitter_times(s.t_us, sg, q_hat, rng) for s in sims]
-        g_iei.append(discrepancy(m_iei, [_short_iei_stats(s.pix, t)
-                                         for s, t in zip(sims, ts, strict=True)]).gap)
+        g_iei.append(discrepancy(m_iei, [
+            _short_iei_stats(p, t[o], nearly_sorted=True)
+            for p, t, o in zip(pix_sorted, ts, orders, strict=True)]).gap)
         g_spill.append(discrepancy(m_spill, [{"spill_residual": sp.stat(t)}
                                              for sp, t in zip(spills, ts, strict=True)]).gap)
     return np.asarray(g_iei), np.asarray(g_spill)

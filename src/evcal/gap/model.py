@@ -19,7 +19,10 @@
 from __future__ import annotations
 
 import logging
+import threading
+from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -267,21 +270,26 @@ def latent_frames(frames: Frames, read_noise_dn: float) -> np.ndarray:
     tol = 3.0 * read_noise_dn + 1.0
     k = imgs.shape[0]
     f = imgs.reshape(k, -1)
-    npix = f.shape[1]
-    run = np.empty((k, npix), np.int64)  # run id of every frame of every pixel
-    run[0] = np.arange(npix)
+    # a pass forward over the frames (vectorised over pixels) keeps each run's mean so far,
+    # one backward gives every frame its run's final mean
+    mean_so_far = np.empty(f.shape, np.float64)
+    joins = np.zeros(f.shape, bool)  # frame i continues the run of frame i - 1
     total = f[0].astype(np.float64)
-    n = np.ones(npix)
-    for i in range(1, k):  # a pass over the frames, vectorised over pixels
+    n = np.ones(f.shape[1])
+    mean_so_far[0] = total
+    for i in range(1, k):
         inside = np.abs(f[i] - total / n) < tol
-        run[i] = np.where(inside, run[i - 1], i * npix + np.arange(npix))
+        joins[i] = inside
         total = np.where(inside, total + f[i], f[i])
         n = np.where(inside, n + 1, 1.0)
-    _, inv = np.unique(run, return_inverse=True)
-    inv = inv.ravel()
-    means = np.bincount(inv, weights=f.ravel().astype(np.float64)) / np.bincount(inv)
-    out: np.ndarray = means[inv].reshape(imgs.shape).astype(np.float32)
-    return out
+        mean_so_far[i] = total / n
+    out = np.empty(f.shape, np.float32)
+    last = mean_so_far[k - 1]
+    out[k - 1] = last
+    for i in range(k - 2, -1, -1):
+        last = np.where(joins[i + 1], last, mean_so_far[i])
+        out[i] = last
+    return out.reshape(imgs.shape)
 
 
 def _times(frames: Frames, internal_rate_hz: float) -> np.ndarray:
@@ -290,6 +298,26 @@ def _times(frames: Frames, internal_rate_hz: float) -> np.ndarray:
     grid = np.rint(np.arange(0, end * 1e-6 * internal_rate_hz + 1) * 1e6 / internal_rate_hz)
     grid = grid[grid <= end].astype(np.int64)
     return np.unique(np.concatenate([grid, ft]))
+
+
+_RUNNING_LOCK = threading.Lock()
+_running = 0  # simulations of models under way in this process
+
+
+@contextmanager
+def _cores_free() -> Iterator[int]:
+    """While a simulation runs: the cores no other simulation had when it started (at least
+    one). A simulation alone (an anchor's, the workflow's sequential steps) splits its pixels
+    over the idle cores; side by side, each keeps to its own."""
+    global _running
+    with _RUNNING_LOCK:
+        others = _running
+        _running += 1
+    try:
+        yield max(1, usable_cores() - others)
+    finally:
+        with _RUNNING_LOCK:
+            _running -= 1
 
 
 def simulate_model(model: Model, rec: Recording, seed: int, settings: SimSettings,
@@ -349,9 +377,11 @@ def simulate_model(model: Model, rec: Recording, seed: int, settings: SimSetting
     cfg = SimConfig(height=h, width=w, duration_s=dur, frame_rate_hz=1.0,
                     internal_rate_hz=max(settings.internal_rate_hz, 1.0),
                     log_offset=model.log_offset, seed=int(seed))
-    res = simulate(cfg, model.effects, source=src, maps=(model.contrast, model.bias),
-                   frames=fr if band is None else band.rec.frames, times_us=times,
-                   t_origin_us=t0)
+    expected = rec.n_events if band is None else band.rec.n_events
+    with _cores_free() as threads:
+        res = simulate(cfg, model.effects, source=src, maps=(model.contrast, model.bias),
+                       frames=fr if band is None else band.rec.frames, times_us=times,
+                       t_origin_us=t0, expected_events=expected, threads=threads)
     return res.recording
 
 

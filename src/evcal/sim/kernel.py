@@ -101,11 +101,12 @@ _MAX_KEYS = 1 << 20
 def _sort_step(t_f: np.ndarray, t_i: np.ndarray, pix: np.ndarray, pol: np.ndarray,
                lab: np.ndarray, start: np.ndarray, n: int, t0: float, dt: float,
                key: np.ndarray, order: np.ndarray, bkt: np.ndarray, tmp_i: np.ndarray,
-               tmp_p: np.ndarray, tmp_o: np.ndarray, tmp_l: np.ndarray) -> Any:
+               tmp_p: np.ndarray, tmp_o: np.ndarray, tmp_l: np.ndarray,
+               tmp_f: np.ndarray) -> Any:
     """Stable sort of the events ``start..n`` of one step by ``t_f`` (all in ``[t0, t0 +
     dt]``): a counting sort on buckets of a microsecond (coarser for steps longer than
     ``key`` allows), then insertion within each bucket; a merge sort where one bucket holds
-    too many. ``t_f`` itself is left in emission order (nothing reads it after the sort)."""
+    too many. ``t_f`` is sorted too: the runs of pixel ranges are merged by it."""
     m = n - start
     if m < 2:
         return
@@ -150,12 +151,14 @@ def _sort_step(t_f: np.ndarray, t_i: np.ndarray, pix: np.ndarray, pol: np.ndarra
         tmp_p[q] = pix[start + q]
         tmp_o[q] = pol[start + q]
         tmp_l[q] = lab[start + q]
+        tmp_f[q] = t_f[start + q]
     for q in range(m):
         o = order[q]
         t_i[start + q] = tmp_i[o]
         pix[start + q] = tmp_p[o]
         pol[start + q] = tmp_o[o]
         lab[start + q] = tmp_l[o]
+        t_f[start + q] = tmp_f[o]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -372,12 +375,15 @@ def run_steps(
     lab: Any,
     n: Any,
     shortcut: bool = True,  # False: every pixel runs the exact search (for tests of the shortcut)
+    p0: int = 0,  # the pixels p0..p1 (flat indices; p1 < 0: to the last) are simulated, the
+    p1: int = -1,  # others' state is left alone (pixel ranges run in threads side by side)
 ) -> Any:  # pragma: no cover - compiled
     """Events of ``K`` steps appended to ``(t_float_us, t_us, pixel, polarity, label)`` from
     ``n`` on; returns the arrays and the new ``n``. The events of each step are sorted by time
-    (stable), all but ``t_float_us``, which stays in emission order; in delay mode, whose
-    events can move past the step's end, nothing is sorted (the caller sorts by
-    ``t_float_us``).
+    (stable: pixel order among equal times); in delay mode, whose events can move past the
+    step's end, nothing is sorted (the caller sorts by ``t_float_us``). No pixel's events
+    depend on another's, so ranges of pixels can run apart (``p0``, ``p1``; their runs
+    merged by time give the events of one run over all).
 
     Each step runs in two passes. The first, over all pixels and free of branches, books the
     leak drift, draws the shot-noise number and tests whether the pixel can fire: not if its
@@ -386,13 +392,17 @@ def run_steps(
     pixels; the second pass runs the exact crossing search, with the arithmetic of the
     one-pass version, on the others only, so the events do not depend on the shortcut.
     """
-    k_steps, n_pix = intensity.shape
+    k_steps, n_all = intensity.shape
+    # unsigned loop bounds: a signed index that may be negative gets a wraparound test at
+    # every access, and the loops over pixels would no longer vectorise
+    lo_pix = np.uint64(min(max(p0, 0), n_all))
+    hi_pix = np.uint64(n_all if p1 < 0 else min(max(p1, p0), n_all))
     drop = refr_us > 0.0 and not refr_delay
     delay = refr_us > 0.0 and refr_delay
     bw = bw_cutoff_hz > 0.0
     shot = shot_rate_hz > 0.0
     leak = False
-    for i in range(n_pix):
+    for i in range(lo_pix, hi_pix):
         if leak_rate[i] > 0.0:
             leak = True
             break
@@ -406,8 +416,9 @@ def run_steps(
     tmp_p = np.empty(0, np.int32)
     tmp_o = np.empty(0, np.int8)
     tmp_l = np.empty(0, np.uint8)
-    slow = np.empty(n_pix, np.uint8)
-    slow_idx = np.empty(n_pix, np.int64)
+    tmp_f = np.empty(0, np.float64)
+    slow = np.empty(n_all, np.uint8)
+    slow_idx = np.empty(n_all, np.int64)
     for k in range(k_steps):
         t0 = times[k]
         t1 = times[k + 1]
@@ -424,7 +435,7 @@ def run_steps(
         exact = bw or (tl_exp != 0.0 and leak) or not shortcut
         fused = leak and leak_light_exp == 0.0 and not exact
         if leak and not fused:
-            for i in range(n_pix):
+            for i in range(lo_pix, hi_pix):
                 rate = leak_rate[i]
                 if leak_light_exp != 0.0 and rate > 0.0:
                     rate *= (max(np.float64(intensity[k, i]), 1e-3) / leak_ref_dn
@@ -434,10 +445,10 @@ def run_steps(
                 leak_debt[i] += d
         t1f = float(t1)
         if exact:
-            for i in range(n_pix):
+            for i in range(lo_pix, hi_pix):
                 slow[i] = 1
         elif fused:
-            for i in range(n_pix):
+            for i in range(lo_pix, hi_pix):
                 d = leak_rate[i] * th_on_nom[i] * dt_s
                 r = ref[i] - d
                 ref[i] = r
@@ -454,7 +465,7 @@ def run_steps(
                     quiet &= shot_next[i] >= t1f
                 slow[i] = np.uint8(not quiet)
         else:
-            for i in range(n_pix):
+            for i in range(lo_pix, hi_pix):
                 xa = np.float64(i_prev[i]) + log_offset
                 xb = np.float64(intensity[k, i]) + log_offset
                 h = np.float64(hi_i[i]) * (1.0 - (ref_i[i] - ref[i]))
@@ -466,7 +477,7 @@ def run_steps(
                     quiet &= shot_next[i] >= t1f
                 slow[i] = np.uint8(not quiet)
         n_slow = 0
-        for i in range(n_pix):
+        for i in range(lo_pix, hi_pix):
             slow_idx[n_slow] = i
             n_slow += slow[i]
         # pass 2: the exact search where a pixel may fire (returns early when the buffers
@@ -486,7 +497,7 @@ def run_steps(
                 pol = _grow(pol, n)
                 lab = _grow(lab, n)
         # every pixel moves on to this step's intensity; lf is up to date where pass 2 ran
-        for i in range(n_pix):
+        for i in range(lo_pix, hi_pix):
             i_prev[i] = intensity[k, i]
             lf_ok[i] = slow[i]
         m = n - n_start
@@ -499,9 +510,42 @@ def run_steps(
                 tmp_p = np.empty(2 * m, np.int32)
                 tmp_o = np.empty(2 * m, np.int8)
                 tmp_l = np.empty(2 * m, np.uint8)
+                tmp_f = np.empty(2 * m, np.float64)
             _sort_step(t_f, t_i, pix, pol, lab, n_start, n, float(t0), dt, key, order, bkt,
-                       tmp_i, tmp_p, tmp_o, tmp_l)
+                       tmp_i, tmp_p, tmp_o, tmp_l, tmp_f)
     return t_f, t_i, pix, pol, lab, n
+
+
+@numba.njit(cache=True, nogil=True)
+def merge_runs(a_f: np.ndarray, a_i: np.ndarray, a_p: np.ndarray, a_o: np.ndarray,
+               a_l: np.ndarray, na: int, b_f: np.ndarray, b_i: np.ndarray, b_p: np.ndarray,
+               b_o: np.ndarray, b_l: np.ndarray, nb: int) -> Any:  # pragma: no cover
+    """The events of two runs sorted by ``t_f`` (``a``'s first ``na``, ``b``'s first ``nb``),
+    merged by ``t_f``; ``a`` first among equal times (its pixels come first)."""
+    n = na + nb
+    o_f = np.empty(n, np.float64)
+    o_i = np.empty(n, np.int64)
+    o_p = np.empty(n, np.int32)
+    o_o = np.empty(n, np.int8)
+    o_l = np.empty(n, np.uint8)
+    i = 0
+    j = 0
+    for q in range(n):
+        if j >= nb or (i < na and a_f[i] <= b_f[j]):
+            o_f[q], o_i[q], o_p[q], o_o[q], o_l[q] = a_f[i], a_i[i], a_p[i], a_o[i], a_l[i]
+            i += 1
+        else:
+            o_f[q], o_i[q], o_p[q], o_o[q], o_l[q] = b_f[j], b_i[j], b_p[j], b_o[j], b_l[j]
+            j += 1
+    return o_f, o_i, o_p, o_o, o_l
+
+
+def concat_runs(a_f: np.ndarray, a_i: np.ndarray, a_p: np.ndarray, a_o: np.ndarray,
+                a_l: np.ndarray, na: int, b_f: np.ndarray, b_i: np.ndarray, b_p: np.ndarray,
+                b_o: np.ndarray, b_l: np.ndarray, nb: int) -> tuple[np.ndarray, ...]:
+    """The events of two runs one after the other (``a``'s first ``na``, ``b``'s ``nb``)."""
+    return tuple(np.concatenate([x[:na], y[:nb]]) for x, y in (
+        (a_f, b_f), (a_i, b_i), (a_p, b_p), (a_o, b_o), (a_l, b_l)))
 
 
 @numba.njit(cache=True, nogil=True)

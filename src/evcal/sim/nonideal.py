@@ -20,6 +20,7 @@ and generators spawned from it.
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Mapping
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -49,7 +50,7 @@ from .effects import (
     quantise_events,
 )
 from .ideal import SimConfig, SimResult, draw_maps, frame_times_us, internal_times_us
-from .kernel import fill_events, run_steps
+from .kernel import concat_runs, fill_events, merge_runs, run_steps
 from .sources import MovingScene
 
 Source = Callable[[float], np.ndarray]
@@ -120,6 +121,8 @@ def simulate(
     t_origin_us: int = 0,
     chunk_steps: int = 64,
     progress: Callable[[int], None] | None = None,
+    expected_events: int = 0,
+    threads: int = 1,
 ) -> SimResult:
     """Simulate a recording with the given effects.
 
@@ -143,6 +146,11 @@ def simulate(
         Internal sample times (relative, from 0); default :func:`internal_times_us` of ``cfg``.
     t_origin_us
         Added to every timestamp of the output (not to ``frames``, which are kept as given).
+    expected_events
+        About how many events the run will make (e.g. those of the recording it re-simulates):
+        the event buffers start that large, instead of growing as the run goes.
+    threads
+        Ranges of pixels simulated side by side (the events do not depend on it).
 
     Examples
     --------
@@ -248,47 +256,80 @@ def simulate(
     render_block = getattr(source, "render_block", None)
     n_steps = times.size - 1
     block_buf = np.empty((min(chunk_steps, n_steps), cfg.height, cfg.width), np.float32)
-    # event buffers for the whole run, grown by the kernel when full and ahead of it when the
-    # rate so far says they will be (one early copy instead of doublings)
-    cap = max(4096, int(npix * min(n_steps, chunk_steps) * 0.02))
-    buf_tf = np.empty(cap, np.float64)
-    buf_ti = np.empty(cap, np.int64)
-    buf_pix = np.empty(cap, np.int32)
-    buf_p = np.empty(cap, np.int8)
-    buf_lab = np.empty(cap, np.uint8)
-    n_ev = 0
+    # pixel ranges simulated side by side (their events merged by time are those of one run
+    # over all pixels: the thread count changes the speed, not the events)
+    bounds = np.linspace(0, npix, max(1, min(int(threads), npix)) + 1).astype(np.int64)
+    ranges = [(int(p0), int(p1)) for p0, p1 in zip(bounds[:-1], bounds[1:], strict=True)
+              if p1 > p0]
+    # event buffers for the whole run per range, grown by the kernel when full and ahead of
+    # it when the rate so far says they will be (one early copy instead of doublings)
+    parts: list[list[Any]] = []
+    for p0, p1 in ranges:
+        share = (p1 - p0) / npix
+        cap = max(4096, int((p1 - p0) * min(n_steps, chunk_steps) * 0.02),
+                  int(1.2 * expected_events * share))
+        parts.append([np.empty(cap, np.float64), np.empty(cap, np.int64),
+                      np.empty(cap, np.int32), np.empty(cap, np.int8), np.empty(cap, np.uint8),
+                      0])
+    pool = ThreadPoolExecutor(len(ranges)) if len(ranges) > 1 else None
     k = 0
-    while k < n_steps:
-        kk = min(chunk_steps, n_steps - k)
-        t_blk = times[k + 1 : k + kk + 1]
-        if render_block is not None:
-            block = np.asarray(render_block(t_blk * 1e-6, out=block_buf[:kk]),
-                               np.float32).reshape(kk, npix)
-        else:
-            block = block_buf[:kk].reshape(kk, npix)
+    try:
+        while k < n_steps:
+            kk = min(chunk_steps, n_steps - k)
+            t_blk = times[k + 1 : k + kk + 1]
+            if render_block is not None:
+                block = np.asarray(render_block(t_blk * 1e-6, out=block_buf[:kk]),
+                                   np.float32).reshape(kk, npix)
+            else:
+                block = block_buf[:kk].reshape(kk, npix)
+                for j in range(kk):
+                    block[j] = np.asarray(source(int(t_blk[j]) * 1e-6), np.float32).ravel()
             for j in range(kk):
-                block[j] = np.asarray(source(int(t_blk[j]) * 1e-6), np.float32).ravel()
-        for j in range(kk):
-            t = int(t_blk[j])
-            if frame_pos < frame_t.size and frame_t[frame_pos] == t:
-                f_t.append(t)
-                f_img.append(_aps_frame(source, t, aps, r_aps,
-                                        block[j].reshape(cfg.height, cfg.width)))
-                frame_pos += 1
-        buf_tf, buf_ti, buf_pix, buf_p, buf_lab, n_ev = run_steps(
-            block, times[k : k + kk + 1], offset, lf, lf_ok, i_prev, hi_i, lo_i, ref_i, ref,
-            th_on_nom, th_off_nom, th_on, th_off, dead, last_fire, leak_rate, debt, rng_state,
-            shot_next, th_sigma, refr_us, refr_delay, leak_exp, leak_ref, shot_rate, shot_ref,
-            shot_exp, bw_cut, bw_ref, bw_min, tl_exp, tl_ref, buf_tf, buf_ti, buf_pix, buf_p,
-            buf_lab, n_ev)
-        k += kk
-        want = int(1.1 * n_ev * n_steps / k) + 1024
-        if k < n_steps and want > buf_tf.size:
-            buf_tf, buf_ti, buf_pix, buf_p, buf_lab = (
-                _resized(b, want, n_ev) for b in (buf_tf, buf_ti, buf_pix, buf_p, buf_lab))
-        if progress is not None:
-            progress(k)
+                t = int(t_blk[j])
+                if frame_pos < frame_t.size and frame_t[frame_pos] == t:
+                    f_t.append(t)
+                    f_img.append(_aps_frame(source, t, aps, r_aps,
+                                            block[j].reshape(cfg.height, cfg.width)))
+                    frame_pos += 1
+            t_chunk = times[k : k + kk + 1]
 
+            def run_range(j: int, block: np.ndarray = block, t_chunk: np.ndarray = t_chunk
+                          ) -> None:
+                part = parts[j]
+                part[:] = run_steps(
+                    block, t_chunk, offset, lf, lf_ok, i_prev, hi_i, lo_i, ref_i, ref,
+                    th_on_nom, th_off_nom, th_on, th_off, dead, last_fire, leak_rate, debt,
+                    rng_state, shot_next, th_sigma, refr_us, refr_delay, leak_exp, leak_ref,
+                    shot_rate, shot_ref, shot_exp, bw_cut, bw_ref, bw_min, tl_exp, tl_ref,
+                    *part, p0=ranges[j][0], p1=ranges[j][1])
+
+            if pool is None:
+                run_range(0)
+            else:
+                list(pool.map(run_range, range(len(ranges))))
+            k += kk
+            for part in parts:
+                n_part = part[5]
+                want = int(1.1 * n_part * n_steps / k) + 1024
+                if k < n_steps and want > part[0].size:
+                    # by half again at least: the projection creeps up chunk by chunk as the
+                    # scene gets busier, and a copy per chunk would cost a tenth of the run
+                    want = max(want, part[0].size + part[0].size // 2)
+                    part[:5] = [_resized(buf, want, n_part) for buf in part[:5]]
+            if progress is not None:
+                progress(k)
+    finally:
+        if pool is not None:
+            pool.shutdown()
+
+    buf_tf, buf_ti, buf_pix, buf_p, buf_lab, n_ev = parts[0]
+    for part in parts[1:]:
+        # in delay mode the runs are not in time order yet: sorted below, from the
+        # concatenation (ties in range order, as one run's emission order has them)
+        buf_tf, buf_ti, buf_pix, buf_p, buf_lab = (
+            merge_runs if not refr_delay or refr_us <= 0 else concat_runs)(
+            buf_tf, buf_ti, buf_pix, buf_p, buf_lab, n_ev, *part)
+        n_ev += part[5]
     t_int, pix, pol, lab = buf_ti[:n_ev], buf_pix[:n_ev], buf_p[:n_ev], buf_lab[:n_ev]
     if refr_delay and refr_us > 0:
         # delayed events can leave their step: the kernel leaves those in emission order
