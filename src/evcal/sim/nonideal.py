@@ -325,7 +325,9 @@ def simulate(
     buf_tf, buf_ti, buf_pix, buf_p, buf_lab, n_ev = parts[0]
     for part in parts[1:]:
         # in delay mode the runs are not in time order yet: sorted below, from the
-        # concatenation (ties in range order, as one run's emission order has them)
+        # concatenation (two pixels' events at one float time would come in range order,
+        # where one run has them in the order of their steps: times drawn and interpolated
+        # in floats do not meet so)
         buf_tf, buf_ti, buf_pix, buf_p, buf_lab = (
             merge_runs if not refr_delay or refr_us <= 0 else concat_runs)(
             buf_tf, buf_ti, buf_pix, buf_p, buf_lab, n_ev, *part)
