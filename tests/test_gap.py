@@ -11,6 +11,7 @@ bandwidth 40 Hz, threshold noise 0.15, hot pixels 0.5 % at 40 Hz, dark level 30 
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from functools import cache
 from types import SimpleNamespace
 from typing import Any
@@ -173,6 +174,27 @@ def test_spill_residual_of_moved_events_equals_a_fresh_observation() -> None:
     np.testing.assert_allclose(updated, fresh, rtol=1e-9, atol=1e-12)
     # jitter shows where events are dense: in the windows of large abs(dL)
     assert (updated[-2:] > _SpillResidual(obs).stat().values[-2:]).all()
+
+
+def test_spill_residual_leaves_unusable_cells_out() -> None:
+    """Only usable (window, pixel) cells are kept: events moved into or out of the others
+    change nothing, and the moved sums still equal a fresh observation's."""
+    rec = hidden_recording([], 71)
+    obs = observe(rec)
+    rng = np.random.default_rng(4)
+    mask = obs.usable & (rng.random(obs.usable.shape) < 0.6)
+    part = replace(obs, usable=mask, extra={}, shared={})
+    t = obs.t_us + np.rint(rng.normal(0.0, 800.0, obs.t_us.size)).astype(np.int64)
+    ev = rec.events_between(int(obs.frame_t_us[0]), int(obs.frame_t_us[-1])).copy()
+    ev["t_us"] = t
+    moved = Recording(rec.sensor, ev[np.argsort(t, kind="stable")], rec.frames)
+    fresh_obs = replace(observe(moved), usable=mask, extra={}, shared={})
+    spill = _SpillResidual(part)
+    assert spill.cells.size == int(mask.sum()) < mask.size
+    np.testing.assert_allclose(spill.stat(t).values, _SpillResidual(fresh_obs).stat().values,
+                               rtol=1e-9, atol=1e-12)
+    # the same moves, with every cell usable, give another residual: the mask is applied
+    assert not np.allclose(spill.stat(t).values, _SpillResidual(obs).stat(t).values)
 
 
 @pytest.mark.parametrize("seed", [59, pytest.param(159, marks=[pytest.mark.slow,

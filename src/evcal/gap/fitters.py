@@ -13,6 +13,7 @@ and the interpolation do to it alike in both cancels.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -419,25 +420,40 @@ class _SpillResidual:
         win = event_windows(obs.t_us, self.ft)
         # events outside the frames go to a spare last cell
         self.key0 = np.where((win >= 0) & (win < n_w), win * npix + self.pix, self.n_cells)
-        self.P = f["P"].ravel()
-        self.E = f["E"].ravel()
-        self.dL = f["dL"].ravel()
-        self.w = obs.usable.astype(np.float64).ravel()
+        # only the usable cells (window, pixel) enter the sums: the others are not kept (on
+        # a real recording most are not usable, and every array here is one per cell)
+        self.cells = np.flatnonzero(obs.usable.ravel())
+        self.P = f["P"].ravel()[self.cells].astype(np.float64)
+        self.E = f["E"].ravel()[self.cells].astype(np.float64)
+        self.dL = f["dL"].ravel()[self.cells].astype(np.float64)
         self.nb = SPILL_DL_EDGES.size - 1
         b = np.clip(np.searchsorted(SPILL_DL_EDGES, np.abs(self.dL), side="right") - 1,
                     0, self.nb - 1)
-        # (bin, pixel) index of every cell
-        self.bp = b * npix + np.tile(np.arange(npix), n_w)
-        self.sums = self._cell_sums(np.arange(self.n_cells), self.P, self.E)
-        self.count = np.bincount(self.bp, weights=self.w, minlength=self.nb * npix
-                                 ).reshape(self.nb, npix)
+        # (bin, pixel) index of every kept cell
+        self.bp = b * npix + self.cells % npix
+        self.sums = self._cell_sums(np.arange(self.cells.size), self.P, self.E)
+        self.count = np.bincount(self.bp, minlength=self.nb * npix
+                                 ).astype(np.float64).reshape(self.nb, npix)
 
-    def _cell_sums(self, cells: np.ndarray, P: np.ndarray, E: np.ndarray) -> np.ndarray:
-        w, y, bp = self.w[cells], self.dL[cells], self.bp[cells]
-        terms = (P * P, P * E, E * E, P * y, E * y, E, y * y)
+    def _cell_sums(self, idx: np.ndarray, P: np.ndarray, E: np.ndarray) -> np.ndarray:
+        """The sums of the kept cells ``idx`` (indices into :attr:`cells`) with counts
+        ``P``, ``E``, per (abs(dL) bin, pixel); one term at a time (each is as long as
+        ``idx``)."""
+        y, bp = self.dL[idx], self.bp[idx]
         n = self.nb * self.npix
-        return np.stack([np.bincount(bp, weights=w * t, minlength=n) for t in terms]
-                        ).reshape(self._N_SUMS, self.nb, self.npix)
+        def terms() -> Iterator[np.ndarray]:  # one at a time
+            yield P * P
+            yield P * E
+            yield E * E
+            yield P * y
+            yield E * y
+            yield E
+            yield y * y
+
+        out = np.empty((self._N_SUMS, n))
+        for k, term in enumerate(terms()):
+            out[k] = np.bincount(bp, weights=term, minlength=n)
+        return out.reshape(self._N_SUMS, self.nb, self.npix)
 
     def stat(self, t_us: np.ndarray | None = None) -> StatValue:
         sums = self.sums
@@ -453,11 +469,13 @@ class _SpillResidual:
                 dp = np.bincount(inv, weights=np.concatenate([self.pol[moved],
                                                               -self.pol[moved]]))
                 de = np.bincount(inv, weights=np.concatenate([np.ones(k), -np.ones(k)]))
-                inside = cells < self.n_cells
-                cells, dp, de = cells[inside], dp[inside], de[inside]
-                p0, e0 = self.P[cells], self.E[cells]
-                sums = (sums + self._cell_sums(cells, p0 + dp, e0 + de)
-                        - self._cell_sums(cells, p0, e0))
+                # cells that are not kept (not usable, or the spare one) weigh nothing
+                pos = np.minimum(np.searchsorted(self.cells, cells), self.cells.size - 1)
+                kept = (self.cells[pos] == cells) if self.cells.size else cells < 0
+                idx, dp, de = pos[kept], dp[kept], de[kept]
+                p0, e0 = self.P[idx], self.E[idx]
+                sums = (sums + self._cell_sums(idx, p0 + dp, e0 + de)
+                        - self._cell_sums(idx, p0, e0))
         spp, spe, see, spy, sey, sev, syy = sums
         c, b, ok = fit_from_sums(spp.sum(0), spe.sum(0), see.sum(0), spy.sum(0), sey.sum(0),
                                  sev.sum(0))

@@ -69,14 +69,19 @@ def threshold_light_exponent(obs: Observation, dark_dn: float,
     first order: each pixel's own light keeps the curvature terms least. NaN when nothing
     varies."""
     f = _fit(obs)
-    x = np.maximum(obs.intensity.astype(np.float64), 0.0) + dark_dn
-    u = np.log(np.maximum(x, 1e-3)) - np.log(np.asarray(ref_dn, np.float64)).reshape(1, -1)
-    P, E = f["P"], f["E"]
-    w = (obs.usable & f["ok"][None, :]).astype(np.float64)
+    # only the pixels the fit trusts enter the sums: the arrays below are [windows, those]
+    cols = np.flatnonzero(f["ok"])
+    P, E = f["P"][:, cols], f["E"][:, cols]
+    w = obs.usable[:, cols].astype(np.float64)
     spp, spe, see = (w * P * P).sum(0), (w * P * E).sum(0), (w * E * E).sum(0)
     det = spp * see - spe * spe
-    use = (det > 1e-9 * np.maximum(spp * see, 1e-30)) & f["ok"]
+    use = det > 1e-9 * np.maximum(spp * see, 1e-30)
     w = w * use[None, :]
+    x = np.maximum(obs.intensity[:, cols].astype(np.float64), 0.0) + dark_dn
+    ref = np.broadcast_to(np.asarray(ref_dn, np.float64).reshape(1, -1),
+                          (1, obs.intensity.shape[1]))[:, cols]
+    u = np.log(np.maximum(x, 1e-3)) - np.log(ref)
+    del x
     e = 0.0
     for _ in range(max(1, iterations)):
         if abs(e) < 1e-6:

@@ -92,11 +92,18 @@ def offset_residuals(observations: list[Observation], grid_dn: np.ndarray,
     if any(o.intensity is not obs0.intensity or o.usable is not obs0.usable
            for o in observations[1:]):
         return [r for o in observations for r in offset_residuals([o], grid_dn, log_offset)]
-    F = obs0.intensity.astype(np.float64)
-    w = obs0.usable.astype(np.float64)
-    f_min = np.where(obs0.usable.any(0), F.min(0), 0.0)
-    out = [np.full((grid_dn.size, F.shape[1]), np.nan) for _ in observations]
-    counts = [(o.on - o.off, o.on + o.off) for o in observations]
+    # a pixel without events in a usable window has no fit in any observation (NaN): only
+    # the others are computed, the arrays below are [windows, those]
+    n_pix = obs0.intensity.shape[1]
+    fired = np.zeros(n_pix, bool)
+    for o in observations:
+        fired |= ((o.on + o.off) * obs0.usable).any(0)
+    cols = np.flatnonzero(fired)
+    F = obs0.intensity[:, cols].astype(np.float64)
+    w = obs0.usable[:, cols].astype(np.float64)
+    f_min = F.min(0) if cols.size else np.zeros(0)
+    out = [np.full((grid_dn.size, n_pix), np.nan) for _ in observations]
+    counts = [((o.on - o.off)[:, cols], (o.on + o.off)[:, cols]) for o in observations]
     for i, o in enumerate(grid_dn):  # a few dozen offsets, each vectorised over pixels
         L = np.log(np.maximum(F - o, 0.0) + log_offset)
         dL = np.diff(L, axis=0)
@@ -107,7 +114,7 @@ def offset_residuals(observations: list[Observation], grid_dn: np.ndarray,
             tss = sums[6]
             frac = np.where(ok & (tss > 0), ssr / np.maximum(tss, 1e-30), np.nan)
             # the darkest frame must stay above the offset (F >= o + 0.5 DN)
-            out[j][i] = np.where(f_min - o >= 0.5, frac, np.inf)
+            out[j][i, cols] = np.where(f_min - o >= 0.5, frac, np.inf)
     return out
 
 
