@@ -3,11 +3,23 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from evcal.gap import model as model_module
-from evcal.gap.model import Model, NoiseScale, _shrink, fit_base, noise_scale
+from evcal.gap.model import (
+    Model,
+    NoiseScale,
+    SimSettings,
+    _shrink,
+    anchor,
+    fit_base,
+    noise_scale,
+    simulate_model,
+)
+from evcal.gap.stats import observe
 from evcal.offline import OffEIConfig, offei
 from evcal.sim.ideal import SimConfig, simulate_ideal
 
@@ -66,3 +78,31 @@ def test_too_few_pixels_keep_the_stated_errors() -> None:
     model = fit_base(rec, log_offset=30.0)
     assert model.noise_scale.contrast == model.noise_scale.bias == 1.0
     assert "pixels" in model.noise_scale.reason
+
+
+def test_anchor_gives_pixels_without_a_fit_the_population_correction(ideal) -> None:
+    """Pixels the measurement has no fit for keep the population's threshold, so they take
+    the population's correction (the median over every pixel fitted in both), not that of
+    the least active bin they share with the barely fitted pixels."""
+    meas = observe(ideal)
+    n_pix = meas.on.shape[1]
+    # a third of the pixels without a usable window: no measured fit there
+    cols = np.arange(n_pix) % 3 == 0
+    usable = meas.usable.copy()
+    usable[:, cols] = False
+    meas = replace(meas, usable=usable, extra={}, shared={})
+    base = fit_base(ideal, 30.0)
+    settings = SimSettings()
+    anchored, first = anchor(base, ideal, meas, 7, settings, max_iter=1)
+    assert first is None  # one correction, not simulated again
+    fm = model_module._fit(meas)
+    assert not fm["ok"][cols].any()
+    assert fm["ok"][~cols].mean() > 0.5
+    # the anchor's own simulation (the same seed and settings) and its fits
+    fs = model_module._fit(observe(simulate_model(base, ideal, 7, settings)))
+    both = fm["ok"] & fs["ok"]
+    lr_all = float(np.median(np.log(fm["c"][both] / fs["c"][both])))
+    k = (anchored.contrast / base.contrast).ravel()
+    np.testing.assert_allclose(k[cols], np.exp(np.clip(lr_all, -0.7, 0.7)), rtol=1e-9)
+    # the fitted pixels follow their activity bins: not one factor for all
+    assert np.ptp(k[~cols]) > 1e-3

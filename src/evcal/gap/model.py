@@ -416,7 +416,11 @@ def anchor(model: Model, rec: Recording, meas: Observation, seed: int,
     simulated fit (to the power ``1/g``, ``g`` the secant slope of log fitted against log
     model contrast, since under refractory the fit follows the model only in part) and ``b``
     shifted by the median difference. Curves, not per-pixel ratios, so the fit noise of single
-    pixels does not enter the maps. Up to ``max_iter`` simulations, until the population
+    pixels does not enter the maps. Pixels without a measured fit hold the population's
+    threshold and take the population's correction (the median over every pixel fitted in
+    both), not that of the least active bin: that bin's fits are the pixels that barely
+    passed the fit's minimum of events, on a sparse recording a few hundred of them against
+    the whole sensor's unfitted pixels. Up to ``max_iter`` simulations, until the population
     median agrees within ``tol`` after at least one correction.
 
     A model whose maps were anchored before (``model.anchored``: an effect added to an
@@ -457,17 +461,19 @@ def anchor(model: Model, rec: Recording, meas: Observation, seed: int,
         for j in range(nb):
             m = both & (bins == j)
             lr[j] = np.median(np.log(fm["c"][m] / fs["c"][m])) if m.sum() >= 10 else lr_all
-        k_pix = np.exp(np.clip(lr[bins] / g, -0.7, 0.7)).reshape(model.contrast.shape)
+        lr_pix = np.where(fm["ok"], lr[bins], lr_all)
+        k_pix = np.exp(np.clip(lr_pix / g, -0.7, 0.7)).reshape(model.contrast.shape)
         b_pred = fs["b"] * k_pix.ravel()
         d_all = float(np.median(fm["b"][both] - b_pred[both]))
         for j in range(nb):
             m = both & (bins == j)
             db[j] = np.median(fm["b"][m] - b_pred[m]) if m.sum() >= 10 else d_all
+        db_pix = np.where(fm["ok"], db[bins], d_all)
         if it == 0 and model.anchored and abs(med_s / med_m - 1.0) < tol and \
                 np.all(np.abs(lr) < 2 * tol) and np.all(np.abs(db) < 2 * tol * med_m):
             return model, obs
         c = np.maximum(model.contrast * k_pix, 1e-3)
-        b = np.clip(model.bias * k_pix + db[bins].reshape(model.bias.shape), -0.8 * c, 0.8 * c)
+        b = np.clip(model.bias * k_pix + db_pix.reshape(model.bias.shape), -0.8 * c, 0.8 * c)
         model = replace(model, contrast=c, bias=b, anchored=True)
     return model, None
 
