@@ -317,3 +317,34 @@ def test_refinement_stops_at_the_edge_of_a_parameter_range() -> None:
     eff, ev = refine(run, base, best, edge)
     assert eff == edge
     assert ev is best
+
+
+def test_timing_statistics_leave_out_windows_with_a_clipped_frame() -> None:
+    """A frame at full scale (255 DN) says only that the light was past the full well: the
+    runner's trusted windows (those of the timing statistics) leave out every window with
+    such a frame at the pixel, and keep the flow's verdict elsewhere."""
+    from evcal.gap.flow import unclipped_windows
+    from evcal.gap.runner import Runner
+    from evcal.recording import Recording
+    from evcal.sim.ideal import simulate_ideal
+
+    rec = simulate_ideal(SimConfig(height=48, width=64, duration_s=1.0, seed=5)).recording
+    images = rec.frames.images.astype(np.float32).copy()
+    images[5:9, 10:20, 30:50] = 255.0  # a bright patch past the full well in frames 5-8
+    frames = Frames(rec.frames.t_us, images, rec.frames.exposure_us)
+    clipped_rec = Recording(rec.sensor, rec.events, frames)
+    ok = unclipped_windows(frames)
+    n_w, n_pix = len(frames) - 1, 48 * 64
+    assert ok.shape == (n_w, n_pix)
+    patch = np.zeros((48, 64), bool)
+    patch[10:20, 30:50] = True
+    patch = patch.ravel()
+    # windows 4-8 have a clipped frame at the patch (4 ends at frame 5, 8 starts at frame 8)
+    assert not ok[4:9][:, patch].any()
+    assert ok[4:9][:, ~patch].all()
+    assert ok[:4].all()
+    assert ok[9:].all()
+    run = Runner(clipped_rec, GapConfig(seed=0), lambda w: None)
+    assert run.trusted is not None
+    np.testing.assert_array_equal(run.trusted, trusted_windows(frames, max_px=np.inf) & ok)
+    assert not run.meas.trusted[4:9][:, patch].any()

@@ -238,3 +238,18 @@ def trusted_windows(frames: Frames, *, max_px: float = 2.0, min_consistency: flo
     mag = np.maximum(np.hypot(fwd[..., 0], fwd[..., 1]), np.hypot(bwd[..., 0], bwd[..., 1]))
     ok: np.ndarray = (mag <= max_px) & (np.minimum(v_fwd, v_bwd) >= min_consistency)
     return ok.reshape(ok.shape[0], -1)
+
+
+def unclipped_windows(frames: Frames, *, full_scale_dn: float = 255.0) -> np.ndarray:
+    """``[n_frames - 1, n_pixels]`` bool: windows of pixels where neither frame is at full
+    scale (``full_scale_dn``, an 8-bit APS frame's 255).
+
+    A frame clipped there says only that the light was past the APS's full well; the DVS
+    pixel still follows it, and a simulation driven by the clipped frames does not. The fits
+    leave such windows out already (:attr:`Observation.usable`); the timing statistics must
+    too, for the same reason as fast motion: there they would compare the sensor with the
+    clipping, not with the model."""
+    im = frames.images.reshape(len(frames), -1)
+    top = im >= full_scale_dn
+    ok: np.ndarray = ~(top[1:] | top[:-1])
+    return ok

@@ -51,7 +51,8 @@ class GapConfig:
     internal_rate_hz: float = 1000.0
     interpolation: str = "flow"  # between frames: "flow" (evcal.gap.flow) or "linear"
     # timing statistics only in windows whose flow is consistent and at most this many pixels
-    # (evcal.gap.flow.trusted_windows); None: every window
+    # (evcal.gap.flow.trusted_windows) and whose frames are not clipped at full scale
+    # (unclipped_windows); None: every window
     trusted_max_px: float | None = math.inf
     penalty_per_parameter: float = 0.1
     min_improvement: float = 0.3
@@ -152,9 +153,10 @@ class Runner:
         self.tick = tick
         self.trusted = None
         if cfg.trusted_max_px is not None:
-            from .flow import trusted_windows  # noqa: PLC0415
+            from .flow import trusted_windows, unclipped_windows  # noqa: PLC0415
 
-            self.trusted = trusted_windows(rec.frames, max_px=cfg.trusted_max_px)
+            self.trusted = (trusted_windows(rec.frames, max_px=cfg.trusted_max_px)
+                            & unclipped_windows(rec.frames))
         self.meas = observe(rec, trusted=self.trusted)
         self.meas_stats = summarise(self.meas)
         self.meas_pop = population(self.meas)
