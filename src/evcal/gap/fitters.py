@@ -13,7 +13,6 @@ and the interpolation do to it alike in both cancels.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -441,18 +440,10 @@ class _SpillResidual:
         ``idx``)."""
         y, bp = self.dL[idx], self.bp[idx]
         n = self.nb * self.npix
-        def terms() -> Iterator[np.ndarray]:  # one at a time
-            yield P * P
-            yield P * E
-            yield E * E
-            yield P * y
-            yield E * y
-            yield E
-            yield y * y
-
         out = np.empty((self._N_SUMS, n))
-        for k, term in enumerate(terms()):
-            out[k] = np.bincount(bp, weights=term, minlength=n)
+        for k, (a, b) in enumerate(((P, P), (P, E), (E, E), (P, y), (E, y), (E, None),
+                                    (y, y))):
+            out[k] = np.bincount(bp, weights=a if b is None else a * b, minlength=n)
         return out.reshape(self._N_SUMS, self.nb, self.npix)
 
     def stat(self, t_us: np.ndarray | None = None) -> StatValue:
