@@ -21,6 +21,7 @@ import pytest
 
 from evcal.gap.cli import main as gap_main
 from evcal.gap.model import _SpillResidual
+from evcal.gap.pixelfit import MIN_FIT_EVENTS
 from evcal.gap.report import write_reports
 from evcal.gap.stats import (
     GapError,
@@ -177,9 +178,15 @@ def test_spill_residual_of_moved_events_equals_a_fresh_observation() -> None:
 
 
 def test_spill_residual_leaves_unusable_cells_out() -> None:
-    """Only usable (window, pixel) cells are kept: events moved into or out of the others
-    change nothing, and the moved sums still equal a fresh observation's."""
-    rec = hidden_recording([], 71)
+    """Only usable (window, pixel) cells of pixels with enough events for a fit are kept:
+    events moved into or out of the others change nothing, and the moved sums still equal a
+    fresh observation's."""
+    full = hidden_recording([], 71)
+    # a strip of pixels keeps a few of its events, too few for a fit
+    ev = full.events
+    strip = ev["x"] < 8
+    keep = ~strip | (np.cumsum(strip) % 40 == 0)
+    rec = Recording(full.sensor, ev[keep], full.frames)
     obs = observe(rec)
     rng = np.random.default_rng(4)
     mask = obs.usable & (rng.random(obs.usable.shape) < 0.6)
@@ -190,7 +197,9 @@ def test_spill_residual_leaves_unusable_cells_out() -> None:
     moved = Recording(rec.sensor, ev[np.argsort(t, kind="stable")], rec.frames)
     fresh_obs = replace(observe(moved), usable=mask, extra={}, shared={})
     spill = _SpillResidual(part)
-    assert spill.cells.size == int(mask.sum()) < mask.size
+    can_fit = np.bincount(obs.pix, minlength=obs.n_pixels) >= MIN_FIT_EVENTS
+    assert 0 < can_fit.sum() < can_fit.size  # some pixels are left out for their few events
+    assert spill.cells.size == int((mask & can_fit).sum()) < mask.sum()
     np.testing.assert_allclose(spill.stat(t).values, _SpillResidual(fresh_obs).stat().values,
                                rtol=1e-9, atol=1e-12)
     # the same moves, with every cell usable, give another residual: the mask is applied

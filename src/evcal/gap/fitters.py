@@ -35,7 +35,13 @@ from ..sim.effects import (
 from ..stream import event_windows
 from . import frames as _frames
 from .compare import discrepancy
-from .pixelfit import fit_from_sums, lowpass_log_changes, residual_from_sums, window_sums
+from .pixelfit import (
+    MIN_FIT_EVENTS,
+    fit_from_sums,
+    lowpass_log_changes,
+    residual_from_sums,
+    window_sums,
+)
 from .stats import (
     NOMINAL_LOG_OFFSET_DN,
     Observation,
@@ -419,9 +425,12 @@ class _SpillResidual:
         win = event_windows(obs.t_us, self.ft)
         # events outside the frames go to a spare last cell
         self.key0 = np.where((win >= 0) & (win < n_w), win * npix + self.pix, self.n_cells)
-        # only the usable cells (window, pixel) enter the sums: the others are not kept (on
-        # a real recording most are not usable, and every array here is one per cell)
-        self.cells = np.flatnonzero(obs.usable.ravel())
+        # only the usable cells (window, pixel) of pixels that can be fitted enter the sums:
+        # moved events stay in their pixel, so one with fewer than MIN_FIT_EVENTS events
+        # has no fit whatever the times (every array here is one per kept cell, and on a
+        # real recording most pixels have a few events or none)
+        can_fit = np.bincount(self.pix, minlength=npix) >= MIN_FIT_EVENTS
+        self.cells = np.flatnonzero(obs.usable.ravel() & np.tile(can_fit, n_w))
         self.P = f["P"].ravel()[self.cells].astype(np.float64)
         self.E = f["E"].ravel()[self.cells].astype(np.float64)
         self.dL = f["dL"].ravel()[self.cells].astype(np.float64)
