@@ -208,6 +208,7 @@ class OffEIDiagnostics(Diagnostics):
     """OffEI (:func:`evcal.offei.offei`)."""
 
     method: ClassVar[str] = "offei"
+    _not_saved: ClassVar[frozenset[str]] = frozenset({"error_correlation"})
     residual_lambda: float = 0.0  # the residual-correction factor used
     window_frames: int = 0  # d: frame intervals per equation
     residual_correction: str | float = "auto"
@@ -220,6 +221,9 @@ class OffEIDiagnostics(Diagnostics):
     lambda_spread: float = 0.0
     # evcal.gap.correct: the effects whose bias was removed and the gains/offsets applied
     model_correction: Mapping[str, Any] = field(default_factory=dict)
+    # [H, W] float32: the correlation of each pixel's errors of c and b (NaN where not
+    # valid); with stderr_contrast and stderr_bias their covariance. In memory only
+    error_correlation: np.ndarray | None = field(default=None, repr=False, compare=False)
 
 
 @dataclass(frozen=True, kw_only=True)

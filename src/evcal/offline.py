@@ -215,11 +215,12 @@ class OffEIStream:
         on, off, last_p, lg, ok = (np.stack(a) for a in zip(*self._sample_frames, strict=True))
         noise = OverlapNoise(window_frames=d, moments=self._ring.moments, sample=self._sample,
                              on=on, off=off, last_p=last_p, lg=lg, ok=ok)
-        se_c, se_b, kappa, tau = overlap_standard_errors(self._ne, sol, lam, noise)
+        se_c, se_b, rho, kappa, tau = overlap_standard_errors(self._ne, sol, lam, noise)
         diagnostics = OffEIDiagnostics(
             residual_lambda=lam, window_frames=d, residual_correction=cfg.residual_correction,
             log_offset_estimation=self.offset_info, n_frames=self.n_frames,
-            noise_overlap=kappa, lambda_spread=tau)
+            noise_overlap=kappa, lambda_spread=tau,
+            error_correlation=rho.reshape(self.sensor.shape).astype(np.float32))
         return calibration_from_solution(replace(sol, se_c=se_c, se_b=se_b), n_events,
                                          self.sensor.shape, log_offset=self.offset,
                                          method="offei", diagnostics=diagnostics)

@@ -541,8 +541,10 @@ def noise_overlap(noise: OverlapNoise, c: np.ndarray, b: np.ndarray, valid: np.n
 
 
 def overlap_standard_errors(ne: NormalEquations, sol: PixelSolution, lam: float,
-                            noise: OverlapNoise) -> tuple[np.ndarray, np.ndarray, float, float]:
-    """``(se_c, se_b, kappa, tau)`` of OffEI's overlapping windows (``inf`` where invalid).
+                            noise: OverlapNoise
+                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float]:
+    """``(se_c, se_b, rho, kappa, tau)`` of OffEI's overlapping windows (``inf`` where
+    invalid; ``rho`` the correlation of the errors of ``c`` and ``b``, NaN there).
 
     The noise of the equation between frames ``j`` and ``k`` is ``r_k - r_j``: the
     sub-threshold residuals (and frame noise) at its two frames, not a sum over its intervals.
@@ -561,28 +563,32 @@ def overlap_standard_errors(ne: NormalEquations, sol: PixelSolution, lam: float,
         Var(c, b) = kappa sigma^2 G^-1 S G^-1 + tau^2 u u^T
 
     with ``sigma^2 = RSS / n * n_eff / (n_eff - 2)``, ``n_eff = n / kappa``. The estimates
-    are those of ``sol``, unchanged.
+    are those of ``sol``, unchanged. ``rho`` is that matrix's correlation: near +1 or -1 for
+    a pixel whose events are nearly all of one polarity (``P`` and ``E`` then move together,
+    and only that polarity's threshold, ``c + b`` or ``c - b``, is measured well).
     """
     kappa = noise_overlap(noise, sol.c, sol.b, sol.valid, lam)
-    var_c, var_b, u1, u2, lam_dev, lam_noise = _overlap_terms(
+    var_c, var_b, cov_cb, u1, u2, lam_dev, lam_noise = _overlap_terms(
         ne.m, np.ascontiguousarray(noise.moments[0]), np.ascontiguousarray(noise.moments[1]),
         sol.c, sol.b, float(lam), float(kappa))
     use = sol.valid & np.isfinite(lam_dev) & np.isfinite(lam_noise)
     tau2 = (max(float(np.var(lam_dev[use])) - float(np.mean(lam_noise[use])), 0.0)
             if int(use.sum()) > 1 else 0.0)
-    se_c, se_b = _overlap_errors(var_c, var_b, u1, u2, sol.valid, tau2)
-    return se_c, se_b, kappa, float(np.sqrt(tau2))
+    se_c, se_b, rho = _overlap_errors(var_c, var_b, cov_cb, u1, u2, sol.valid, tau2)
+    return se_c, se_b, rho, kappa, float(np.sqrt(tau2))
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _overlap_terms(m: np.ndarray, m_p: np.ndarray, m_e: np.ndarray, c: np.ndarray,
                    b: np.ndarray, lam: float, kappa: float) -> Any:  # pragma: no cover
     """Per pixel, the terms of :func:`overlap_standard_errors`: the noise variances of ``c``
-    and ``b`` (``kappa sigma^2 G^-1 S G^-1``), ``u`` and the one-pixel estimate of the
-    residual-correction factor's deviation with its noise variance (NaN where it has none)."""
+    and ``b`` and their covariance (``kappa sigma^2 G^-1 S G^-1``), ``u`` and the one-pixel
+    estimate of the residual-correction factor's deviation with its noise variance (NaN where
+    it has none)."""
     n_px = m.shape[1]
     var_c = np.empty(n_px)
     var_b = np.empty(n_px)
+    cov_cb = np.empty(n_px)
     u1_out = np.empty(n_px)
     u2_out = np.empty(n_px)
     dev = np.empty(n_px)
@@ -613,6 +619,8 @@ def _overlap_terms(m: np.ndarray, m_p: np.ndarray, m_e: np.ndarray, c: np.ndarra
                                      + i12 * (i11 * s12 + i12 * s22))
         var_b[i] = kappa * sigma2 * (i12 * (i12 * s11 + i22 * s12)
                                      + i22 * (i12 * s12 + i22 * s22))
+        cov_cb[i] = kappa * sigma2 * (i11 * (i12 * s11 + i22 * s12)
+                                      + i12 * (i12 * s12 + i22 * s22))
         # the residual correction's factor, one per pixel: u and the one-pixel estimate
         t1 = ci * (pq + lam * qq) + bi * (pa + lam * qa)
         t2 = ci * (eq + lam * qa) + bi * (ea + lam * aa)
@@ -626,23 +634,29 @@ def _overlap_terms(m: np.ndarray, m_p: np.ndarray, m_e: np.ndarray, c: np.ndarra
         ok = den > 0.0
         dev[i] = z_res / den if ok else np.nan
         dev_noise[i] = kappa * sigma2 / den if ok else np.nan
-    return var_c, var_b, u1_out, u2_out, dev, dev_noise
+    return var_c, var_b, cov_cb, u1_out, u2_out, dev, dev_noise
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _overlap_errors(var_c: np.ndarray, var_b: np.ndarray, u1: np.ndarray, u2: np.ndarray,
-                    valid: np.ndarray, tau2: float) -> Any:  # pragma: no cover - compiled
-    """``sqrt(noise variance + tau^2 u^2)`` of ``c`` and ``b``; ``inf`` where not valid or
-    not finite."""
+def _overlap_errors(var_c: np.ndarray, var_b: np.ndarray, cov_cb: np.ndarray, u1: np.ndarray,
+                    u2: np.ndarray, valid: np.ndarray, tau2: float) -> Any:  # pragma: no cover
+    """``sqrt(noise variance + tau^2 u^2)`` of ``c`` and ``b`` (``inf`` where not valid or
+    not finite) and the correlation of their errors (NaN there)."""
     n = var_c.size
     se_c = np.empty(n)
     se_b = np.empty(n)
+    rho = np.empty(n)
     for i in range(n):
         vc = var_c[i] + tau2 * u1[i] * u1[i]
         vb = var_b[i] + tau2 * u2[i] * u2[i]
-        se_c[i] = np.sqrt(vc) if valid[i] & np.isfinite(vc) & (vc >= 0.0) else np.inf
-        se_b[i] = np.sqrt(vb) if valid[i] & np.isfinite(vb) & (vb >= 0.0) else np.inf
-    return se_c, se_b
+        ok_c = valid[i] & np.isfinite(vc) & (vc >= 0.0)
+        ok_b = valid[i] & np.isfinite(vb) & (vb >= 0.0)
+        se_c[i] = np.sqrt(vc) if ok_c else np.inf
+        se_b[i] = np.sqrt(vb) if ok_b else np.inf
+        cv = cov_cb[i] + tau2 * u1[i] * u2[i]
+        r = cv / np.sqrt(vc * vb) if ok_c & ok_b & (vc > 0.0) & (vb > 0.0) else np.nan
+        rho[i] = min(1.0, max(-1.0, r)) if np.isfinite(r) else np.nan
+    return se_c, se_b, rho
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")

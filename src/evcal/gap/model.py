@@ -147,6 +147,14 @@ MIN_SCALE_PIXELS = 200
 NOISE_SCALE_RANGE = (0.25, 16.0)
 # seeds of the simulations that measure the noise scale (none of the workflow's)
 NOISE_SEEDS = (9001, 9002)
+# the shrinkage moves each polarity's threshold ``c + b``, ``c - b`` at most this many of its
+# standard errors away from the fit (limited translation): only a threshold the fit measures
+# far more precisely than the population's spread, far from the population, is held
+THRESHOLD_LIMIT_SE = 3.0
+# a pixel's bias is kept within this share of its threshold: both polarities' thresholds
+# stay above 5 % of ``c``, positive but as lopsided as the fit finds them (a pixel whose OFF
+# threshold is a twentieth of its ON one fires a burst at every falling edge)
+MAX_BIAS_RATIO = 0.95
 
 
 def noise_scale(rec: Recording, config: OffEIConfig, cal: Calibration, model: Model, *,
@@ -205,7 +213,17 @@ def _shrink(cal: Calibration, offset: float, scale: NoiseScale | None = None
             ) -> tuple[np.ndarray, np.ndarray]:
     """``c``, ``b`` of ``cal`` shrunk towards the population median, each pixel by
     ``k = 1 - f se^2 / var_obs`` (``var_obs`` the population's robust variance, ``f`` the
-    recording's :class:`NoiseScale`, the stated errors rescaled to the fits' scatter)."""
+    recording's :class:`NoiseScale`, the stated errors rescaled to the fits' scatter), then
+    each polarity's threshold (``c + b``, ``c - b``) kept within
+    :data:`THRESHOLD_LIMIT_SE` of its own standard error of the fit, from the errors'
+    correlation that OffEI states (``diagnostics.error_correlation``; without it, no limit).
+
+    The limit is for a pixel whose events are nearly all of one polarity: its errors of ``c``
+    and ``b`` are large and nearly equal, so each is shrunk much, while the threshold it fires
+    at is measured well, and shrinking ``c`` and ``b`` each on its own moves that threshold
+    far from what its events say. On the v2e mix on gravel the busiest pixel's OFF threshold
+    (v2e's floor, 0.010; OffEI 0.011 with a standard error under 0.001) became 0.043, and a
+    frame-driven simulator's slots and dead-time backlog follow that pixel (docs/GAP.md)."""
     if scale is None:
         scale = NoiseScale()
     c = cal.contrast.astype(np.float64)
@@ -222,10 +240,25 @@ def _shrink(cal: Calibration, offset: float, scale: NoiseScale | None = None
     se_b = np.where(np.isfinite(cal.stderr_bias), cal.stderr_bias, 1e9)
     kc = np.clip(1 - scale.contrast * se_c**2 / max(cv, 1e-12), 0, 1)
     kb = np.clip(1 - scale.bias * se_b**2 / max(bv, 1e-12), 0, 1)
+    c_fit, b_fit = c, b
     c = np.where(v, cm + kc * (c - cm), cm)
     b = np.where(v, bm + kb * (b - bm), bm)
+    rho_map = getattr(cal.diagnostics, "error_correlation", None)
+    if rho_map is not None:
+        rho = np.nan_to_num(np.asarray(rho_map, np.float64).reshape(c.shape), nan=0.0)
+        var_c = scale.contrast * se_c**2
+        var_b = scale.bias * se_b**2
+        cov = rho * np.sqrt(var_c * var_b)
+        on_off = []
+        for sign in (1.0, -1.0):
+            fit = c_fit + sign * b_fit
+            se = np.sqrt(np.maximum(var_c + var_b + 2 * sign * cov, 0.0))
+            lim = THRESHOLD_LIMIT_SE * se
+            on_off.append(np.clip(c + sign * b, fit - lim, fit + lim))
+        c = np.where(v, 0.5 * (on_off[0] + on_off[1]), c)
+        b = np.where(v, 0.5 * (on_off[0] - on_off[1]), b)
     c = np.maximum(c, 0.3 * cm)
-    b = np.clip(b, -0.8 * c, 0.8 * c)
+    b = np.clip(b, -MAX_BIAS_RATIO * c, MAX_BIAS_RATIO * c)
     return c, b
 
 
@@ -473,7 +506,8 @@ def anchor(model: Model, rec: Recording, meas: Observation, seed: int,
                 np.all(np.abs(lr) < 2 * tol) and np.all(np.abs(db) < 2 * tol * med_m):
             return model, obs
         c = np.maximum(model.contrast * k_pix, 1e-3)
-        b = np.clip(model.bias * k_pix + db_pix.reshape(model.bias.shape), -0.8 * c, 0.8 * c)
+        b = np.clip(model.bias * k_pix + db_pix.reshape(model.bias.shape),
+                    -MAX_BIAS_RATIO * c, MAX_BIAS_RATIO * c)
         model = replace(model, contrast=c, bias=b, anchored=True)
     return model, None
 
