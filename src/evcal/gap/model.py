@@ -238,16 +238,16 @@ def _shrink(cal: Calibration, offset: float, scale: NoiseScale | None = None
     bv = (1.4826 * np.median(np.abs(b[v] - bm))) ** 2
     se_c = np.where(np.isfinite(cal.stderr_contrast), cal.stderr_contrast, 1e9)
     se_b = np.where(np.isfinite(cal.stderr_bias), cal.stderr_bias, 1e9)
-    kc = np.clip(1 - scale.contrast * se_c**2 / max(cv, 1e-12), 0, 1)
-    kb = np.clip(1 - scale.bias * se_b**2 / max(bv, 1e-12), 0, 1)
+    var_c = scale.contrast * se_c**2  # the errors' variances scaled to the fits' scatter
+    var_b = scale.bias * se_b**2
+    kc = np.clip(1 - var_c / max(cv, 1e-12), 0, 1)
+    kb = np.clip(1 - var_b / max(bv, 1e-12), 0, 1)
     c_fit, b_fit = c, b
     c = np.where(v, cm + kc * (c - cm), cm)
     b = np.where(v, bm + kb * (b - bm), bm)
     rho_map = getattr(cal.diagnostics, "error_correlation", None)
     if rho_map is not None:
         rho = np.nan_to_num(np.asarray(rho_map, np.float64).reshape(c.shape), nan=0.0)
-        var_c = scale.contrast * se_c**2
-        var_b = scale.bias * se_b**2
         cov = rho * np.sqrt(var_c * var_b)
         on_off = []
         for sign in (1.0, -1.0):
