@@ -57,6 +57,60 @@ frames that drive the simulation must be corrected (:func:`evcal.gap.frames.mode
 
 Intensities ``I`` are in frame units (DN, 0..255 is the 8-bit range); rates in events per
 second per pixel (Hz); times in microseconds.
+
+How an effect acts on a simulation
+----------------------------------
+Each effect is the one place of its parameters and of what it does: :class:`Effect` has one
+hook per stage of :func:`~evcal.sim.nonideal.simulate`, each a no-op there, and an effect
+overrides those of the stages it acts at (:meth:`Effect.hooks` lists them). The simulator
+runs the stages in this sequence, and in each asks every effect in the fixed order of
+:attr:`Effect.order` (ties by name; :func:`simulation_order`), never by its class:
+
+1. ``on_aps(aps)``: the APS frame model (:meth:`ApsConfig.with_effects`);
+2. ``log_offset(nominal)``: the dark level of the log response ``log(I + dark)``
+   (:func:`~evcal.sim.nonideal.effective_log_offset`);
+3. ``applies_dead_time()``, asked of every effect first (``True``: its stamps apply the
+   pixels' dead time, so the kernel leaves it out: :attr:`SimContext.stamps_apply_dead_time`),
+   then ``kernel_setup(kp, ctx)``: the kernel's per-pixel parameters (:class:`KernelParams`:
+   thresholds, dead time, leak, shot noise, bandwidth, the comparator's response, from which
+   the initial reference is set);
+4. the kernel runs; ``after_kernel(events, ctx)``: the events (:class:`SimEvents`, times as
+   the kernel's) with the effect's additions, each merged with its label;
+5. ``t_origin_us`` is added; ``on_timestamps(events, ctx)``: the events re-stamped (sorted by
+   time again).
+
+Effects talk to each other through the :class:`SimContext` only (e.g. ``refractory`` leaves
+its dead time in :attr:`SimContext.stamp_dead_time` when the stamps apply it, and
+``timestamp_quantisation`` applies it there). Randomness comes from the context's generators,
+one per stage (:attr:`~SimContext.rng_kernel`, :attr:`~SimContext.rng_maps`,
+:attr:`~SimContext.rng_events`, :attr:`~SimContext.rng_timestamps`), drawn in the fixed order;
+an effect added to a stage's stream moves the draws of the effects after it, so a new effect
+takes a stream of its own from :meth:`SimContext.spawn_rng` (which moves none).
+
+=========================  =====  ===========================================================
+name                       order  hooks (what the fixed order keeps)
+=========================  =====  ===========================================================
+``log_offset``             10     ``log_offset``
+``threshold_light``        20     ``kernel_setup`` (the comparator's response)
+``refractory``             30     ``kernel_setup`` (the dead time, or its note for the stamps)
+``threshold_noise``        40     ``kernel_setup`` (``rng_kernel``: before ``shot_noise``)
+``shot_noise``             50     ``kernel_setup`` (``rng_kernel``)
+``leak``                   60     ``kernel_setup`` (``rng_maps``)
+``bandwidth``              70     ``kernel_setup``
+``hot_pixels``             80     ``after_kernel`` (``rng_events``; merged first)
+``row_noise``              90     ``after_kernel`` (a spawned stream; merged second)
+``timestamp_quantisation`` 100    ``applies_dead_time``, ``on_timestamps`` (before jitter)
+``timestamp_jitter``       110    ``on_timestamps`` (``rng_timestamps``)
+``aps_fpn``                120    ``on_aps``
+``exposure``               130    ``on_aps``
+=========================  =====  ===========================================================
+
+To add an effect: subclass :class:`Effect` as a frozen, keyword-only dataclass with a unique
+``name`` (and ``primary``, ``n_fitted`` for the gap workflow), its parameters as fields
+validated in ``__post_init__``, an ``order`` (default 1000: after all of the above), and
+override the hooks of the stages it acts at; add it to the registry :data:`EFFECTS` (below)
+so that :func:`make_effect` and ``evcal gap`` know it by name. :func:`simulate` needs no
+change: an effect given to it works unregistered too.
 """
 
 from __future__ import annotations
@@ -64,7 +118,7 @@ from __future__ import annotations
 from collections.abc import Iterable, Mapping
 from dataclasses import asdict, dataclass, field, fields, replace
 from functools import lru_cache
-from typing import Any, ClassVar
+from typing import Any, ClassVar, NamedTuple
 
 import numpy as np
 
@@ -94,6 +148,7 @@ class Effect:
     name: ClassVar[str] = ""
     primary: ClassVar[str] = ""  # the parameter the gap workflow's tolerance refers to
     n_fitted: ClassVar[int] = 1  # parameters the gap workflow fits (complexity penalty)
+    order: ClassVar[int] = 1000  # its place in the simulation's fixed order (module doc)
 
     def parameters(self) -> dict[str, Any]:
         return asdict(self)
@@ -109,11 +164,189 @@ class Effect:
         acting on the frames before they are cut, are the same on any rows."""
         return self
 
+    # the simulation hooks, one per stage (the module doc gives the stages and their order);
+    # each does nothing here, an effect overrides those of the stages it acts at
+
+    def on_aps(self, aps: ApsConfig) -> ApsConfig:
+        """The APS frame model with this effect (frames only)."""
+        return aps
+
+    def log_offset(self, nominal_dn: float) -> float:
+        """The dark level (DN) of the log response ``log(I + dark)`` the sensor sees, given
+        the one so far (the config's nominal offset, or an earlier effect's)."""
+        return nominal_dn
+
+    def applies_dead_time(self) -> bool:
+        """Whether this effect's timestamps apply the pixels' dead time themselves (then the
+        kernel leaves it out: :attr:`SimContext.stamps_apply_dead_time`)."""
+        return False
+
+    def kernel_setup(self, kp: KernelParams, ctx: SimContext) -> None:
+        """Set this effect's parameters of the per-pixel kernel in ``kp`` (in place)."""
+        return None
+
+    def after_kernel(self, events: SimEvents, ctx: SimContext) -> SimEvents:
+        """The kernel's events (times as the kernel's, sorted) with this effect's."""
+        return events
+
+    def on_timestamps(self, events: SimEvents, ctx: SimContext) -> SimEvents:
+        """The events (output times: ``t_origin_us`` added) as this effect stamps them,
+        sorted by time."""
+        return events
+
+    @classmethod
+    def hooks(cls) -> tuple[str, ...]:
+        """The simulation hooks this effect overrides: the stages it acts at."""
+        return tuple(h for h in HOOKS if getattr(cls, h) is not getattr(Effect, h))
+
+
+HOOKS: tuple[str, ...] = ("on_aps", "log_offset", "applies_dead_time", "kernel_setup",
+                          "after_kernel", "on_timestamps")
+
+
+def simulation_order(effects: Iterable[Effect]) -> list[Effect]:
+    """``effects`` in the simulation's fixed order (:attr:`Effect.order`, then name)."""
+    return sorted(effects, key=lambda e: (e.order, e.name))
+
+
+class SimEvents(NamedTuple):
+    """Events inside the simulator: times (us, int64), pixel indices ``y W + x`` (int32),
+    polarities (int8), labels (uint8, :data:`LABEL_LEGEND`). No events: empty arrays."""
+
+    t_us: np.ndarray
+    pix: np.ndarray
+    pol: np.ndarray
+    lab: np.ndarray
+
+    def take(self, index: np.ndarray) -> SimEvents:
+        return SimEvents(self.t_us[index], self.pix[index], self.pol[index], self.lab[index])
+
+    def sorted_by_time(self) -> SimEvents:
+        """Sorted by time, stably (the order of events at one time is kept)."""
+        return self.take(np.argsort(self.t_us, kind="stable"))
+
+    def merged(self, added: tuple[np.ndarray, np.ndarray, np.ndarray], label: int
+               ) -> SimEvents:
+        """These events with the ``added`` ones (times, pixels, polarities) of one
+        ``label``, sorted by time (stably: among equal times these come first, in their
+        order)."""
+        t = np.concatenate([self.t_us, added[0]])
+        order = np.argsort(t, kind="stable")
+        pix = np.concatenate([self.pix, added[1]])[order]
+        pol = np.concatenate([self.pol, added[2]])[order]
+        lab = np.concatenate([self.lab, np.full(added[0].size, label, np.uint8)])[order]
+        return SimEvents(t[order], pix, pol, lab)
+
+
+@dataclass(kw_only=True, eq=False)
+class KernelParams:
+    """The parameters of the per-pixel kernel (:func:`evcal.sim.kernel.run_steps`) that
+    effects set in :meth:`Effect.kernel_setup`; mutable, one per run, at first an ideal pixel.
+    Per-pixel arrays are flat (``y W + x``)."""
+
+    th_on_nom: np.ndarray  # nominal thresholds c + b, c - b (log units)
+    th_off_nom: np.ndarray
+    th_on: np.ndarray  # the thresholds until a pixel's first event
+    th_off: np.ndarray
+    th_sigma: float = 0.0  # threshold noise, a fraction of the nominal threshold
+    refr_us: float = 0.0  # dead time (0: none)
+    refr_delay: bool = False  # crossings in the dead time delayed, not dropped
+    leak_rate_hz: np.ndarray
+    leak_exp: float = 0.0
+    leak_ref_dn: float = 128.0
+    shot_rate_hz: float = 0.0  # the kernel's law: rate (ref / I)**exp, I floored at ref / 10
+    shot_ref_dn: float = 16.0
+    shot_exp: float = 1.0
+    shot_next_us: np.ndarray  # each pixel's first shot-noise candidate (inf: none)
+    bw_cutoff_hz: float = 0.0  # bandwidth (0: none)
+    bw_ref_dn: float = 128.0
+    bw_min_cutoff_hz: float = 0.5
+    response_exp: float = 0.0  # the comparator's response (0: log(I + dark); ThresholdLight)
+    response_ref_dn: np.ndarray
+
+    @classmethod
+    def ideal(cls, th_on_nom: np.ndarray, th_off_nom: np.ndarray) -> KernelParams:
+        """An ideal pixel's parameters with the nominal thresholds ``th_on_nom``,
+        ``th_off_nom`` (flat)."""
+        n = th_on_nom.size
+        return cls(th_on_nom=th_on_nom, th_off_nom=th_off_nom, th_on=th_on_nom.copy(),
+                   th_off=th_off_nom.copy(), leak_rate_hz=np.zeros(n),
+                   shot_next_us=np.full(n, np.inf), response_ref_dn=np.full(n, 128.0))
+
+    def comparator_input(self, intensity_dn: np.ndarray, log_offset: float) -> np.ndarray:
+        """The log intensity the kernel's comparator sees at ``intensity_dn`` (flat float64):
+        ``log(I + dark)``, or the response of light-dependent thresholds
+        (:meth:`ThresholdLight.response`)."""
+        i = np.asarray(intensity_dn)
+        if self.response_exp > 0:
+            return light_response(i.ravel(), log_offset, self.response_exp,
+                                  self.response_ref_dn)
+        return np.log(i.astype(np.float64) + log_offset).ravel()
+
+
+@dataclass(kw_only=True, eq=False)
+class SimContext:
+    """What one simulation run tells its effects, and what they leave for later stages
+    (mutable). Times in us relative to the run (the kernel's), unless named output."""
+
+    shape: tuple[int, int]  # (H, W)
+    times_us: np.ndarray  # the internal sample times (int64)
+    t_origin_us: int  # added to every output time
+    log_offset: float  # the dark level the sensor sees (DN)
+    rng_kernel: np.random.Generator  # the kernel's draws (after the per-pixel states)
+    rng_maps: np.random.Generator  # per-pixel parameter maps
+    rng_events: np.random.Generator  # events added after the kernel
+    rng_timestamps: np.random.Generator  # timestamp noise
+    root_rng: np.random.Generator  # the run's generator, for spawn_rng only
+    # some effect's timestamps apply the dead time (Effect.applies_dead_time): the kernel
+    # leaves it out, and the dead-time effect leaves itself in stamp_dead_time for them
+    stamps_apply_dead_time: bool = False
+    stamp_dead_time: Refractory | None = None
+    # per-pixel truth (flat) an effect reports, e.g. "hot_pixels"
+    pixel_truth: dict[str, np.ndarray] = field(default_factory=dict)
+
+    @property
+    def n_pix(self) -> int:
+        return int(self.shape[0]) * int(self.shape[1])
+
+    @property
+    def t_lo_us(self) -> int:
+        """The first sample time."""
+        return int(self.times_us[0])
+
+    @property
+    def t_hi_us(self) -> int:
+        """The last sample time."""
+        return int(self.times_us[-1])
+
+    @property
+    def t_start_out_us(self) -> int:
+        """The first sample time in output time (``t_origin_us`` added)."""
+        return int(self.times_us[0]) + int(self.t_origin_us)
+
+    def spawn_rng(self) -> np.random.Generator:
+        """A new generator of its own, spawned from the run's (no other draw moves)."""
+        (out,) = self.root_rng.spawn(1)
+        return out
+
+
+def light_response(intensity_dn: np.ndarray, dark_dn: float, exponent: float,
+                   ref: np.ndarray | float) -> np.ndarray:
+    """``G(I + dark)`` of light-dependent thresholds (:class:`ThresholdLight`) with
+    ``exponent`` and reference ``ref`` (``ln x`` at exponent 0)."""
+    r = np.asarray(ref, np.float64)
+    x = np.maximum(np.asarray(intensity_dn, np.float64) + dark_dn, 1e-3)
+    if exponent == 0:
+        return np.log(x)
+    e = float(exponent)
+    return np.asarray(np.log(r) + ((x / r) ** e - 1.0) / e)
+
 
 @dataclass(frozen=True, kw_only=True)
 class Refractory(Effect):
     name: ClassVar[str] = "refractory"
     primary: ClassVar[str] = "period_us"
+    order: ClassVar[int] = 30
     period_us: float = 1000.0
     mode: str = "drop"
 
@@ -123,11 +356,21 @@ class Refractory(Effect):
         _check(self.name, self.mode in ("drop", "delay"), "mode must be 'drop' or 'delay'",
                self.mode)
 
+    def kernel_setup(self, kp: KernelParams, ctx: SimContext) -> None:
+        kp.refr_delay = self.mode == "delay"
+        if ctx.stamps_apply_dead_time:
+            # a frame-driven simulator applies its dead time to the stamps of its steps: the
+            # kernel's crossings come without one
+            ctx.stamp_dead_time = self
+        else:
+            kp.refr_us = float(self.period_us)
+
 
 @dataclass(frozen=True, kw_only=True)
 class Leak(Effect):
     name: ClassVar[str] = "leak"
     primary: ClassVar[str] = "rate_hz"
+    order: ClassVar[int] = 60
     rate_hz: float = 0.5
     spread_log: float = 0.5
     light_exponent: float = 0.0
@@ -147,12 +390,18 @@ class Leak(Effect):
         s = float(self.spread_log)
         return self.rate_hz * np.exp(rng.normal(-0.5 * s * s, s, n))
 
+    def kernel_setup(self, kp: KernelParams, ctx: SimContext) -> None:
+        if self.rate_hz > 0:
+            kp.leak_rate_hz = self.pixel_rates_hz(ctx.n_pix, ctx.rng_maps)
+            kp.leak_exp, kp.leak_ref_dn = float(self.light_exponent), float(self.ref_dn)
+
 
 @dataclass(frozen=True, kw_only=True)
 class ShotNoise(Effect):
     name: ClassVar[str] = "shot_noise"
     primary: ClassVar[str] = "rate_hz"
     n_fitted: ClassVar[int] = 2
+    order: ClassVar[int] = 50
     rate_hz: float = 1.0
     ref_dn: float = 16.0
     # rate ~ (ref / I)**light_exponent: 1 is photon shot noise's 1/I; sensors and simulators
@@ -181,11 +430,19 @@ class ShotNoise(Effect):
         rate = float(self.rate_hz) * (float(self.ref_dn) / ref) ** float(self.light_exponent)
         return rate, ref, float(self.light_exponent)
 
+    def kernel_setup(self, kp: KernelParams, ctx: SimContext) -> None:
+        kp.shot_rate_hz, kp.shot_ref_dn, kp.shot_exp = self.kernel_law()
+        if kp.shot_rate_hz > 0:
+            # each pixel's first candidate (the kernel draws the following ones)
+            kp.shot_next_us = float(ctx.t_lo_us) + ctx.rng_kernel.exponential(
+                1e6 / (kp.shot_rate_hz * 10.0 ** kp.shot_exp), ctx.n_pix)
+
 
 @dataclass(frozen=True, kw_only=True)
 class Bandwidth(Effect):
     name: ClassVar[str] = "bandwidth"
     primary: ClassVar[str] = "cutoff_hz"
+    order: ClassVar[int] = 70
     cutoff_hz: float = 100.0
     ref_dn: float = 128.0
     min_cutoff_hz: float = 0.5
@@ -197,16 +454,31 @@ class Bandwidth(Effect):
         _check(self.name, self.min_cutoff_hz > 0, "min_cutoff_hz must be > 0",
                self.min_cutoff_hz)
 
+    def kernel_setup(self, kp: KernelParams, ctx: SimContext) -> None:
+        kp.bw_cutoff_hz = float(self.cutoff_hz)
+        kp.bw_ref_dn = float(self.ref_dn)
+        kp.bw_min_cutoff_hz = float(self.min_cutoff_hz)
+
 
 @dataclass(frozen=True, kw_only=True)
 class ThresholdNoise(Effect):
     name: ClassVar[str] = "threshold_noise"
     primary: ClassVar[str] = "sigma"
+    order: ClassVar[int] = 40
     sigma: float = 0.1
 
     def __post_init__(self) -> None:
         _check(self.name, 0 <= self.sigma <= 1, "sigma (a fraction of the threshold) must be "
                "in [0, 1]", self.sigma)
+
+    def kernel_setup(self, kp: KernelParams, ctx: SimContext) -> None:
+        if self.sigma > 0:
+            # the thresholds until each pixel's first event (the kernel re-draws them at each)
+            s = kp.th_sigma = float(self.sigma)
+            kp.th_on = kp.th_on_nom * np.maximum(
+                0.2, 1 + s * ctx.rng_kernel.standard_normal(ctx.n_pix))
+            kp.th_off = kp.th_off_nom * np.maximum(
+                0.2, 1 + s * ctx.rng_kernel.standard_normal(ctx.n_pix))
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -214,6 +486,7 @@ class HotPixels(Effect):
     name: ClassVar[str] = "hot_pixels"
     primary: ClassVar[str] = "rate_hz"
     n_fitted: ClassVar[int] = 2
+    order: ClassVar[int] = 80
     fraction: float = 0.002
     rate_hz: float = 50.0
     on_fraction: float = 0.5
@@ -225,22 +498,43 @@ class HotPixels(Effect):
         _check(self.name, 0 <= self.on_fraction <= 1, "on_fraction must be in [0, 1]",
                self.on_fraction)
 
+    def after_kernel(self, events: SimEvents, ctx: SimContext) -> SimEvents:
+        if not (self.fraction > 0 and self.rate_hz > 0):
+            return events
+        rng, npix = ctx.rng_events, ctx.n_pix
+        n_hot = int(round(self.fraction * npix))
+        hp = np.sort(rng.choice(npix, size=n_hot, replace=False)) if n_hot else np.zeros(0, int)
+        mask = np.zeros(npix, bool)
+        mask[hp] = True
+        ctx.pixel_truth["hot_pixels"] = mask
+        t_lo, t_hi = ctx.t_lo_us, ctx.t_hi_us
+        counts = rng.poisson(self.rate_hz * (t_hi - t_lo) * 1e-6, hp.size)
+        h_pix = np.repeat(hp, counts).astype(np.int32)
+        h_t = rng.integers(t_lo, t_hi + 1, h_pix.size)
+        h_p = np.where(rng.random(h_pix.size) < self.on_fraction, 1, -1).astype(np.int8)
+        return events.merged((h_t, h_pix, h_p), LABEL_HOT_PIXEL)
+
 
 @dataclass(frozen=True, kw_only=True)
 class LogOffset(Effect):
     name: ClassVar[str] = "log_offset"
     primary: ClassVar[str] = "dark_dn"
+    order: ClassVar[int] = 10
     dark_dn: float = 20.0
 
     def __post_init__(self) -> None:
         _check(self.name, np.isfinite(self.dark_dn) and self.dark_dn >= 0,
                "dark_dn must be finite and >= 0", self.dark_dn)
 
+    def log_offset(self, nominal_dn: float) -> float:
+        return float(self.dark_dn)
+
 
 @dataclass(frozen=True, kw_only=True)
 class TimestampJitter(Effect):
     name: ClassVar[str] = "timestamp_jitter"
     primary: ClassVar[str] = "sigma_us"
+    order: ClassVar[int] = 110
     sigma_us: float = 100.0
     quantum_us: int = 1
 
@@ -249,6 +543,19 @@ class TimestampJitter(Effect):
                "sigma_us must be finite and >= 0", self.sigma_us)
         _check(self.name, int(self.quantum_us) >= 1 and int(self.quantum_us) == self.quantum_us,
                "quantum_us must be an integer >= 1", self.quantum_us)
+
+    def on_timestamps(self, events: SimEvents, ctx: SimContext) -> SimEvents:
+        if not (self.sigma_us > 0 or self.quantum_us > 1):
+            return events
+        t = events.t_us
+        if self.sigma_us > 0:
+            t = t + np.rint(ctx.rng_timestamps.normal(0.0, self.sigma_us, t.size)
+                            ).astype(np.int64)
+        t = np.maximum(t, ctx.t_start_out_us)
+        q = int(self.quantum_us)
+        if q > 1:
+            t = (t // q) * q
+        return events._replace(t_us=t).sorted_by_time()
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -263,10 +570,10 @@ class TimestampQuantisation(Effect):
 
     name: ClassVar[str] = "timestamp_quantisation"
     primary: ClassVar[str] = "step_us"
+    order: ClassVar[int] = 100
     step_us: float = 1000.0
     scheme: str = "spread"
     phase_us: float = 0.0  # step ends at t0 + phase_us + k step_us
-
 
     def __post_init__(self) -> None:
         _check(self.name, np.isfinite(self.step_us) and self.step_us >= 1,
@@ -274,6 +581,17 @@ class TimestampQuantisation(Effect):
         _check(self.name, self.scheme in ("spread", "end"), "scheme must be 'spread' or 'end'",
                self.scheme)
         _check(self.name, np.isfinite(self.phase_us), "phase_us must be finite", self.phase_us)
+
+    def applies_dead_time(self) -> bool:
+        return self.scheme == "spread"
+
+    def on_timestamps(self, events: SimEvents, ctx: SimContext) -> SimEvents:
+        t0 = ctx.t_start_out_us
+        out = quantise_events(
+            *events, self, t0, n_pix=ctx.n_pix,
+            t_end_us=float(ctx.times_us[-1]) + int(ctx.t_origin_us),
+            refractory=ctx.stamp_dead_time if self.applies_dead_time() else None)
+        return SimEvents(*out).sorted_by_time()
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -298,6 +616,7 @@ class ThresholdLight(Effect):
 
     name: ClassVar[str] = "threshold_light"
     primary: ClassVar[str] = "exponent"
+    order: ClassVar[int] = 20
     exponent: float = 0.2
     ref_dn: float = 128.0
     pixel_ref_dn: np.ndarray | None = field(default=None, repr=False, compare=False)
@@ -348,12 +667,14 @@ class ThresholdLight(Effect):
         """``G(I + dark)``: the log intensity a fixed-threshold comparator must see to fire
         as the sensor does (the integral of ``d ln x / th-factor``; reference ``ref``,
         default ``ref_dn``)."""
-        r = np.asarray(self.ref_dn if ref is None else ref, np.float64)
-        x = np.maximum(np.asarray(intensity_dn, np.float64) + dark_dn, 1e-3)
-        if self.exponent == 0:
-            return np.log(x)
-        e = float(self.exponent)
-        return np.asarray(np.log(r) + ((x / r) ** e - 1.0) / e)
+        return light_response(intensity_dn, dark_dn, self.exponent,
+                              self.ref_dn if ref is None else ref)
+
+    def kernel_setup(self, kp: KernelParams, ctx: SimContext) -> None:
+        # the comparator runs on the response G(I + dark) (its initial reference too); the
+        # noise and bandwidth laws in the kernel keep the true intensity
+        kp.response_exp = float(self.exponent)
+        kp.response_ref_dn = self.references(ctx.shape).ravel().copy()
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -369,6 +690,7 @@ class RowNoise(Effect):
     name: ClassVar[str] = "row_noise"
     primary: ClassVar[str] = "rate_hz"
     n_fitted: ClassVar[int] = 2
+    order: ClassVar[int] = 90
     rate_hz: float = 0.5
     fraction: float = 0.3
     axis: str = "row"
@@ -407,6 +729,14 @@ class RowNoise(Effect):
         order = np.argsort(t, kind="stable")
         return t[order].astype(np.int64), pix[order].astype(np.int32), pol[order]
 
+    def after_kernel(self, events: SimEvents, ctx: SimContext) -> SimEvents:
+        if not self.rate_hz > 0:
+            return events
+        # a disturbance of a shared readout or bias line, not of any pixel's state: its own
+        # generator, so no other draw moves
+        added = self.events(ctx.shape, ctx.t_lo_us, ctx.t_hi_us, ctx.spawn_rng())
+        return events.merged(added, LABEL_ROW_NOISE)
+
 
 @dataclass(frozen=True, kw_only=True)
 class ApsFpn(Effect):
@@ -423,6 +753,7 @@ class ApsFpn(Effect):
 
     name: ClassVar[str] = "aps_fpn"
     primary: ClassVar[str] = "sigma_dn"
+    order: ClassVar[int] = 120
     sigma_dn: float = 3.0
     mean_dn: float = 0.0
     seed: int = 0
@@ -468,6 +799,10 @@ class ApsFpn(Effect):
         out: np.ndarray = drawn.copy()  # the cached array must not be changed by a caller
         return out
 
+    def on_aps(self, aps: ApsConfig) -> ApsConfig:
+        return replace(aps, dsnu_sigma_dn=float(self.sigma_dn), dsnu_mean_dn=float(self.mean_dn),
+                       dsnu_seed=int(self.seed))
+
 
 @lru_cache(maxsize=8)
 def _dark_offsets(sigma_dn: float, mean_dn: float, seed: int, shape: tuple[int, int]
@@ -489,6 +824,7 @@ class Exposure(Effect):
 
     name: ClassVar[str] = "exposure"
     primary: ClassVar[str] = "lag_us"
+    order: ClassVar[int] = 130
     lag_us: float = 2500.0
     exposure_us: float = 5000.0
 
@@ -496,6 +832,9 @@ class Exposure(Effect):
         _check(self.name, np.isfinite(self.lag_us), "lag_us must be finite", self.lag_us)
         _check(self.name, np.isfinite(self.exposure_us) and self.exposure_us >= 0,
                "exposure_us must be finite and >= 0", self.exposure_us)
+
+    def on_aps(self, aps: ApsConfig) -> ApsConfig:
+        return replace(aps, exposure_us=int(round(self.exposure_us)), lag_us=float(self.lag_us))
 
 
 def quantise_events(t_us: np.ndarray, pix: np.ndarray, pol: np.ndarray, lab: np.ndarray,
@@ -593,14 +932,8 @@ class ApsConfig:
         """This frame model with the frame-side effects of ``effects`` (``aps_fpn``:
         the DSNU; ``exposure``: exposure time and centre); unchanged without them."""
         out = self
-        fpn = effects.get(ApsFpn.name)
-        if isinstance(fpn, ApsFpn):
-            out = replace(out, dsnu_sigma_dn=float(fpn.sigma_dn),
-                          dsnu_mean_dn=float(fpn.mean_dn), dsnu_seed=int(fpn.seed))
-        exp = effects.get(Exposure.name)
-        if isinstance(exp, Exposure):
-            out = replace(out, exposure_us=int(round(exp.exposure_us)),
-                          lag_us=float(exp.lag_us))
+        for e in simulation_order(effects.values()):
+            out = e.on_aps(out)
         return out
 
 

@@ -10,11 +10,22 @@ source's ``render_block`` where it has one), and runs the numba kernel of
 per-pixel sequence (hot pixels, row noise, timestamp jitter) are applied to the event arrays
 afterwards. With no effect it reproduces the ideal simulator's events.
 
+The simulator names no effect: it asks each, through the hooks of
+:class:`~evcal.sim.effects.Effect`, stage by stage in the fixed order of
+:func:`~evcal.sim.effects.simulation_order` (the stages and the order are in the module doc
+of :mod:`evcal.sim.effects`): the frame model, the log offset, the kernel's parameters
+(:class:`~evcal.sim.effects.KernelParams`), the events after the kernel, their timestamps.
+What effects tell each other goes through the run's :class:`~evcal.sim.effects.SimContext`.
+
 Truth (``SimResult.truth``): ``contrast``, ``bias`` maps, the effective ``log_offset``, the
 ``seed``, ``effects`` (``{name: parameters}``), ``labels`` (uint8 per event, see
 :data:`~evcal.sim.effects.LABEL_LEGEND`), ``leak_rate_hz`` map and ``hot_pixels`` mask.
 Deterministic for a seed: every random draw comes from ``np.random.default_rng(cfg.seed)``
-and generators spawned from it.
+and generators spawned from it: the maps and the initial references from it, then five
+spawned in this order for the kernel (``SimContext.rng_kernel``: the per-pixel generator
+states first, then the effects' draws), the events added after the kernel, the timestamps,
+the APS frames' read noise and the per-pixel parameter maps; an effect may spawn more
+(``SimContext.spawn_rng``).
 """
 
 from __future__ import annotations
@@ -29,25 +40,15 @@ from ..errors import ConfigError
 from ..events import EVENTS_DTYPE
 from ..recording import Frames, Recording
 from .effects import (
-    LABEL_HOT_PIXEL,
     LABEL_LEGEND,
-    LABEL_ROW_NOISE,
     ApsConfig,
-    Bandwidth,
     Effect,
-    HotPixels,
-    Leak,
-    LogOffset,
-    Refractory,
-    RowNoise,
-    ShotNoise,
-    ThresholdLight,
-    ThresholdNoise,
-    TimestampJitter,
-    TimestampQuantisation,
+    KernelParams,
+    SimContext,
+    SimEvents,
     describe,
     effect_set,
-    quantise_events,
+    simulation_order,
 )
 from .ideal import SimConfig, SimResult, draw_maps, frame_times_us, internal_times_us
 from .kernel import concat_runs, fill_events, merge_runs, run_steps
@@ -57,9 +58,12 @@ Source = Callable[[float], np.ndarray]
 
 
 def effective_log_offset(cfg: SimConfig, effects: Mapping[str, Effect]) -> float:
-    """``dark_dn`` of a :class:`LogOffset` effect, else the config's nominal offset."""
-    lo = effects.get(LogOffset.name)
-    return float(lo.dark_dn) if isinstance(lo, LogOffset) else float(cfg.log_offset)
+    """The log offset the sensor sees: the config's nominal one as the ``effects`` change it
+    (:meth:`~evcal.sim.effects.Effect.log_offset`; ``dark_dn`` of a ``log_offset`` effect)."""
+    offset = float(cfg.log_offset)
+    for e in simulation_order(effects.values()):
+        offset = float(e.log_offset(offset))
+    return offset
 
 
 def _aps_frame(source: Source, t_us: int, aps: ApsConfig, rng: np.random.Generator,
@@ -87,20 +91,6 @@ def _aps_frame(source: Source, t_us: int, aps: ApsConfig, rng: np.random.Generat
         return result
     result_72: np.ndarray = np.maximum(img, 0.0).astype(np.float32)
     return result_72
-
-
-def _merged(events: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray],
-            added: tuple[np.ndarray, np.ndarray, np.ndarray], label: int
-            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """``events`` (times, pixels, polarities, labels) with the ``added`` events of one
-    ``label`` (times, pixels, polarities), sorted by time (stable: the kernel's order of
-    events at the same time is kept)."""
-    t = np.concatenate([events[0], added[0]])
-    order = np.argsort(t, kind="stable")
-    pix = np.concatenate([events[1], added[1]])[order]
-    pol = np.concatenate([events[2], added[2]])[order]
-    lab = np.concatenate([events[3], np.full(added[0].size, label, np.uint8)])[order]
-    return t[order], pix, pol, lab
 
 
 def _resized(buf: np.ndarray, size: int, n: int) -> np.ndarray:
@@ -131,7 +121,8 @@ def simulate(
     cfg
         Sensor size, duration, rates, map statistics, scene, trajectory and seed.
     effects
-        Any of :data:`~evcal.sim.effects.EFFECTS`, at most one of each.
+        Any of :data:`~evcal.sim.effects.EFFECTS` (or other
+        :class:`~evcal.sim.effects.Effect` subclasses), at most one of each name.
     aps
         Frame model (default: instantaneous frames, quantised when ``cfg.quantise_frames``).
     source
@@ -162,7 +153,8 @@ def simulate(
     True
     """
     eff = effect_set(effects)
-    # the frame-side effects (aps_fpn, exposure) act on the APS frames only
+    ordered = simulation_order(eff.values())
+    # the frame-side effects (Effect.on_aps) act on the APS frames only
     aps = (aps if aps is not None else ApsConfig(quantise=cfg.quantise_frames)).with_effects(eff)
     rng = np.random.default_rng(cfg.seed)
     if maps is None:
@@ -186,51 +178,24 @@ def simulate(
     npix = cfg.height * cfg.width
 
     i0 = np.asarray(source(times[0] * 1e-6), np.float32)
-    tl = eff.get(ThresholdLight.name)
-    # light-dependent thresholds: the comparator runs on the response G(I + dark) (see
-    # ThresholdLight); the noise and bandwidth laws in the kernel keep the true intensity
-    tl_exp = float(tl.exponent) if isinstance(tl, ThresholdLight) else 0.0
-    tl_ref = (tl.references((cfg.height, cfg.width)).ravel().copy()
-              if isinstance(tl, ThresholdLight) else np.full(cfg.height * cfg.width, 128.0))
-    l0 = (tl.response(i0.ravel(), offset, tl_ref) if isinstance(tl, ThresholdLight) and
-          tl_exp > 0 else np.log(i0.astype(np.float64) + offset).ravel())
-    # as IdealDvs.reset: residual L - ref uniform in (-th_off, th_on)
+    # as IdealDvs.reset: residual L - ref uniform in (-th_off, th_on) (the comparator's input
+    # L is known once the effects have set the kernel's parameters, below)
     u = rng.uniform(0.0, 1.0, npix)
-    ref = l0 - (u * (th_on_nom + th_off_nom) - th_off_nom)
-    r_kernel, r_hot, r_jit, r_aps, r_leak = rng.spawn(5)
-
-    th_sigma = 0.0
-    th_on, th_off = th_on_nom.copy(), th_off_nom.copy()
-    tn = eff.get(ThresholdNoise.name)
+    # one stream per stage, spawned in this fixed order so that no draw moves (the events'
+    # stream serves hot pixels, the stamps' the jitter, the maps' the leak rates)
+    r_kernel, r_events, r_stamps, r_aps, r_maps = rng.spawn(5)
     rng_state = r_kernel.integers(1, 2**63 - 1, npix, dtype=np.uint64)
-    if isinstance(tn, ThresholdNoise) and tn.sigma > 0:
-        th_sigma = float(tn.sigma)
-        th_on = th_on_nom * np.maximum(0.2, 1 + th_sigma * r_kernel.standard_normal(npix))
-        th_off = th_off_nom * np.maximum(0.2, 1 + th_sigma * r_kernel.standard_normal(npix))
-    refr = eff.get(Refractory.name)
-    tq = eff.get(TimestampQuantisation.name)
-    # a frame-driven simulator applies its dead time to the stamps of its steps: then the
-    # kernel's crossings come without one and quantise_events applies it
-    stepped = isinstance(tq, TimestampQuantisation) and tq.scheme == "spread"
-    refr_us = float(refr.period_us) if isinstance(refr, Refractory) and not stepped else 0.0
-    refr_delay = bool(isinstance(refr, Refractory) and refr.mode == "delay")
-    leak = eff.get(Leak.name)
-    leak_rate = np.zeros(npix)
-    leak_exp, leak_ref = 0.0, 128.0
-    if isinstance(leak, Leak) and leak.rate_hz > 0:
-        leak_rate = leak.pixel_rates_hz(npix, r_leak)
-        leak_exp, leak_ref = float(leak.light_exponent), float(leak.ref_dn)
-    shot = eff.get(ShotNoise.name)
-    shot_rate, shot_ref, shot_exp = (
-        shot.kernel_law() if isinstance(shot, ShotNoise) else (0.0, 16.0, 1.0))
-    # each pixel's first shot-noise candidate (the kernel draws the following ones)
-    shot_next = np.full(npix, np.inf)
-    if shot_rate > 0:
-        shot_next = float(times[0]) + r_kernel.exponential(
-            1e6 / (shot_rate * 10.0 ** shot_exp), npix)
-    bw = eff.get(Bandwidth.name)
-    bw_cut, bw_ref, bw_min = (float(bw.cutoff_hz), float(bw.ref_dn), float(bw.min_cutoff_hz)
-                              ) if isinstance(bw, Bandwidth) else (0.0, 128.0, 0.5)
+    ctx = SimContext(shape=(cfg.height, cfg.width), times_us=times,
+                     t_origin_us=int(t_origin_us), log_offset=offset, rng_kernel=r_kernel,
+                     rng_maps=r_maps, rng_events=r_events, rng_timestamps=r_stamps,
+                     root_rng=rng,
+                     stamps_apply_dead_time=any(e.applies_dead_time() for e in ordered))
+    kp = KernelParams.ideal(th_on_nom, th_off_nom)
+    for e in ordered:
+        e.kernel_setup(kp, ctx)
+    l0 = kp.comparator_input(i0, offset)
+    ref = l0 - (u * (th_on_nom + th_off_nom) - th_off_nom)
+    refr_us, refr_delay = kp.refr_us, kp.refr_delay
 
     lf = l0.copy()
     lf_ok = np.ones(npix, np.uint8)
@@ -298,10 +263,12 @@ def simulate(
                 part = parts[j]
                 part[:] = run_steps(
                     block, t_chunk, offset, lf, lf_ok, i_prev, hi_i, lo_i, ref_i, ref,
-                    th_on_nom, th_off_nom, th_on, th_off, dead, last_fire, leak_rate, debt,
-                    rng_state, shot_next, th_sigma, refr_us, refr_delay, leak_exp, leak_ref,
-                    shot_rate, shot_ref, shot_exp, bw_cut, bw_ref, bw_min, tl_exp, tl_ref,
-                    *part, p0=ranges[j][0], p1=ranges[j][1])
+                    kp.th_on_nom, kp.th_off_nom, kp.th_on, kp.th_off, dead, last_fire,
+                    kp.leak_rate_hz, debt, rng_state, kp.shot_next_us, kp.th_sigma, refr_us,
+                    refr_delay, kp.leak_exp, kp.leak_ref_dn, kp.shot_rate_hz, kp.shot_ref_dn,
+                    kp.shot_exp, kp.bw_cutoff_hz, kp.bw_ref_dn, kp.bw_min_cutoff_hz,
+                    kp.response_exp, kp.response_ref_dn, *part, p0=ranges[j][0],
+                    p1=ranges[j][1])
 
             if pool is None:
                 run_range(0)
@@ -338,47 +305,14 @@ def simulate(
         order = np.argsort(buf_tf[:n_ev], kind="stable")
         t_int, pix, pol, lab = t_int[order], pix[order], pol[order], lab[order]
 
-    hot_mask = np.zeros(npix, bool)
-    hot = eff.get(HotPixels.name)
-    if isinstance(hot, HotPixels) and hot.fraction > 0 and hot.rate_hz > 0:
-        n_hot = int(round(hot.fraction * npix))
-        hp = np.sort(r_hot.choice(npix, size=n_hot, replace=False)) if n_hot else np.zeros(0, int)
-        hot_mask[hp] = True
-        t_lo, t_hi = int(times[0]), int(times[-1])
-        counts = r_hot.poisson(hot.rate_hz * (t_hi - t_lo) * 1e-6, hp.size)
-        h_pix = np.repeat(hp, counts).astype(np.int32)
-        h_t = r_hot.integers(t_lo, t_hi + 1, h_pix.size)
-        h_p = np.where(r_hot.random(h_pix.size) < hot.on_fraction, 1, -1).astype(np.int8)
-        t_int, pix, pol, lab = _merged((t_int, pix, pol, lab), (h_t, h_pix, h_p),
-                                       LABEL_HOT_PIXEL)
-
-    rown = eff.get(RowNoise.name)
-    if isinstance(rown, RowNoise) and rown.rate_hz > 0:
-        # a disturbance of a shared readout or bias line, not of any pixel's state: added
-        # after the kernel, like hot pixels (its own generator, so no other draw moves)
-        (r_row,) = rng.spawn(1)
-        added = rown.events((cfg.height, cfg.width), int(times[0]), int(times[-1]), r_row)
-        t_int, pix, pol, lab = _merged((t_int, pix, pol, lab), added, LABEL_ROW_NOISE)
-
+    events = SimEvents(t_int, pix, pol, lab)
+    for e in ordered:
+        events = e.after_kernel(events, ctx)
     if t_origin_us:
-        t_int = t_int + int(t_origin_us)
-    if isinstance(tq, TimestampQuantisation):
-        t_int, pix, pol, lab = quantise_events(
-            t_int, pix, pol, lab, tq, int(times[0]) + int(t_origin_us), n_pix=npix,
-            t_end_us=float(times[-1]) + int(t_origin_us),
-            refractory=refr if stepped and isinstance(refr, Refractory) else None)
-        order = np.argsort(t_int, kind="stable")
-        t_int, pix, pol, lab = t_int[order], pix[order], pol[order], lab[order]
-    jit = eff.get(TimestampJitter.name)
-    if isinstance(jit, TimestampJitter) and (jit.sigma_us > 0 or jit.quantum_us > 1):
-        if jit.sigma_us > 0:
-            t_int = t_int + np.rint(r_jit.normal(0.0, jit.sigma_us, t_int.size)).astype(np.int64)
-        t_int = np.maximum(t_int, int(times[0]) + int(t_origin_us))
-        q = int(jit.quantum_us)
-        if q > 1:
-            t_int = (t_int // q) * q
-        order = np.argsort(t_int, kind="stable")
-        t_int, pix, pol, lab = t_int[order], pix[order], pol[order], lab[order]
+        events = events._replace(t_us=events.t_us + int(t_origin_us))
+    for e in ordered:
+        events = e.on_timestamps(events, ctx)
+    t_int, pix, pol, lab = events
 
     ev = np.empty(t_int.size, EVENTS_DTYPE)
     fill_events(ev["t_us"], ev["x"], ev["y"], ev["p"], t_int, pix, pol, cfg.width)
@@ -393,6 +327,9 @@ def simulate(
         "source": "evcal.sim.nonideal", "sim_config": cfg.to_dict(),
         "effects": describe(eff), "aps": vars(aps).copy() if hasattr(aps, "__dict__") else {},
     })
+    # the per-pixel truth maps every result has (none of them: zeros), and any an effect adds
+    pixel_truth = {"leak_rate_hz": kp.leak_rate_hz.astype(np.float32),
+                   "hot_pixels": np.zeros(npix, bool), **ctx.pixel_truth}
     truth: dict[str, Any] = {
         "contrast": c.astype(np.float32),
         "bias": b.astype(np.float32),
@@ -401,7 +338,6 @@ def simulate(
         "effects": describe(eff),
         "labels": lab,
         "label_legend": dict(LABEL_LEGEND),
-        "leak_rate_hz": leak_rate.reshape(cfg.height, cfg.width).astype(np.float32),
-        "hot_pixels": hot_mask.reshape(cfg.height, cfg.width),
+        **{k: v.reshape(cfg.height, cfg.width) for k, v in pixel_truth.items()},
     }
     return SimResult(rec, truth)
