@@ -306,11 +306,11 @@ def test_refinement_stops_at_the_edge_of_a_parameter_range() -> None:
     effect. The moment estimate now stands."""
     from evcal.gap.finish import refine  # noqa: PLC0415
     from evcal.gap.model import fit_base  # noqa: PLC0415
-    from evcal.gap.runner import Runner  # noqa: PLC0415
+    from evcal.gap.runner import Evaluator  # noqa: PLC0415
     from evcal.sim.effects import ThresholdNoise  # noqa: PLC0415
 
     rec = recording("none", 1).recording
-    run = Runner(rec, GapConfig(n_seeds=2), lambda _what: None)
+    run = Evaluator(rec, GapConfig(n_seeds=3), lambda _what: None)
     base = fit_base(rec)
     edge = ThresholdNoise(sigma=1.0)
     best = run.evaluate(run.candidate_model(base, edge), "edge")
@@ -324,7 +324,7 @@ def test_timing_statistics_leave_out_windows_with_a_clipped_frame() -> None:
     runner's trusted windows (those of the timing statistics) leave out every window with
     such a frame at the pixel, and keep the flow's verdict elsewhere."""
     from evcal.gap.flow import unclipped_windows
-    from evcal.gap.runner import Runner
+    from evcal.gap.runner import Evaluator
     from evcal.recording import Recording
     from evcal.sim.ideal import simulate_ideal
 
@@ -344,7 +344,7 @@ def test_timing_statistics_leave_out_windows_with_a_clipped_frame() -> None:
     assert ok[4:9][:, ~patch].all()
     assert ok[:4].all()
     assert ok[9:].all()
-    run = Runner(clipped_rec, GapConfig(seed=0), lambda w: None)
+    run = Evaluator(clipped_rec, GapConfig(seed=0), lambda w: None)
     assert run.trusted is not None
     np.testing.assert_array_equal(run.trusted, trusted_windows(frames, max_px=np.inf) & ok)
     assert not run.meas.trusted[4:9][:, patch].any()

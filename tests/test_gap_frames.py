@@ -16,9 +16,10 @@ from functools import cache
 import numpy as np
 import pytest
 
+from evcal.gap.effects import FitContext, FitResult, Fitted, NoEvidence
 from evcal.gap.frames import fit_aps_fpn, fit_exposure, model_frames
 from evcal.gap.model import Model, SimSettings, estimate_read_noise, fit_base, simulate_model
-from evcal.gap.stats import Observation, observe
+from evcal.gap.stats import observe
 from evcal.recording import Frames, Recording
 from evcal.sim.effects import ApsConfig, ApsFpn, Effect, EffectError, Exposure
 from evcal.sim.ideal import SimConfig
@@ -144,13 +145,18 @@ def frames_recording(effects: list[Effect], seed: int) -> Recording:
 
 
 @cache
-def _fit_setup(name: str, seed: int) -> tuple[Recording, Observation, list[Observation], Model]:
+def _fit_setup(name: str, seed: int) -> tuple[Recording, FitContext, Model]:
     truth = FIT_CASES[name]
     rec = frames_recording([truth] if truth is not None else [], seed)
     base = fit_base(rec)
     st = SimSettings(read_noise_dn=estimate_read_noise(rec.frames), interpolation="linear")
     sims = [observe(simulate_model(base, rec, 1000 + k, st)) for k in range(3)]
-    return rec, observe(rec), sims, base
+    meas = observe(rec)
+    return rec, FitContext(meas, sims, base, rec, meas), base
+
+
+def _fitted(res: FitResult) -> Effect | None:
+    return res.effect if isinstance(res, Fitted) else None
 
 
 FIT_CASES: dict[str, Effect | None] = {
@@ -162,8 +168,8 @@ FIT_CASES: dict[str, Effect | None] = {
 
 def test_fpn_fitter_recovers_the_pattern() -> None:
     # measured (seed 97): sigma 5.39 for 5; map correlation 0.88
-    rec, meas, sims, base = _fit_setup("aps_fpn", 97)
-    e = fit_aps_fpn(meas, sims, base, rec)
+    rec, ctx, base = _fit_setup("aps_fpn", 97)
+    e = _fitted(fit_aps_fpn(ctx))
     assert isinstance(e, ApsFpn)
     assert e.offset_dn is not None
     assert e.sigma_dn == pytest.approx(5.0, rel=0.3)
@@ -177,8 +183,8 @@ def test_fpn_fitter_recovers_the_pattern() -> None:
 
 
 def test_exposure_fitter_recovers_the_lag() -> None:
-    rec, meas, sims, base = _fit_setup("exposure", 97)
-    e = fit_exposure(meas, sims, base, rec)
+    rec, ctx, base = _fit_setup("exposure", 97)
+    e = _fitted(fit_exposure(ctx))
     # measured (seed 97): 2180 us for 2000 (the workflow's bias correction takes it closer)
     assert isinstance(e, Exposure)
     assert e.exposure_us == 4000.0
@@ -190,17 +196,21 @@ def test_frame_fitters_see_nothing_when_nothing_is_hidden() -> None:
     # 1.5 DN here: the interpolated frames put their own per-pixel misfit into the
     # simulations, which the measurement does not share. The gap decides (not named, see
     # test_gap.py test_nothing_hidden_names_nothing)
-    rec, meas, sims, base = _fit_setup("none", 97)
-    e = fit_aps_fpn(meas, sims, base, rec)
-    assert e is None or e.sigma_dn < 2.5
-    x = fit_exposure(meas, sims, base, rec)
-    assert x is None or abs(x.lag_us) < 300.0
+    rec, ctx, base = _fit_setup("none", 97)
+    e = fit_aps_fpn(ctx)
+    assert isinstance(e, NoEvidence) or (isinstance(e.effect, ApsFpn) and e.effect.sigma_dn < 2.5)
+    x = fit_exposure(ctx)
+    assert isinstance(x, NoEvidence) or \
+        (isinstance(x.effect, Exposure) and abs(x.effect.lag_us) < 300.0)
+    for res in (e, x):
+        if isinstance(res, NoEvidence):
+            assert res.reason  # the fitter says why
 
 
 def test_the_simulation_is_driven_by_the_corrected_frames() -> None:
     """With the true map in the model the re-simulation sees the light the sensor saw: its
     events match a simulation of the clean frames, not of the frames with DSNU."""
-    rec, meas, sims, base = _fit_setup("aps_fpn", 97)
+    rec, _ctx, base = _fit_setup("aps_fpn", 97)
     true = ApsFpn(sigma_dn=5.0, seed=2).offsets_dn(rec.sensor.shape)
     st = SimSettings(dither=False, interpolation="linear")
     m = base.with_effect(ApsFpn(sigma_dn=5.0, offset_dn=true))

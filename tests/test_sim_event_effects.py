@@ -11,6 +11,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from evcal.gap.effects import FitContext, Fitted
 from evcal.gap.fitters_events import fit_leak, threshold_light_exponent
 from evcal.gap.stats import observe, stat_line_coincidence
 from evcal.sim.effects import (
@@ -183,7 +184,9 @@ def test_leak_fit_finds_its_light_exponent() -> None:
     for e_true in (0.0, 1.0):
         truth = Leak(rate_hz=3.0, spread_log=0.1, light_exponent=e_true)
         meas = observe(simulate(cfg, [shot, truth], source=still).recording)
-        fit = fit_leak(meas, [ideal], None, None)  # type: ignore[arg-type]
+        res = fit_leak(FitContext(meas, [ideal], None, None, meas))  # type: ignore[arg-type]
+        assert isinstance(res, Fitted), res
+        fit = res.effect
         assert isinstance(fit, Leak)
         assert fit.light_exponent == pytest.approx(e_true, abs=0.1), fit
         assert fit.rate_hz == pytest.approx(truth.rate_hz, rel=0.2), fit

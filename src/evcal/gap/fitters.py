@@ -20,10 +20,8 @@ import numpy as np
 from ..accumulate import order_by_key
 from ..errors import CalibrationError
 from ..offline import OffEIConfig, estimate_log_offset
-from ..recording import Recording
 from ..sim.effects import (
     Bandwidth,
-    Effect,
     HotPixels,
     LogOffset,
     Refractory,
@@ -35,6 +33,7 @@ from ..sim.effects import (
 from ..stream import event_windows
 from . import frames as _frames
 from .compare import discrepancy
+from .effects import FitContext, FitResult, Fitted, NoEvidence
 from .pixelfit import (
     MIN_FIT_EVENTS,
     fit_from_sums,
@@ -129,34 +128,45 @@ def _slot_dead_time(meas: Observation, sims: list[Observation], model: Model
     return float(np.percentile(u_m, 2.0))
 
 
-def fit_refractory(meas: Observation, sims: list[Observation], model: Model,
-                   rec: Recording) -> Effect | None:
+def fit_refractory(ctx: FitContext) -> FitResult:
+    """A dead time: read off the slots of a frame-driven simulator's stamps when the model
+    has that scheme; else the shortest same-pixel interval of the measurement (the 1e-4
+    quantile) when the simulations have pairs below it (at least 0.2 % of theirs), or the
+    pairs missing at short intervals (:func:`_refractory_deficit`). ``delay`` when the
+    measurement piles intervals just above the period, else ``drop``."""
+    meas, sims, model = ctx.meas, ctx.sims, ctx.model
     slot_p = _slot_dead_time(meas, sims, model)
     if slot_p is not None:
         # the stamps say it directly; blocked crossings stay pending in such a simulator
         # (the gap workflow also evaluates the other mode, see evcal.gap.model.variants)
-        return Refractory(period_us=round(slot_p, 1), mode="delay")
+        return Fitted(Refractory(period_us=round(slot_p, 1), mode="delay"),
+                      {"source": "held-back slots"})
     cm, cs, ex, z, dur = _hot_excess(meas, sims)
     keep = cm <= np.quantile(cm, 0.99)
     iei_m, _, pix_pairs = _iei(meas)
     iei_m = iei_m[keep[pix_pairs]]
     iei_s = np.concatenate([_iei(s)[0] for s in sims])
     if iei_m.size < 50 or iei_s.size < 50:
-        return None
+        return NoEvidence(f"{iei_m.size} same-pixel intervals measured (50 needed)")
     k = max(5, int(1e-4 * iei_m.size))
     p = float(np.partition(iei_m, k)[k])
-    if np.mean(iei_s < p) < 2e-3 or p < 2:
+    below = float(np.mean(iei_s < p))
+    if below < 2e-3 or p < 2:
         # nothing is missing below the shortest intervals: unless noise events (which a
         # sensor's dead time does not hold back the same way, and which the model may
         # already make) fill them, while the pairs of signal events are missing
         p_def = _refractory_deficit(iei_m, [_iei(s)[0][keep[_iei(s)[2]]] for s in sims])
         if p_def is None:
-            return None
+            return NoEvidence(f"the model has {100 * below:.2g} % of its intervals below "
+                              f"the shortest measured ({p:.3g} us) and no pairs are missing "
+                              "at short intervals")
         p = p_def
     pile_m = np.mean((iei_m >= p) & (iei_m < 1.05 * p + 2))
     pile_s = np.mean((iei_s >= p) & (iei_s < 1.05 * p + 2))
     mode = "delay" if pile_m > 3 * pile_s + 2e-3 else "drop"
-    return Refractory(period_us=round(p, 1), mode=mode)
+    return Fitted(Refractory(period_us=round(p, 1), mode=mode),
+                  {"model_share_below": below, "pile_measured": float(pile_m),
+                   "pile_model": float(pile_s)})
 
 
 def _refractory_deficit(iei_m: np.ndarray, iei_s: list[np.ndarray], *,
@@ -188,6 +198,11 @@ def _refractory_deficit(iei_m: np.ndarray, iei_s: list[np.ndarray], *,
 
 
 def _static_excess(meas: Observation, sims: list[Observation], pol: int) -> Any:
+    """Per still window of a pixel (the busiest 1 % of pixels left out: hot pixels): the
+    measured minus the simulated (mean) count of polarity ``pol``, the variance of that
+    difference (Poisson: measured plus simulated over the seeds, at least 1 event), the
+    window's mean intensity (DN) and length (s); ``None`` with fewer than 50 still
+    windows. The variance is not floored: summed, it is that of the summed excess."""
     st = _static(meas)
     if st.sum() < 50:
         return None
@@ -197,21 +212,38 @@ def _static_excess(meas: Observation, sims: list[Observation], pol: int) -> Any:
     keep = (cm <= np.quantile(cm, 0.99))[None, :] & st
     i_mid = 0.5 * (meas.intensity[1:] + meas.intensity[:-1])
     ws = np.broadcast_to(meas.window_s[:, None], st.shape)
-    return (cnt_m - cnt_s)[keep], i_mid[keep], ws[keep]
+    var = cnt_m + cnt_s / max(len(sims), 1)
+    return (cnt_m - cnt_s)[keep], i_mid[keep], ws[keep], var[keep]
 
 
-def fit_shot_noise(meas: Observation, sims: list[Observation], model: Model,
-                   rec: Recording) -> Effect | None:
-    # rate(I) = r (ref / I)**e, half of the events of each sign: per exponent on a grid,
-    # r by least squares of the still windows' excess counts; the exponent whose fit leaves
-    # the least residual (both signs together), r the smaller sign's (a leak adds ON)
+# each polarity's excess in still windows must stand this many standard deviations above
+# the model's: shot noise adds both polarities alike, so an excess of one polarity only is
+# not its (a leak adds ON events only)
+SHOT_MIN_Z = 4.0
+
+
+def fit_shot_noise(ctx: FitContext) -> FitResult:
+    """``ShotNoise`` from the still windows' excess of events of each polarity over the
+    model's: ``rate(I) = r (ref / I)**e``, half of the events of each sign. Per exponent on
+    a grid, ``r`` by least squares of the excess counts; the exponent whose fit leaves the
+    least residual (both signs together), ``r`` the smaller sign's (a leak adds ON). Both
+    polarities' summed excess must stand :data:`SHOT_MIN_Z` standard deviations above the
+    model's."""
+    meas, sims = ctx.meas, ctx.sims
     ref = ShotNoise().ref_dn
     parts = []
+    zs = []
     for pol in (+1, -1):
         r = _static_excess(meas, sims, pol)
         if r is None:
-            return None
-        parts.append(r)
+            return NoEvidence("fewer than 50 still windows of a pixel")
+        parts.append(r[:3])
+        zs.append(float(r[0].sum() / np.sqrt(max(float(r[3].sum()), 1.0))))
+    if min(zs) < SHOT_MIN_Z:
+        which = "OFF" if zs[1] < zs[0] else "ON"
+        return NoEvidence(f"still pixels make no excess of {which} events over the model "
+                          f"(z = {zs[1] if which == 'OFF' else zs[0]:+.1f} for {which}, "
+                          f"{max(zs):+.1f} for the other): shot noise adds both polarities")
     best: tuple[float, float, float] | None = None
     for e in np.arange(0.0, 1.51, 0.25):
         rates, ss = [], 0.0
@@ -225,32 +257,35 @@ def fit_shot_noise(meas: Observation, sims: list[Observation], model: Model,
     assert best is not None
     _, e, rate = best
     if rate <= 0:
-        return None
-    return ShotNoise(rate_hz=round(rate, 4), ref_dn=ref, light_exponent=e)
+        return NoEvidence("the fitted rate of the smaller polarity is not positive")
+    return Fitted(ShotNoise(rate_hz=round(rate, 4), ref_dn=ref, light_exponent=e),
+                  {"z_on": zs[0], "z_off": zs[1]})
 
 
-def fit_hot_pixels(meas: Observation, sims: list[Observation], model: Model,
-                   rec: Recording) -> Effect | None:
-    # hot pixels fire when the scene is still: compare per-pixel counts in still windows
+def fit_hot_pixels(ctx: FitContext) -> FitResult:
+    """Hot pixels fire when the scene is still: pixels whose still-window count stands 5
+    standard deviations (and 10 Hz) above the model's, of those still for at least 5 % of
+    the longest still time; their median excess rate, and the share of ON among it."""
+    meas, sims = ctx.meas, ctx.sims
     st = _static(meas)
     t_still = (st * meas.window_s[:, None]).sum(0)
     if t_still.max() <= 0:
-        return None
+        return NoEvidence("no pixel is ever still")
     em = ((meas.on + meas.off) * st).sum(0).astype(np.float64)
     es = np.mean([((s.on + s.off) * st).sum(0) for s in sims], axis=0)
     ex = em - es
     z = ex / np.sqrt(es + 1.0 + (0.3 * es) ** 2)
     hot = (z > 5) & (ex > 10.0 * t_still) & (t_still > 0.05 * t_still.max())
     if not hot.any():
-        return None
+        return NoEvidence("no still pixel fires 10 Hz and 5 sigma above the model")
     rate = float(np.median(ex[hot] / t_still[hot]))
     pm = ((meas.on - meas.off) * st).sum(0)[hot].sum()
     ps = np.mean([((s.on - s.off) * st).sum(0)[hot].sum() for s in sims])
     on_frac = float(np.clip(0.5 + 0.5 * (pm - ps) / max(ex[hot].sum(), 1), 0, 1))
     # pixels never still cannot be tested: the fraction is that of the testable ones
     frac = float(hot.sum() / max((t_still > 0.05 * t_still.max()).sum(), 1))
-    return HotPixels(fraction=round(frac, 6), rate_hz=round(rate, 3),
-                     on_fraction=round(on_frac, 3))
+    return Fitted(HotPixels(fraction=round(frac, 6), rate_hz=round(rate, 3),
+                            on_fraction=round(on_frac, 3)), {"pixels": int(hot.sum())})
 
 
 def _threshold_slope(obs: Observation) -> float:
@@ -267,17 +302,33 @@ def _threshold_slope(obs: Observation) -> float:
     return float(((x - xm) * (y - ym)).sum() / max(((x - xm) ** 2).sum(), 1e-12))
 
 
-def fit_threshold_noise(meas: Observation, sims: list[Observation], model: Model,
-                        rec: Recording) -> Effect | None:
-    sm = _threshold_slope(meas)
-    ss = np.nanmean([_threshold_slope(s) for s in sims])
-    d = sm - ss
-    if not np.isfinite(d) or d <= 0:
-        return None
+# the measured growth of the fit's squared residual with the events of a window must stand
+# this many seed-to-seed standard deviations above the model's
+THRESHOLD_NOISE_MIN_Z = 3.0
+
+
+def fit_threshold_noise(ctx: FitContext) -> FitResult:
+    """Thresholds drawn anew at every event leave a residual of the per-pixel fit whose
+    square, in units of ``c``, grows with the window's events by ``sigma^2`` per event:
+    ``sigma^2`` is the measured slope (:func:`_threshold_slope`) less the model's, which
+    must stand :data:`THRESHOLD_NOISE_MIN_Z` of its spread over the seeds above it."""
+    sm = _threshold_slope(ctx.meas)
+    ss = np.array([_threshold_slope(s) for s in ctx.sims])
+    ss = ss[np.isfinite(ss)]
+    if not np.isfinite(sm) or ss.size == 0:
+        return NoEvidence("too few fitted windows to measure the residual's growth")
+    d = sm - float(ss.mean())
+    var = float(ss.var(ddof=1)) * (1 + 1 / ss.size) if ss.size > 1 else 0.0
+    sd = np.sqrt(var + (0.03 * abs(float(ss.mean()))) ** 2 + 1e-8)
+    z = d / sd
+    if d <= 0 or z < THRESHOLD_NOISE_MIN_Z:
+        return NoEvidence(f"the fit's residual grows with a window's events as the model's "
+                          f"does (z = {z:+.1f})")
     if d > 1.0:
         # no threshold noise (sigma <= 1) makes this much residual: something else does
-        return None
-    return ThresholdNoise(sigma=round(float(np.sqrt(d)), 4))
+        return NoEvidence(f"the residual grows by {d:.2g} c^2 per event, more than any "
+                          "threshold noise makes")
+    return Fitted(ThresholdNoise(sigma=round(float(np.sqrt(d)), 4)), {"z": float(z)})
 
 
 def _filter_fit_error(obs: Observation, cutoff_hz: float, offset: float) -> float:
@@ -300,31 +351,36 @@ def _filter_fit_error(obs: Observation, cutoff_hz: float, offset: float) -> floa
     return err
 
 
-def fit_bandwidth(meas: Observation, sims: list[Observation], model: Model,
-                  rec: Recording) -> Effect | None:
+def fit_bandwidth(ctx: FitContext) -> FitResult:
     """The cutoff at ``ref_dn``: seen by the frames, measured by the events' lag.
 
     Seen: the cutoff whose first-order low-pass of the frames' log intensity, applied at
     frame rate, the events explain best must lie below the frame rate (a filter applied at
-    frame rate tells nothing of faster ones; ``None`` when no filter beats none). That
+    frame rate tells nothing of faster ones): no evidence when no filter beats none. That
     filter reads the cutoff several times low (on v2e's 30 Hz low-pass, 16.2 Hz at 128 DN
     in this law, 3.7-5.7 Hz), so the value is the lag's: a low-pass of cutoff
     ``f(I) = f_c (I + offset) / ref_dn`` follows a ramp ``1 / (2 pi f(I))`` late, and the
     lag of the events behind the frames' changes (measured less simulated,
     :func:`evcal.gap.frames.event_lag`), over pixels weighted by their events, gives
     ``f_c = ref_dn E[1 / (I + offset)] / (2 pi lag)`` (``I`` a pixel's mean frame value).
-    Without a positive lag (one beyond the lag grid's reach among them), or when the
-    frames see no cutoff below their rate, the frame-rate filter's cutoff (the bias
-    correction makes up part of its error).
+
+    Physics tells a slow photoreceptor from a late frame stamp: the low-pass delays the
+    events of dark moments more than those of bright ones (the cutoff follows the
+    photocurrent), a frame's timing delays every event alike. When the lag is measured in
+    the darkest and the brightest third of the cells (window, pixel) by their light
+    (:func:`evcal.gap.frames._lag_by_light`) and is not longer in the dark by twice its
+    noise, there is no evidence of a low-pass. Without a positive lag, the frame-rate
+    filter's cutoff (the bias correction makes up part of its error).
 
     Whatever the frames see, the lag alone is not trusted: with nothing hidden, the
     simulations driven by interpolated frames leave the events a few grid steps of lag
     (0.2 ms at 200 Hz frames), which would read as a kHz photoreceptor."""
+    meas, sims, model, rec = ctx.meas, ctx.sims, ctx.model, ctx.rec
     grid = np.geomspace(2.0, 2000.0, 19)
     err = np.array([_filter_fit_error(meas, g, model.log_offset) for g in grid])
     i = int(np.argmin(err))
     if i == grid.size - 1:
-        return None  # the faster the better: no bandwidth limit visible
+        return NoEvidence("a low-pass of the frames explains the events no better than none")
     f = float(grid[i])
     if 0 < i:
         x = np.log(grid[i - 1 : i + 2])
@@ -334,6 +390,20 @@ def fit_bandwidth(meas: Observation, sims: list[Observation], model: Model,
             f = float(np.exp(x[1] + 0.5 * (x[1] - x[0]) * (y[0] - y[2]) / den))
     frame_rate_hz = 1e6 / float(np.median(np.diff(meas.frame_t_us)))
     found = _frames.event_lag(meas, sims, rec) if f < frame_rate_hz else None
+    detail: dict[str, Any] = {"frame_filter_hz": f}
+    if found is not None:
+        lag, lags = found
+        detail["lag_us"] = lag
+        by_light = _frames._lag_by_light(meas, sims, lags)
+        if by_light is not None:
+            detail["lag_by_light_us"] = by_light.lags_us
+            detail["noise_us"] = by_light.noise_us
+            if not by_light.later_in_the_dark():
+                dark, bright = by_light.lags_us[0], by_light.lags_us[-1]
+                return NoEvidence(f"the events are about as late in the brightest third of "
+                                  f"the moments ({bright:.0f} us) as in the darkest "
+                                  f"({dark:.0f} us, noise {by_light.noise_us:.0f} us): a "
+                                  "low-pass delays the dark ones more")
     if found is not None and found[0] > 0:
         ref = float(Bandwidth().ref_dn)
         light = meas.intensity.mean(0).astype(np.float64) + float(model.log_offset)
@@ -341,20 +411,25 @@ def fit_bandwidth(meas: Observation, sims: list[Observation], model: Model,
         ok = (light > 0) & (w > 0)
         if ok.any():
             inv = float(np.sum(w[ok] / light[ok]) / np.sum(w[ok]))
-            return Bandwidth(cutoff_hz=round(ref * inv / (2.0 * np.pi * found[0] * 1e-6), 3))
-    return Bandwidth(cutoff_hz=round(f, 3))
+            return Fitted(Bandwidth(cutoff_hz=round(
+                ref * inv / (2.0 * np.pi * found[0] * 1e-6), 3)), detail)
+    return Fitted(Bandwidth(cutoff_hz=round(f, 3)), detail)
 
 
-def fit_log_offset(meas: Observation, sims: list[Observation], model: Model,
-                   rec: Recording) -> Effect | None:
+def fit_log_offset(ctx: FitContext) -> FitResult:
+    """The dark level under the sensor's log: OffEI's own estimate of the offset ``o`` of
+    ``log(I + o)`` (the one that leaves the per-pixel fits least unexplained) on the fit
+    rows' events and frames, when it lies above twice the nominal offset."""
+    rec = ctx.recording()
     cfg = OffEIConfig(window_frames=max(1, min(5, len(rec.frames) // 4)))
     try:
         o, _ = estimate_log_offset(rec, cfg)
-    except (CalibrationError, ValueError):
-        return None
+    except (CalibrationError, ValueError) as exc:
+        return NoEvidence(f"the log offset could not be estimated: {exc}")
     if o < 2 * NOMINAL_LOG_OFFSET_DN:
-        return None
-    return LogOffset(dark_dn=round(float(o), 3))
+        return NoEvidence(f"the offset that explains the events best is {o:.3g} DN, at the "
+                          f"nominal {NOMINAL_LOG_OFFSET_DN:g} DN")
+    return Fitted(LogOffset(dark_dn=round(float(o), 3)))
 
 
 def _jitter_times(t_us: np.ndarray, sigma_us: float, quantum_us: int,
@@ -534,8 +609,11 @@ def _jitter_curves(meas: Observation, sims: list[Observation], q_hat: int
     return np.asarray(g_iei), np.asarray(g_spill)
 
 
-def fit_timestamp_jitter(meas: Observation, sims: list[Observation], model: Model,
-                         rec: Recording) -> Effect | None:
+# the short intervals' discrepancy must fall by this much at the fitted jitter (no quantum)
+JITTER_MIN_DROP = 2.0
+
+
+def fit_timestamp_jitter(ctx: FitContext) -> FitResult:
     """Quantum from the residues of the timestamps; sigma by jittering the simulated events on
     a grid (no re-simulation) and matching two statistics.
 
@@ -547,6 +625,7 @@ def fit_timestamp_jitter(meas: Observation, sims: list[Observation], model: Mode
     sigma only where it sees a change and agrees with the IEIs within a factor
     :data:`SPILL_IEI_RATIO`; otherwise the IEI estimate stands.
     """
+    meas, sims = ctx.meas, ctx.sims
     t = meas.t_us
     q_hat = 1
     for q in (2, 5, 10, 20, 50, 100, 200, 500, 1000):
@@ -559,36 +638,40 @@ def fit_timestamp_jitter(meas: Observation, sims: list[Observation], model: Mode
     n = int(np.clip(np.ceil(meas.t_us.size / JITTER_EVENTS), 1, 8))
     g_iei, g_spill = _jitter_curves(every_nth_row(meas, n), [every_nth_row(s, n) for s in sims],
                                     q_hat)
-    if int(np.argmin(g_iei)) == 0 and q_hat == 1:
-        return None
+    drop = float(g_iei[0] - g_iei.min())
+    if q_hat == 1 and (int(np.argmin(g_iei)) == 0 or drop < JITTER_MIN_DROP):
+        return NoEvidence(f"jittering the model's events brings its short intervals no "
+                          f"closer to the measured ones (their discrepancy falls by "
+                          f"{drop:.2g})")
     sigma = _grid_minimum(JITTER_GRID_US, g_iei)
     s_spill = _grid_minimum(JITTER_GRID_US, g_spill)
     if (g_spill[0] - g_spill.min() > SPILL_MIN_DROP
             and sigma / SPILL_IEI_RATIO <= s_spill <= sigma * SPILL_IEI_RATIO):
         sigma = s_spill
-    return TimestampJitter(sigma_us=round(sigma, 2), quantum_us=int(q_hat))
+    return Fitted(TimestampJitter(sigma_us=round(sigma, 2), quantum_us=int(q_hat)),
+                  {"iei_drop": drop})
 
 
-def fit_timestamp_quantisation(meas: Observation, sims: list[Observation], model: Model,
-                               rec: Recording) -> Effect | None:
+def fit_timestamp_quantisation(ctx: FitContext) -> FitResult:
     """Step and phase from the timestamps that many events share: a frame-driven simulator
     gives the events of a step a few shared times (fractions of the step; the busiest pixel's
     last event, and with ``scheme="end"`` every event, the step's end), so the most crowded
     timestamps lie on a grid. The step is the most common spacing of the crowded timestamps,
     the phase the residue of the most distinct timestamps (each step's end); the effect is
     proposed only if many more measured events than simulated ones lie on that grid."""
+    meas, sims, rec = ctx.meas, ctx.sims, ctx.rec
     t = meas.t_us
     u, cnt = np.unique(t, return_counts=True)
     if u.size < 50:
-        return None
+        return NoEvidence(f"{u.size} distinct timestamps")
     top = u[cnt >= max(float(np.quantile(cnt, 0.95)), 3.0)]
     d = np.diff(top)
     d = d[(d > 0) & (d <= 1_000_000)]
     if d.size < 10:
-        return None
+        return NoEvidence("no timestamps are shared by many events")
     step = int(np.bincount(d).argmax())
     if step < 2:
-        return None
+        return NoEvidence("the crowded timestamps lie on no grid")
     # every step with events has one at its end, whatever its n_max: the residue shared by
     # the most distinct timestamps
     phase = int(np.bincount(u % step, minlength=step).argmax())
@@ -596,7 +679,9 @@ def fit_timestamp_quantisation(meas: Observation, sims: list[Observation], model
     sim_on_grid = float(np.mean([np.mean(s.t_us % step == phase) for s in sims])) \
         if sims else 1.0 / step
     if on_grid < 5 * sim_on_grid + 0.02:
-        return None
+        return NoEvidence(f"{100 * on_grid:.2g} % of the events lie on a {step} us grid, "
+                          f"the model's {100 * sim_on_grid:.2g} %")
     t0 = int(rec.frames.t_us[0])
-    return TimestampQuantisation(step_us=float(step), scheme="end" if on_grid > 0.9
-                                 else "spread", phase_us=float((phase - t0) % step))
+    return Fitted(TimestampQuantisation(step_us=float(step), scheme="end" if on_grid > 0.9
+                                        else "spread", phase_us=float((phase - t0) % step)),
+                  {"on_grid": on_grid})

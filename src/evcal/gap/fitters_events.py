@@ -14,8 +14,8 @@ from typing import Any
 
 import numpy as np
 
-from ..recording import Recording
-from ..sim.effects import Effect, Leak, LogOffset, RowNoise, ThresholdLight
+from ..sim.effects import Leak, LogOffset, RowNoise, ThresholdLight
+from .effects import FitContext, FitResult, Fitted, NoEvidence
 from .stats import (
     LINE_COINCIDENCE_MIN,
     LINE_COINCIDENCE_US,
@@ -51,7 +51,8 @@ def _resid(y: np.ndarray, P: np.ndarray, E: np.ndarray, w: np.ndarray,
 
 
 def threshold_light_exponent(obs: Observation, dark_dn: float,
-                             ref_dn: float | np.ndarray, iterations: int = 1) -> float:
+                             ref_dn: float | np.ndarray, iterations: int = 1,
+                             pixels: np.ndarray | None = None) -> float:
     """Exponent ``e`` of thresholds ``th ((I + dark) / ref)**(-e)`` that the events of
     ``obs`` ask for: the least-squares ``e`` of the per-pixel OffEI equations
     ``dG_e = c P + b E`` on the response ``G_e`` (:meth:`ThresholdLight.response`), ``c``,
@@ -67,10 +68,10 @@ def threshold_light_exponent(obs: Observation, dark_dn: float,
     moment estimate; the bias correction by simulation sets the named value.
     ``ref_dn`` (scalar or per pixel, units of ``I + dark``) sets where ``G`` is ``ln x`` to
     first order: each pixel's own light keeps the curvature terms least. NaN when nothing
-    varies."""
+    varies. ``pixels`` (bool per pixel): only those enter."""
     f = _fit(obs)
     # only the pixels the fit trusts enter the sums: the arrays below are [windows, those]
-    cols = np.flatnonzero(f["ok"])
+    cols = np.flatnonzero(f["ok"] if pixels is None else f["ok"] & pixels)
     P, E = f["P"][:, cols], f["E"][:, cols]
     w = obs.usable[:, cols].astype(np.float64)
     spp, spe, see = (w * P * P).sum(0), (w * P * E).sum(0), (w * E * E).sum(0)
@@ -114,27 +115,48 @@ def pixel_references(obs: Observation, dark_dn: float) -> tuple[float, np.ndarra
     return round(overall, 1), per
 
 
-def fit_threshold_light(meas: Observation, sims: list[Observation], model: Any,
-                        rec: Recording) -> Effect | None:
+# the measured exponent must stand this many seed-to-seed standard deviations above the
+# model's simulations'
+TL_MIN_Z = 3.0
+
+
+def fit_threshold_light(ctx: FitContext) -> FitResult:
     """``ThresholdLight`` with the measured exponent minus that of the model's simulations
-    (:func:`threshold_light_exponent` at the model's dark level). The simulations carry what
-    the interpolation between frames and the other effects do to it, so the difference is
-    the thresholds' own light dependence. The model's threshold maps are intensity-blind
-    fits, each pixel's threshold at the light it saw: the effect's per-pixel references are
-    that light (:func:`pixel_references`), so the maps keep their meaning."""
+    (:func:`threshold_light_exponent` at the model's dark level), when it stands
+    :data:`TL_MIN_Z` of their spread above it. The simulations carry what the
+    interpolation between frames and the other effects do to it, so the difference is the
+    thresholds' own light dependence. The model's threshold maps are intensity-blind fits,
+    each pixel's threshold at the light it saw: the effect's per-pixel references are that
+    light (:func:`pixel_references`, a function of the frames, on the whole sensor), so
+    the maps keep their meaning."""
+    meas, sims, model = ctx.meas, ctx.sims, ctx.model
     dark = _dark_dn(model)
-    ref, per = pixel_references(meas, dark)
-    em = threshold_light_exponent(meas, dark, per)
-    es = [threshold_light_exponent(s, dark, per) for s in sims]
-    es = [v for v in es if np.isfinite(v)]
-    if not np.isfinite(em) or not es:
-        return None
-    e = em - float(np.mean(es))
-    if e < TL_MIN_EXPONENT:
-        return None
+    ref, per_whole = pixel_references(ctx.whole, dark)
+    per = per_whole.reshape(ctx.shape)
+    per_fit = (per if ctx.rows is None else per[ctx.rows]).ravel()
+
+    def relative(pixels: np.ndarray | None) -> tuple[float, float]:
+        """The measured exponent less the simulations' mean, and its spread over them."""
+        em = threshold_light_exponent(meas, dark, per_fit, pixels=pixels)
+        es = np.array([threshold_light_exponent(s, dark, per_fit, pixels=pixels)
+                       for s in sims])
+        es = es[np.isfinite(es)]
+        if not np.isfinite(em) or es.size == 0:
+            return float("nan"), float("nan")
+        sd = float(np.sqrt((es.var(ddof=1) * (1 + 1 / es.size) if es.size > 1 else 0.0)
+                           + 0.01 ** 2))
+        return em - float(es.mean()), sd
+
+    e, sd = relative(None)
+    if not np.isfinite(e):
+        return NoEvidence("nothing varies enough in light to measure an exponent")
+    if e < TL_MIN_EXPONENT or e < TL_MIN_Z * sd:
+        return NoEvidence(f"the thresholds' light dependence is the model's (exponent "
+                          f"{e:+.3f} against a seed-to-seed spread of {sd:.3f})")
+    detail = {"z": e / sd}
     # each pixel's thresholds where its base fit put them: at the light it saw
-    return ThresholdLight(exponent=round(float(min(e, 1.0)), 4), ref_dn=ref,
-                          pixel_ref_dn=per.reshape(meas.shape))
+    return Fitted(ThresholdLight(exponent=round(float(min(e, 1.0)), 4), ref_dn=ref,
+                                 pixel_ref_dn=per), detail)
 
 
 # ------------------------------------------------------------------------------ row_noise
@@ -174,28 +196,36 @@ def burst_fraction(obs: Observation, axis: str) -> float:
     return float(np.clip(size[ok].sum() / s[ok].sum(), 0.01, 1.0))
 
 
-def fit_row_noise(meas: Observation, sims: list[Observation], model: Any,
-                  rec: Recording) -> Effect | None:
+ROW_MIN_Z = 4.0  # the coincident still events' excess over the model, in standard deviations
+
+
+def fit_row_noise(ctx: FitContext) -> FitResult:
     """``RowNoise`` on the axis whose coincident still-window events the model's simulations
     miss most: the excess rate of such events per still pixel-second is ``rate * fraction``
     (every pixel of a line joins its bursts with probability ``fraction``); the fraction is
     read off the bursts' sizes against their lines' still pixels, the rate is the excess
     over it. Detection misses bursts of fewer than three still pixels: the bias correction
-    of the workflow takes care of the rate."""
-    best: tuple[float, str] | None = None
+    of the workflow takes care of the rate. The excess must stand :data:`ROW_MIN_Z`
+    standard deviations (Poisson) above the model's count."""
+    meas, sims = ctx.meas, ctx.sims
+    best: tuple[float, str, float, float] | None = None
     for axis in ("row", "column"):
-        ex = _coincident_rate(meas, axis) - float(np.mean([_coincident_rate(s, axis)
-                                                           for s in sims]))
-        if best is None or ex > best[0]:
-            best = (ex, axis)
+        r_m = _coincident_rate(meas, axis)
+        r_s = float(np.mean([_coincident_rate(s, axis) for s in sims]))
+        if best is None or r_m - r_s > best[0]:
+            best = (r_m - r_s, axis, r_m, r_s)
     assert best is not None
-    excess, axis = best
-    if excess < ROW_MIN_EXCESS_HZ:
-        return None
+    excess, axis, r_m, r_s = best
+    exposure = still_pixel_seconds(meas)
+    z = excess * exposure / np.sqrt((r_m + r_s / max(len(sims), 1)) * exposure + 1.0)
+    if excess < ROW_MIN_EXCESS_HZ or z < ROW_MIN_Z:
+        return NoEvidence(f"still events coincide along a {axis} as often as in the model "
+                          f"({excess:+.3g} per pixel-second more, z = {z:+.1f})")
     frac = burst_fraction(meas, axis)
     if not np.isfinite(frac):
-        return None
-    return RowNoise(rate_hz=round(excess / frac, 4), fraction=round(frac, 4), axis=axis)
+        return NoEvidence("too few bursts to measure their size")
+    return Fitted(RowNoise(rate_hz=round(excess / frac, 4), fraction=round(frac, 4),
+                           axis=axis), {"z": float(z)})
 
 
 # ----------------------------------------------------------------------------------- leak
@@ -207,8 +237,8 @@ LEAK_MIN_CHI2_DROP = 9.0  # a light dependence must explain this much more than 
 def _still_net(meas: Observation, sims: list[Observation]
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
     """Per still window of a pixel (the busiest 1 % of pixels left out: hot pixels): the
-    measured minus simulated ``ON - OFF`` count, its Poisson variance (measured plus
-    simulated events, at least 1), the mean intensity (DN) and the window's length (s)."""
+    measured minus simulated ``ON - OFF`` count, its Poisson variance (measured events plus
+    the simulated mean's variance), the mean intensity (DN) and the window's length (s)."""
     st = _static(meas)
     if st.sum() < 50:
         return None
@@ -216,27 +246,36 @@ def _still_net(meas: Observation, sims: list[Observation]
     keep = st & (cm <= np.quantile(cm, 0.99))[None, :]
     net_m = (meas.on - meas.off).astype(np.float64)
     net_s = np.mean([(s.on - s.off) for s in sims], axis=0)
-    var = np.maximum((meas.on + meas.off) + np.mean([(s.on + s.off) for s in sims], axis=0),
-                     1.0)
+    # Poisson: the measured events plus the simulated mean's (over the seeds)
+    var = (meas.on + meas.off) + np.mean([(s.on + s.off) for s in sims], axis=0) / len(sims)
     i_mid = 0.5 * (meas.intensity[1:] + meas.intensity[:-1]).astype(np.float64)
     ws = np.broadcast_to(meas.window_s[:, None], st.shape)
     return (net_m - net_s)[keep], var[keep], i_mid[keep], ws[keep]
 
 
-def fit_leak(meas: Observation, sims: list[Observation], model: Any,
-             rec: Recording) -> Effect | None:
+LEAK_MIN_Z = 4.0  # the still windows' net ON excess, in standard deviations (Poisson)
+
+
+def fit_leak(ctx: FitContext) -> FitResult:
     """``Leak`` with its rate at ``ref_dn`` and its light exponent: the excess of ON over OFF
     events in still windows is ``rate (I / ref)**e`` per pixel-second (leak adds ON only).
-    Per exponent of :data:`LEAK_EXPONENTS`, the rate by weighted least squares (Poisson
-    variances); the exponent with the least chi-square, kept over 0 only when it lowers it by
+    The summed net excess must stand :data:`LEAK_MIN_Z` standard deviations above the
+    model's (an excess of both polarities alike, noise's, has none). Per exponent of
+    :data:`LEAK_EXPONENTS`, the rate by weighted least squares (Poisson variances); the
+    exponent with the least chi-square, kept over 0 only when it lowers it by
     :data:`LEAK_MIN_CHI2_DROP` (a flat leak is the default: the junction leakage of the
     reset switch, Nozaki & Delbruck 2017; its parasitic photocurrent adds a part growing with
     light, up to proportional, e = 1). At e = 0 the rate is the plain ratio of the summed
     excess to the still time."""
-    parts = _still_net(meas, sims)
+    parts = _still_net(ctx.meas, ctx.sims)
     if parts is None:
-        return None
+        return NoEvidence("fewer than 50 still windows of a pixel")
     ex, var, inten, ws = parts
+    z = float(ex.sum() / np.sqrt(max(float(var.sum()), 1.0)))
+    var = np.maximum(var, 1.0)  # the chi-square's weights below: a window's at least 1
+    if z < LEAK_MIN_Z:
+        return NoEvidence(f"still pixels make as many more ON than OFF events as the model "
+                          f"(net excess z = {z:+.1f})")
     ref = Leak().ref_dn
     fits = []
     for e in LEAK_EXPONENTS:
@@ -250,5 +289,5 @@ def fit_leak(meas: Observation, sims: list[Observation], model: Any,
     chosen = best if best[0] < flat[0] - LEAK_MIN_CHI2_DROP else flat
     _, e, rate = chosen
     if rate <= 0:
-        return None
-    return Leak(rate_hz=round(rate, 4), light_exponent=e, ref_dn=ref)
+        return NoEvidence("the fitted rate is not positive")
+    return Fitted(Leak(rate_hz=round(rate, 4), light_exponent=e, ref_dn=ref), {"z": z})

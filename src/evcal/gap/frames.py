@@ -22,13 +22,16 @@ events (:func:`fit_exposure`).
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numba
 import numpy as np
 
 from ..recording import Frames, Recording
-from ..sim.effects import ApsFpn, Effect, Exposure
+from ..sim.effects import ApsFpn, Exposure
+from .effects import FitContext, FitResult, Fitted, NoEvidence
 from .pixelfit import fit_from_sums, residual_from_sums, window_sums
 from .stats import Observation
 
@@ -153,8 +156,12 @@ def _grid_argmin(r: np.ndarray, grid_dn: np.ndarray) -> np.ndarray:
     return out
 
 
-def fit_aps_fpn(meas: Observation, sims: list[Observation], model: Model,
-                rec: Recording) -> Effect | None:
+# the spread of the offsets over the pixels, less the estimation noise, must stand this many
+# of its own sampling errors above 0
+FPN_MIN_Z = 4.0
+
+
+def fit_aps_fpn(ctx: FitContext) -> FitResult:
     """DSNU of the frames: per pixel, the dark offset that best explains its events
     (:func:`offset_estimates`) on the measurement less its mean over the simulations (which
     have none: that takes out what the estimator reads into a pixel's frames by itself), the
@@ -164,20 +171,23 @@ def fit_aps_fpn(meas: Observation, sims: list[Observation], model: Model,
     The map removed from the frames is each pixel's difference shrunk towards 0 by its noise,
     ``s^2 / (s^2 + v)`` (as the base maps are shrunk: estimation noise must not be put into
     the model as a pattern), with its mean removed: a common dark level of the frames is the
-    ``log_offset`` effect's business. ``None`` when the spread is within the noise.
+    ``log_offset`` effect's business. No evidence when the spread is within
+    :data:`FPN_MIN_Z` of its sampling error of the noise. On the rows the fit did not see
+    (``ctx.rows``), the map is drawn from the fitted spread.
 
     Refitted on simulations made with the map, the estimate comes out about 10-15 % above
     the ``sigma_dn`` they were made with (the interpolated frames add a misfit of their
     own): the workflow's bias correction scales the map down accordingly
     (:meth:`~evcal.sim.effects.ApsFpn.with_params` scales it with ``sigma_dn``)."""
+    meas, sims, model = ctx.meas, ctx.sims, ctx.model
     if len(sims) < 2:
-        return None
+        return NoEvidence("the estimation noise needs two simulations of the model")
     lo = float(model.log_offset)
     om, *est = offset_estimates([meas, *sims], lo)
     os_ = np.stack(est)
     ok = np.isfinite(om) & np.isfinite(os_).all(0)
     if ok.sum() < 50:
-        return None
+        return NoEvidence(f"{int(ok.sum())} pixels have an offset estimate (50 needed)")
     k_sims = os_.shape[0]
     d = om - os_.mean(0)
     v_pix = os_.var(0, ddof=1)
@@ -194,13 +204,18 @@ def fit_aps_fpn(meas: Observation, sims: list[Observation], model: Model,
     s2 = float(np.mean(dc[ok] ** 2) - np.mean(noise[ok]))
     # a spread the noise could make: the variance's own sampling error is about
     # sqrt(2 / n) of it
-    if s2 <= 2.0 * np.sqrt(2.0 / ok.sum()) * float(np.mean(dc[ok] ** 2)):
-        return None
+    limit = FPN_MIN_Z * np.sqrt(2.0 / ok.sum()) * float(np.mean(dc[ok] ** 2))
+    if s2 <= limit:
+        return NoEvidence(f"the pixels' offsets spread no more than their estimation noise "
+                          f"makes ({np.sqrt(max(s2, 0.0)):.2g} DN beyond it, "
+                          f"{np.sqrt(limit):.2g} DN needed)")
     k = s2 / (s2 + noise)
     o_hat = np.where(ok, k * dc, 0.0)
     o_hat = o_hat - float(np.mean(o_hat[ok]))
-    return ApsFpn(sigma_dn=round(float(np.sqrt(s2)), 3), mean_dn=0.0,
-                  offset_dn=o_hat.reshape(meas.shape))
+    sigma = float(np.sqrt(s2))
+    return Fitted(ApsFpn(sigma_dn=round(sigma, 3), mean_dn=0.0,
+                         offset_dn=ctx.whole_map(o_hat, float(np.std(o_hat[ok])))),
+                  {"pixels": int(ok.sum())})
 
 
 # ------------------------------------------------------------------------------ exposure
@@ -311,6 +326,38 @@ def _apply_moves(pix: np.ndarray, p: np.ndarray, ev: np.ndarray, win: np.ndarray
             P[j - 1, q] += s
 
 
+def _lag_windows(obs: Observation, lags_us: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The frames' log change per window and the weight of each (window, pixel): usable, and
+    inside the recording for every lag (each lag is scored on the same equations)."""
+    ft = obs.frame_t_us.astype(np.int64)
+    span = float(np.max(np.abs(lags_us))) if lags_us.size else 0.0
+    inside = (ft[:-1] - span >= ft[0]) & (ft[1:] + span <= ft[-1])
+    return np.diff(obs.log_i, axis=0), (obs.usable & inside[:, None]).astype(np.float64)
+
+
+def _counts_by_lag(obs: Observation, lags_us: np.ndarray
+                   ) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
+    """``(i, P, E)`` for each lag ``lags_us[i]`` (in increasing order of lag): the events'
+    ``ON - OFF`` and ``ON + OFF`` per window between the frame times moved by the lag and
+    pixel. The counts of the first lag, then only the events that change window at each
+    next one (a sweep of the lags costs about one pass over the events, not one per lag);
+    the arrays are reused from one lag to the next."""
+    ft = obs.frame_t_us.astype(np.int64)
+    n_w, npix = obs.on.shape
+    P = np.empty((n_w, npix), np.int32)
+    E = np.empty((n_w, npix), np.int32)
+    lags = np.rint(np.asarray(lags_us, np.float64)).astype(np.int64)
+    order = np.argsort(lags, kind="stable")
+    lags_sorted = lags[order]
+    _count_windows(obs.t_us, obs.pix, obs.p, ft + lags_sorted[0], P, E)
+    mv_ev, mv_win, start = _lag_moves(obs.t_us, ft, lags_sorted)
+    for n, i in enumerate(order):
+        if n > 0:
+            _apply_moves(obs.pix, obs.p, mv_ev, mv_win, int(start[n]), int(start[n + 1]), n_w,
+                         P, E)
+        yield int(i), P, E
+
+
 def _lag_pixel_sums(obs: Observation, lags_us: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per lag and pixel: the squared residual and the squared change summed over the
     pixel's windows (0 where its fit fails). A pixel's fit does not depend on the others', so
@@ -319,27 +366,11 @@ def _lag_pixel_sums(obs: Observation, lags_us: np.ndarray) -> tuple[np.ndarray, 
     cached = obs.extra.get(ckey)
     if isinstance(cached, tuple):
         return cached
-    ft = obs.frame_t_us.astype(np.int64)
-    n_w, npix = obs.on.shape
-    span = float(np.max(np.abs(lags_us))) if lags_us.size else 0.0
-    inside = (ft[:-1] - span >= ft[0]) & (ft[1:] + span <= ft[-1])
-    dL = np.diff(obs.log_i, axis=0)
-    w = (obs.usable & inside[:, None]).astype(np.float64)
+    dL, w = _lag_windows(obs, lags_us)
+    npix = obs.n_pixels
     ssr = np.zeros((lags_us.size, npix))
     tss = np.zeros((lags_us.size, npix))
-    P = np.empty((n_w, npix), np.int32)
-    E = np.empty((n_w, npix), np.int32)
-    lags = np.rint(np.asarray(lags_us, np.float64)).astype(np.int64)
-    order = np.argsort(lags, kind="stable")
-    lags_sorted = lags[order]
-    # the counts of the first lag, then only the events that change window at each next
-    # one (a sweep of the lags costs about one pass over the events, not one per lag)
-    _count_windows(obs.t_us, obs.pix, obs.p, ft + lags_sorted[0], P, E)
-    mv_ev, mv_win, start = _lag_moves(obs.t_us, ft, lags_sorted)
-    for n, i in enumerate(order):
-        if n > 0:
-            _apply_moves(obs.pix, obs.p, mv_ev, mv_win, int(start[n]), int(start[n + 1]), n_w,
-                         P, E)
+    for i, P, E in _counts_by_lag(obs, lags_us):
         sums = window_sums(P, E, dL, w)
         c, b, ok = fit_from_sums(*sums[:6])
         ssr[i] = np.where(ok, residual_from_sums(sums, np.nan_to_num(c), np.nan_to_num(b)),
@@ -402,8 +433,7 @@ def event_lag(meas: Observation, sims: list[Observation], rec: Recording
     return lag, lags
 
 
-def fit_exposure(meas: Observation, sims: list[Observation], model: Model,
-                 rec: Recording) -> Effect | None:
+def fit_exposure(ctx: FitContext) -> FitResult:
     """Where the frames' exposure lies: the lag of the frame times at which the measured
     events best match the frames' changes (:func:`lag_residuals`, a grid of +-1.5 times the
     larger of the exposure and a quarter of the frame interval), less the same on the
@@ -414,44 +444,118 @@ def fit_exposure(meas: Observation, sims: list[Observation], model: Model,
     minimum the grid does not bracket is no estimate: a delay longer than a frame's timing
     is taken to explain, as a slow photoreceptor's in the dark), or when it differs between
     dark and bright pixels (:data:`LAG_LIGHT_RATIO`)."""
+    meas, sims, rec = ctx.meas, ctx.sims, ctx.rec
     found = event_lag(meas, sims, rec)
     if found is None:
-        return None
+        return NoEvidence("the events follow the frames' changes as the model's do (no lag "
+                          "beyond one step of the grid, or none the grid brackets)")
     lag, lags = found
     # a frame's timing moves every pixel's events alike; a slow photoreceptor (bandwidth)
-    # delays the dark pixels' events most: the lag must be about the same at every light
-    per_light = _lag_by_light(meas, sims, lags)
-    if per_light is not None:
-        lo, hi = min(per_light), max(per_light)
-        if not np.isfinite(hi) or lo * lag <= 0 or abs(hi) > LAG_LIGHT_RATIO * abs(lo):
-            return None
-    return Exposure(lag_us=round(lag, 1), exposure_us=_exposure_us(rec))
+    # delays the events of dark moments most: the lag must be the same at every light
+    by_light = _lag_by_light(meas, sims, lags)
+    detail: dict[str, object] = {}
+    if by_light is not None:
+        detail = {"lag_by_light_us": by_light.lags_us, "noise_us": by_light.noise_us}
+        if not by_light.alike():
+            return NoEvidence("the events' lag differs with the light ("
+                              + ", ".join(f"{v:.0f}" for v in by_light.lags_us)
+                              + f" us from dark to bright, noise {by_light.noise_us:.0f} us): "
+                              "a frame's timing moves every pixel alike")
+    return Fitted(Exposure(lag_us=round(lag, 1), exposure_us=_exposure_us(rec)), detail)
 
 
-# the largest ratio between the lags of the dark and the bright pixels that a frame's timing
-# (the same for all pixels) is taken to explain
-LAG_LIGHT_RATIO = 2.0
+LIGHT_BINS = 3  # light bins of the lag by light: the darkest, middle and brightest third
+
+
+def _lag_light_sums(obs: Observation, lags_us: np.ndarray, edges: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Per lag and light bin (``edges`` of the window's mean frame value, DN, at the
+    pixel): the squared residual of the per-pixel fit (each pixel's ``c``, ``b`` fitted at
+    that lag over all its windows) and the squared change, summed over the cells (window,
+    pixel) of the bin. The light is the window's, the light at the time of the change: a
+    moving scene brings every pixel dark and bright windows alike, so a pixel's mean light
+    would not tell them apart. Kept in ``obs.extra``."""
+    ckey = f"lag_light_sums/{lags_us.tobytes().hex()}/{edges.tobytes().hex()}"
+    cached = obs.extra.get(ckey)
+    if isinstance(cached, tuple):
+        return cached
+    dL, w = _lag_windows(obs, lags_us)
+    i_mid = 0.5 * (obs.intensity[1:] + obs.intensity[:-1])
+    nb = edges.size - 1
+    cell_bin = np.clip(np.searchsorted(edges, i_mid, side="right") - 1, 0, nb - 1)
+    cell_bin = np.where(w > 0, cell_bin, nb)  # unused cells to a spare bin
+    tss = np.bincount(cell_bin.ravel(), weights=(w * dL * dL).ravel(), minlength=nb + 1)[:nb]
+    ssr = np.zeros((lags_us.size, nb))
+    for i, P, E in _counts_by_lag(obs, lags_us):
+        sums = window_sums(P, E, dL, w)
+        c, b, ok = fit_from_sums(*sums[:6])
+        c = np.where(ok, c, 0.0)
+        b = np.where(ok, b, 0.0)
+        r = dL - c[None, :] * P - b[None, :] * E
+        use = np.where(ok[None, :], cell_bin, nb)
+        ssr[i] = np.bincount(use.ravel(), weights=(w * r * r).ravel(), minlength=nb + 1)[:nb]
+    tss_all = np.broadcast_to(tss, ssr.shape).copy()
+    obs.extra[ckey] = (ssr, tss_all)
+    return ssr, tss_all
+
+
+@dataclass(frozen=True)
+class LagByLight:
+    """The events' lag behind the frames (measured less simulated, us) in each third of the
+    cells by their light, darkest first (``inf``: a measured minimum at an end of the grid,
+    a delay the grid does not bracket), and the noise of the difference between the
+    darkest and the brightest third: the larger of the grid's step and the seed-to-seed
+    spread of that difference in the simulations."""
+
+    lags_us: list[float]
+    noise_us: float
+
+    @property
+    def dark_minus_bright_us(self) -> float:
+        return self.lags_us[0] - self.lags_us[-1]
+
+    def later_in_the_dark(self, k: float = 2.0) -> bool:
+        """The dark third's events later than the bright third's by ``k`` noise."""
+        return self.dark_minus_bright_us > k * self.noise_us
+
+    def alike(self, k: float = 2.0) -> bool:
+        """Every third within ``k`` noise of the others (a finite lag in each)."""
+        v = np.asarray(self.lags_us)
+        return bool(np.isfinite(v).all() and v.max() - v.min() <= k * self.noise_us)
 
 
 def _lag_by_light(meas: Observation, sims: list[Observation], lags: np.ndarray
-                  ) -> list[float] | None:
-    """The lag (measured less simulated) in each third of the pixels by their mean
-    intensity, or ``None`` when a third has no minimum; ``inf`` for a third whose measured
-    minimum is at an end of the grid (a delay the grid does not bracket, which no frame
-    timing shared by every pixel explains)."""
-    imean = meas.intensity.mean(0)
-    edges = np.quantile(imean, [0.0, 1 / 3, 2 / 3, 1.0])
+                  ) -> LagByLight | None:
+    """The lag (measured less simulated) in each third of the measurement's cells (window,
+    pixel) by their light (the window's mean frame value at the pixel), darkest first, and
+    its noise (:class:`LagByLight`); ``None`` when a third has no minimum."""
+    i_mid = 0.5 * (meas.intensity[1:] + meas.intensity[:-1])
+    used = i_mid[meas.usable]
+    if used.size < 100 or not sims:
+        return None
+    edges = np.quantile(used, np.linspace(0.0, 1.0, LIGHT_BINS + 1))
+    edges[0], edges[-1] = -np.inf, np.inf
+    if np.unique(edges).size < edges.size:
+        return None
+
+    def unexplained(obs: Observation) -> np.ndarray:
+        ssr, tss = _lag_light_sums(obs, lags, edges)
+        out: np.ndarray = np.where(tss > 0, ssr / np.maximum(tss, 1e-30), np.nan)
+        return out
+
+    rm_all = unexplained(meas)
+    rs_all = [unexplained(s) for s in sims]
+    if not all(np.isfinite(r).any(axis=0).all() for r in [rm_all, *rs_all]):
+        return None
+    sim_lags = np.array([[_lag_minimum(lags, r[:, j]) for j in range(LIGHT_BINS)]
+                         for r in rs_all])
     out = []
-    for j in range(3):
-        px = (imean >= edges[j]) & (imean <= edges[j + 1]) if j == 2 else \
-            (imean >= edges[j]) & (imean < edges[j + 1])
-        rm = lag_residuals(meas, lags, px)
-        if np.isfinite(rm).any() and _at_grid_end(rm):
+    for j in range(LIGHT_BINS):
+        rm = rm_all[:, j]
+        if _at_grid_end(rm):
             out.append(float(np.inf))
             continue
-        rs = [lag_residuals(s, lags, px) for s in sims]
-        if not np.isfinite(rm).any() or not all(np.isfinite(r).any() for r in rs):
-            return None
-        out.append(_lag_minimum(lags, rm) - float(np.mean([_lag_minimum(lags, r)
-                                                           for r in rs])))
-    return out
+        out.append(_lag_minimum(lags, rm) - float(sim_lags[:, j].mean()))
+    diff = sim_lags[:, 0] - sim_lags[:, -1]
+    spread = float(diff.std(ddof=1)) * np.sqrt(1 + 1 / diff.size) if diff.size > 1 else 0.0
+    return LagByLight(out, max(float(lags[1] - lags[0]), spread))

@@ -10,10 +10,8 @@
 - :func:`anchor` rescales ``c`` and shifts ``b`` so that a simulation of the model, fitted the
   same way as the measurement, gives the measured population values (effects such as leak or
   refractory bias the fit; the anchor undoes that bias for the model as a whole).
-- :func:`fit_candidate` estimates one effect's parameters from the measured statistics and
-  those of the current model's simulations: the fitters of :data:`FITTERS`, moment
-  estimators described per effect in :mod:`evcal.gap.fitters`, :mod:`evcal.gap.frames`
-  (APS-frame effects) and :mod:`evcal.gap.fitters_events`.
+
+The candidate effects and their fitters are in :mod:`evcal.gap.effects` (the registry).
 """
 
 from __future__ import annotations
@@ -33,14 +31,10 @@ from ..events import SensorSize
 from ..offline import OffEIConfig, offei
 from ..online import usable_cores
 from ..recording import Frames, Recording
-from ..sim.effects import Effect, Exposure, Refractory
+from ..sim.effects import Effect, Exposure
 from ..sim.ideal import SimConfig
 from ..sim.nonideal import simulate
 from ..sim.sources import FrameInterpolator
-from . import fitters as _fitters
-from . import fitters_events as _events
-from . import frames as _frames
-from .fitters import _SpillResidual as _SpillResidual  # tests/test_gap.py imports it here
 from .render import RenderCache, frames_key
 from .stats import NOMINAL_LOG_OFFSET_DN, Observation, _fit, observe
 
@@ -510,43 +504,3 @@ def anchor(model: Model, rec: Recording, meas: Observation, seed: int,
                     -MAX_BIAS_RATIO * c, MAX_BIAS_RATIO * c)
         model = replace(model, contrast=c, bias=b, anchored=True)
     return model, None
-
-
-# ------------------------------------------------------------------------------ candidates
-
-
-FITTERS = {
-    "refractory": _fitters.fit_refractory,  # moment estimators: evcal.gap.fitters
-    "leak": _events.fit_leak,  # rate and light exponent (evcal.gap.fitters_events)
-    "shot_noise": _fitters.fit_shot_noise,
-    "bandwidth": _fitters.fit_bandwidth,
-    "threshold_noise": _fitters.fit_threshold_noise,
-    "hot_pixels": _fitters.fit_hot_pixels,
-    "log_offset": _fitters.fit_log_offset,
-    "timestamp_jitter": _fitters.fit_timestamp_jitter,
-    "timestamp_quantisation": _fitters.fit_timestamp_quantisation,
-    "aps_fpn": _frames.fit_aps_fpn,  # APS-frame effects: evcal.gap.frames
-    "exposure": _frames.fit_exposure,
-    "threshold_light": _events.fit_threshold_light,  # event-side effects: .fitters_events
-    "row_noise": _events.fit_row_noise,
-}
-
-
-def variants(eff: Effect) -> list[Effect]:
-    """``eff`` and the alternatives of its discrete parameters that its moment estimate
-    cannot tell apart reliably (the gap workflow evaluates each): a dead time that drops
-    crossings or delays them (the pile of intervals just above the period, which tells them
-    apart, is blurred where timestamps are quantised)."""
-    if isinstance(eff, Refractory):
-        other = "drop" if eff.mode == "delay" else "delay"
-        return [eff, eff.with_params(mode=other)]
-    return [eff]
-
-
-def fit_candidate(name: str, meas: Observation, sims: list[Observation], model: Model,
-                  rec: Recording) -> Effect | None:
-    """Moment estimate of effect ``name`` from measured and simulated observations; ``None``
-    when the data show none of it (e.g. no excess of events where the effect would add them).
-    """
-    result: Effect | None = FITTERS[name](meas, sims, model, rec)
-    return result

@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from ..jsonable import dumps, to_jsonable
+from . import effects as registry
 from .explain import summary
 from .workflow import Evaluation, GapResult
 
@@ -90,12 +91,14 @@ def write_markdown(result: GapResult, out_dir: Path, *, plots: bool = True) -> P
               "", f"Gap (mean standardised discrepancy, about 1 when the model explains the "
               f"data): {result.initial.gap:.2f} initially, {result.final.gap:.2f} finally.", ""]
     if result.steps:
-        lines += ["| step | effect | parameters | gap before | gap after | moved statistics |",
-                  "|---|---|---|---|---|---|"]
+        lines += ["| step | effect | what it is | gap before | gap after | held-out gap | "
+                  "moved statistics | worsened |", "|---|---|---|---|---|---|---|---|"]
         for i, s in enumerate(result.steps, 1):
-            params = ", ".join(f"{k}={v}" for k, v in s.effect.parameters().items())
-            lines.append(f"| {i} | {s.effect.name} | {params} | {s.before.gap:.2f} | "
-                         f"{s.after.gap:.2f} | {', '.join(s.moved_statistics())} |")
+            words = registry.spec(s.effect.name).says(s.effect)
+            lines.append(f"| {i} | {s.effect.name} | {words} | {s.before.gap:.2f} | "
+                         f"{s.after.gap:.2f} | {s.before.held_gap:.2f} -> "
+                         f"{s.after.held_gap:.2f} | {', '.join(s.moved_statistics())} | "
+                         f"{', '.join(s.worsened_statistics()) or '-'} |")
         lines.append("")
         refits = [s for s in result.steps if s.refit is not None]
         if refits:
@@ -110,21 +113,18 @@ def write_markdown(result: GapResult, out_dir: Path, *, plots: bool = True) -> P
                              f"(final gap {r['gap_before']:.2f} -> {r['gap_after']:.2f})")
             lines.append("")
         for i, s in enumerate(result.steps, 1):
-            lines += [f"Candidates at step {i} (gap with the candidate added; — : the data "
-                      "show none of it):", ""]
-            for name, c in s.candidates.items():
-                g = c.get("gap")
-                lines.append(f"- {name}: " + ("—" if g is None else
-                                               f"gap {g:.2f}, parameters {c['parameters']}"))
+            lines += [f"### Step {i}: {s.effect.name}", ""]
+            lines += _why_lines(s.effect.name, s.why)
+            lines += ["Candidates (held-out gap with the candidate added; the fitter's "
+                      "reason where it saw none):", ""]
+            lines += _candidate_lines(s.candidates)
             lines.append("")
-    if result.rejected:
-        lines += ["Candidates of the last round, none of which lowered the gap enough to be "
-                  "named (gap with the candidate; — : the data show none of it):", ""]
-        for name, c in result.rejected.items():
-            g = c.get("gap")
-            lines.append(f"- {name}: " + ("—" if g is None else
-                                           f"gap {g:.2f}, parameters {c['parameters']}"))
-        lines.append("")
+    lines += ["## Why the search stopped", "",
+              "Candidates of the last round (none gained enough on the held-out rows to be "
+              "named):" if result.rejected else "The largest number of effects was named.",
+              ""]
+    lines += _candidate_lines(result.rejected)
+    lines.append("")
     lines += ["## Statistics", "", "| statistic | D initial | D final | largest at (initial) |",
               "|---|---|---|---|"]
     for k in result.initial.disc.per_stat:
@@ -154,6 +154,44 @@ def write_markdown(result: GapResult, out_dir: Path, *, plots: bool = True) -> P
     path = out_dir / "report.md"
     path.write_text("\n".join(lines), encoding="utf-8")
     return path
+
+
+def _why_lines(name: str, why: dict[str, Any]) -> list[str]:
+    """Why a step's effect was named, in a sentence or two."""
+    if "held_out_gain" not in why:
+        if why.get("alone") is not None:
+            how = "alone" if why.get("alone") else "with the best sensor candidate"
+            return [f"Named because it closes the gap {how} (a simulator's timestamp "
+                    "scheme, reported apart).", ""]
+        return []
+    text = (f"Named: it lowers the held-out gap from {why['held_out_gap']:.2f} to "
+            f"{why['score']:.2f} (with its complexity penalty), a gain of "
+            f"{why['held_out_gain']:.2f} where {why['needed_gain']:.2f} was needed")
+    if why.get("null_gain", 0.0) > 0:
+        text += f" plus {why['null_gain']:.2f}, what it gains with nothing missing"
+    below = [f"{o['effect']} ({o['score']:.2f})" for o in why.get("ranked_below", [])]
+    if below:
+        text += "; it ranked above " + ", ".join(below)
+    out = [text + ".", ""]
+    if why.get("equivalent"):
+        out += [f"Explains the data as well (within the comparison's noise): "
+                f"{', '.join(why['equivalent'])}. These effects leave similar signatures on "
+                "this recording; a recording with a wider range of light or motion tells them "
+                "apart.", ""]
+    return out
+
+
+def _candidate_lines(cands: dict[str, dict[str, Any]]) -> list[str]:
+    out = []
+    for name, c in cands.items():
+        status = c.get("status", "")
+        if "held_out_gap" in c:
+            params = ", ".join(f"{k}={v}" for k, v in (c.get("parameters") or {}).items())
+            out.append(f"- {name} ({status}): held-out gap {c['held_out_gap']:.2f}, "
+                       f"{params}")
+        else:
+            out.append(f"- {name} ({status}): {c.get('reason', '')}")
+    return out
 
 
 def write_reports(result: GapResult, out_dir: str | Path, *, plots: bool = True,

@@ -1,8 +1,15 @@
-"""The gap workflow's evaluations of models (:class:`Runner`): anchored, simulated with the
+"""The gap workflow's evaluations of models (:class:`Evaluator`): anchored, simulated with the
 run's seeds (or screened with one, on a band of rows), summarised and compared with the
-measurement; the configuration (:class:`GapConfig`) and what the loop keeps of each model
-(:class:`Evaluation`). The loop itself is :mod:`.workflow`; the search over candidates
-:mod:`.search`; what a named effect goes through before it is named, :mod:`.finish`.
+measurement, on every row and on the held-out rows; the configuration (:class:`GapConfig`)
+and what the workflow keeps of each model (:class:`Evaluation`).
+
+Held-out rows: a candidate effect is fitted on the even rows of the sensor (the *fit*
+rows) and judged by the discrepancy on the odd rows (the *held-out* rows), which its fit has
+not seen. A parameter fitted to the noise of some pixels then gains nothing on the others,
+however many parameters it has (a per-pixel map included). The gap the report gives is that
+of every row.
+
+The evaluator holds no state of the search: the run (:mod:`.workflow`) owns its rounds.
 """
 
 from __future__ import annotations
@@ -14,14 +21,17 @@ from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from functools import partial
+from typing import Any
 
 import numpy as np
 
 from ..errors import ConfigError
 from ..online import usable_cores
 from ..recording import Recording
-from ..sim.effects import EFFECT_NAMES, Effect
+from ..sim.effects import Effect
+from . import effects as registry
 from .compare import Discrepancy, discrepancy
+from .effects import FitContext
 from .model import (
     Band,
     Model,
@@ -33,14 +43,7 @@ from .model import (
     simulate_model,
 )
 from .render import RenderCache
-from .stats import (
-    GapError,
-    Observation,
-    StatValue,
-    observe,
-    rows_of,
-    summarise,
-)
+from .stats import GapError, Observation, StatValue, observe, rows_of, summarise
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -65,23 +68,15 @@ class GapConfig:
     # bias-correct each named effect's moment estimate by refitting it on the simulations
     # made with it (see evcal.gap.finish.debias)
     debias: bool = True
-    candidates: tuple[str, ...] = EFFECT_NAMES
+    candidates: tuple[str, ...] = field(default_factory=registry.names)
     # screening: every candidate is simulated with one seed (the spread of the statistics
     # from the current model's seeds) and only the best ``confirm_top`` with all of them
     screen: bool = True
     confirm_top: int = 2
-    # ... those after the best only when their screened score is within this many close
-    # margins (close_margin, close_relative) of the best's (inf: all of the top)
-    confirm_within: float = 2.0
-    # when no single candidate qualifies and the gap is still above this, pairs of the best
-    # ``beam_width`` singles are tried together (two effects that explain the data only
-    # together are named together)
-    beam_width: int = 3
-    beam_min_gap: float = 3.0
-    # the best candidate and a confirmed one of another effect within this score of it are
-    # both bias-corrected (and refined) before one is named
-    close_margin: float = 0.5
-    close_relative: float = 0.25  # ... or within this share of its gap above 1
+    # a fitted value is a candidate only when its strength (evcal.gap.effects) exceeds this
+    # many times the largest the fitter reads on the current model's own simulations (the
+    # null calibration, evcal.gap.null)
+    null_factor: float = 2.0
     # the workflow analyses at most this many pixel-steps of simulation (pixels x internal
     # samples): a longer recording is cut to its busiest contiguous frames that fit (the
     # statistics need events, not hours; the rendered frames stay in memory)
@@ -102,13 +97,13 @@ class GapConfig:
     def __post_init__(self) -> None:
         if self.max_effects < 0:
             raise ConfigError(f"max_effects={self.max_effects} must be >= 0")
-        if self.n_seeds < 2:
-            raise ConfigError(f"n_seeds={self.n_seeds} must be >= 2 (the spread needs two)")
-        if not self.confirm_within >= 0.0:
-            raise ConfigError(f"confirm_within={self.confirm_within} must be >= 0")
-        if self.confirm_top < 1 or self.beam_width < 0:
-            raise ConfigError(f"confirm_top={self.confirm_top} must be >= 1 and "
-                             f"beam_width={self.beam_width} >= 0")
+        if self.n_seeds < 3:
+            raise ConfigError(f"n_seeds={self.n_seeds} must be >= 3 (the spread needs two, "
+                              "the null calibration one more)")
+        if self.confirm_top < 1:
+            raise ConfigError(f"confirm_top={self.confirm_top} must be >= 1")
+        if not self.null_factor >= 1.0:
+            raise ConfigError(f"null_factor={self.null_factor} must be >= 1")
         if self.max_pixel_steps < 1_000_000:
             raise ConfigError(f"max_pixel_steps={self.max_pixel_steps} must be >= 1e6")
         if self.max_events is not None and self.max_events < 10_000:
@@ -117,17 +112,24 @@ class GapConfig:
             raise ConfigError(f"screen_rows={self.screen_rows} must be in (0, 1]")
         if self.workers is not None and self.workers < 1:
             raise ConfigError(f"workers={self.workers} must be >= 1")
-        unknown = set(self.candidates) - set(EFFECT_NAMES)
+        unknown = set(self.candidates) - set(registry.names())
         if unknown:
-            raise ConfigError(f"unknown candidate effect(s) {sorted(unknown)}")
+            raise ConfigError(f"unknown candidate effect(s) {sorted(unknown)}; known: "
+                              f"{', '.join(registry.names())}")
 
 
 @dataclass
 class Evaluation:
+    """A model, its simulations (during a run; none in a :class:`~.workflow.GapResult`)
+    and its discrepancy with the measurement on every row (``disc``) and on the held-out
+    rows (``held``)."""
+
     model: Model
-    sims: list[Observation]  # during a run; empty in a GapResult (see run_gap)
+    sims: list[Observation]
     disc: Discrepancy
+    held: Discrepancy
     summaries: list[dict[str, StatValue]] = field(default_factory=list)
+    held_summaries: list[dict[str, StatValue]] = field(default_factory=list)
     # screened on the run's band of rows (GapConfig.screen_rows): its statistics and sims are
     # the band's, ``model`` the whole sensor's (not anchored yet: confirm() evaluates it)
     on_band: bool = False
@@ -137,12 +139,63 @@ class Evaluation:
         return self.disc.gap
 
     @property
+    def held_gap(self) -> float:
+        """The gap on the held-out rows: what candidates are judged by."""
+        return self.held.gap
+
+    @property
     def screened(self) -> bool:
         """Evaluated on one seed only (its spread borrowed): a candidate not yet confirmed."""
         return self.disc.n_sims < 2
 
+    def lightened(self) -> Evaluation:
+        """This evaluation without its simulations and summaries (what a result keeps)."""
+        return Evaluation(self.model, [], self.disc, self.held, on_band=self.on_band)
 
-class Runner:
+
+def _empty() -> Discrepancy:
+    return Discrepancy({}, {}, {}, {}, {}, {}, 0)
+
+
+@dataclass
+class _Measurement:
+    """The measurement as one evaluation compares with it: its observation on the rows
+    simulated (the whole sensor or the band), and its statistics there and on the held-out
+    rows among them."""
+
+    obs: Observation
+    stats: dict[str, StatValue]
+    held_rows: np.ndarray
+    fit_rows: np.ndarray
+    held_stats: dict[str, StatValue]
+    held_cache: dict[str, Any]
+    fit_cache: dict[str, Any]
+
+    @classmethod
+    def of(cls, obs: Observation, first_row: int) -> _Measurement:
+        """``obs`` (rows ``first_row`` on of the sensor): the held-out rows are the odd rows
+        of the sensor, the fit rows the even ones."""
+        h = obs.shape[0]
+        r = np.arange(h)
+        held_rows = r[(r + first_row) % 2 == 1]
+        fit_rows = r[(r + first_row) % 2 == 0]
+        held_cache: dict[str, Any] = {}
+        held = summarise(rows_of(obs, held_rows, held_cache))
+        return cls(obs, summarise(obs), held_rows, fit_rows, held, held_cache, {})
+
+    def held_of(self, obs: Observation) -> Observation:
+        return rows_of(obs, self.held_rows, self.held_cache)
+
+    def fit_of(self, obs: Observation) -> Observation:
+        return rows_of(obs, self.fit_rows, self.fit_cache)
+
+
+class Evaluator:
+    """Evaluations of models against one measured recording (see the module docstring):
+    the measurement's statistics, the simulation settings, the seeds (common random
+    numbers: every model is simulated with the same ones), the render cache and the count of
+    simulations run."""
+
     def __init__(self, rec: Recording, cfg: GapConfig, tick: Callable[[float], None],
                  released: Callable[[], object] | None = None):
         self.rec = rec
@@ -157,40 +210,59 @@ class Runner:
 
             self.trusted = (trusted_windows(rec.frames, max_px=cfg.trusted_max_px)
                             & unclipped_windows(rec.frames))
-        self.meas = observe(rec, trusted=self.trusted)
-        self.meas_stats = summarise(self.meas)
-        self.meas_pop = population(self.meas)
+        self.meas_obs = observe(rec, trusted=self.trusted)
+        self.whole = _Measurement.of(self.meas_obs, 0)
+        self.meas_pop = population(self.meas_obs)
         self.settings = SimSettings(internal_rate_hz=cfg.internal_rate_hz,
                                     read_noise_dn=estimate_read_noise(rec.frames),
                                     interpolation=cfg.interpolation)
-        # common random numbers: every model is simulated with the same seeds, the first of
-        # them also the anchor's (its last simulation, when it agreed, is that seed's)
+        # the recording's median frame value (DN): where light-dependent laws are read
+        self.light_dn = float(np.median(rec.frames.images))
         self.seeds = [cfg.seed * 1000 + k for k in range(cfg.n_seeds)]
         self.workers = cfg.workers or usable_cores()
         self.render = RenderCache(on_use=self._counted, workers=self.workers)
         self.simulations = 0
         self.work = 0.0  # simulations done, in simulations of the whole sensor
         self._lock = threading.Lock()
-        # the round's candidates as screened (the beam's pairs start from them), and those
-        # confirmed on every seed, best first
-        self.screened_pool: dict[str, tuple[Effect, Evaluation]] = {}
-        self.confirmed: list[tuple[float, Effect, Evaluation]] = []
-        # the gap the round's screenings are compared with (the band's, on a band)
-        self.screen_base = math.inf
-        # seconds each candidate's fit and screening took in its last round (the next
-        # round starts the slowest first)
-        self.task_s: dict[str, float] = {}
         self.band = screening_band(rec, cfg)
+        self.on_band: _Measurement | None = None
+        self.trusted_band = None
         if self.band is not None:
             rows = self.band.rows
             w = rec.sensor.width
             self.trusted_band = None if self.trusted is None else \
                 self.trusted[:, rows.start * w:rows.stop * w]
-            self.meas_band = observe(self.band.rec, trusted=self.trusted_band)
-            self.meas_stats_band = summarise(self.meas_band)
-        # the band's discrepancy of an evaluation whose spread screenings borrow, by id
+            self.on_band = _Measurement.of(observe(self.band.rec, trusted=self.trusted_band),
+                                           rows.start)
+        # the band's discrepancies of an evaluation whose spread screenings borrow, by id
         # (held weakly: the cache must not keep an evaluation's simulations alive)
-        self._band_spread: dict[int, tuple[weakref.ref[Evaluation], Discrepancy]] = {}
+        self._band_spread: dict[int, tuple[weakref.ref[Evaluation],
+                                           tuple[Discrepancy, Discrepancy]]] = {}
+
+    # ------------------------------------------------------------------ the measurement
+
+    @property
+    def meas(self) -> Observation:
+        return self.meas_obs
+
+    @property
+    def meas_stats(self) -> dict[str, StatValue]:
+        return self.whole.stats
+
+    def fit_context(self, model: Model, sims: list[Observation], *, held_out: bool = True,
+                    meas: Observation | None = None) -> FitContext:
+        """What a fitter sees of ``model`` and its (whole-sensor) simulations ``sims``: the
+        fit rows only when ``held_out``, else every row. ``meas`` in place of the
+        measurement (the null calibration's pseudo-measurements, simulations themselves)."""
+        m = self.meas_obs if meas is None else meas
+        if not held_out:
+            return FitContext(m, list(sims), model, self.rec, m, None, self.cfg.seed)
+        w = self.whole
+        return FitContext(w.fit_of(m), [w.fit_of(s) for s in sims],
+                          model_on_rows(model, w.fit_rows), self.rec, m, w.fit_rows,
+                          self.cfg.seed)
+
+    # -------------------------------------------------------------------- simulations
 
     def _counted(self, share: float) -> None:
         """One more simulation, of ``share`` of the sensor's rows (the render cache serves
@@ -200,14 +272,13 @@ class Runner:
             self.work += share
         self.tick(share)
 
-    def _simulate(self, model: Model, seed: int) -> Observation:
-        return observe(simulate_model(model, self.rec, seed, self.settings, self.render),
-                       trusted=self.trusted)
-
-    def _simulate_summarised(self, model: Model, seed: int
-                             ) -> tuple[Observation, dict[str, StatValue]]:
-        obs = self._simulate(model, seed)
-        return obs, summarise(obs)
+    def _simulate(self, model: Model, seed: int, target: _Measurement,
+                  band: Band | None) -> tuple[Observation, dict[str, StatValue],
+                                              dict[str, StatValue]]:
+        trusted = self.trusted if band is None else self.trusted_band
+        obs = observe(simulate_model(model, self.rec, seed, self.settings, self.render, band),
+                      trusted=trusted)
+        return _summarised(target, obs)
 
     def evaluate(self, model: Model, what: str, *, spread: Evaluation | None = None
                  ) -> Evaluation:
@@ -216,11 +287,11 @@ class Runner:
         ``spread``'s)."""
         if spread is not None and self.band is not None:
             return self.screen_on_band(model, spread)
-        model, first = anchor(model, self.rec, self.meas, self.seeds[0], self.settings,
+        model, first = anchor(model, self.rec, self.meas_obs, self.seeds[0], self.settings,
                               render=self.render, trusted=self.trusted)
         sims = [first] if first is not None else []
         n = 1 if spread is not None else len(self.seeds)
-        ev = Evaluation(model, sims, self.meas_disc([], None), [])
+        ev = Evaluation(model, sims, _empty(), _empty())
         return self.extend(ev, n, what, spread=spread)
 
     def extend(self, ev: Evaluation, n: int, what: str, *, spread: Evaluation | None = None
@@ -230,29 +301,31 @@ class Runner:
         that let go of its simulations (a round's candidates not kept) is simulated anew:
         its summaries would otherwise count its first seed twice."""
         if len(ev.sims) < len(ev.summaries):
-            ev = Evaluation(ev.model, [], ev.disc, [])
+            ev = Evaluation(ev.model, [], ev.disc, ev.held)
         todo = self.seeds[len(ev.sims):n]
         sims = list(ev.sims)
         unsummarised = sims[len(ev.summaries):]
-        jobs: list[Callable[[], tuple[Observation, dict[str, StatValue]]]] = [
-            partial(_summarised, o) for o in unsummarised]
-        jobs += [partial(self._simulate_summarised, ev.model, s) for s in todo]
-        done: list[tuple[Observation, dict[str, StatValue]]] = []
-        if len(jobs) == 1:
-            done = [jobs[0]()]
-        elif jobs:
-            with ThreadPoolExecutor(max_workers=min(self.workers, len(jobs))) as pool:
-                done = list(pool.map(lambda job: job(), jobs))
-        sims = sims[:len(ev.summaries)] + [o for o, _ in done]
-        summaries = list(ev.summaries) + [s for _, s in done]
+        target = self.whole
+        jobs: list[Callable[[], tuple[Observation, dict[str, StatValue],
+                                      dict[str, StatValue]]]] = [
+            partial(_summarised, target, o) for o in unsummarised]
+        jobs += [partial(self._simulate, ev.model, s, target, None) for s in todo]
+        done = _run_all(jobs, self.workers)
+        sims = sims[:len(ev.summaries)] + [o for o, _, _ in done]
+        summaries = list(ev.summaries) + [s for _, s, _ in done]
+        held = list(ev.held_summaries) + [h for _, _, h in done]
         # the derived arrays (per-window fits, intervals, per-event windows: half an
         # observation's memory, more with many events) are dropped once summarised; the
         # fitters recompute them on the few simulations they read (Observation.extra is a
         # cache), the others would hold them as long as their evaluation lives
         for o in sims:
             o.extra.clear()
-        disc = self.meas_disc(summaries, spread if len(sims) < 2 else None)
-        return Evaluation(ev.model, sims, disc, summaries)
+        borrowed = spread if len(sims) < 2 else None
+        disc = discrepancy(target.stats, summaries,
+                           spread=None if borrowed is None else borrowed.disc)
+        held_disc = discrepancy(target.held_stats, held,
+                                spread=None if borrowed is None else borrowed.held)
+        return Evaluation(ev.model, sims, disc, held_disc, summaries, held)
 
     def confirm(self, ev: Evaluation, what: str) -> Evaluation:
         """A screened evaluation completed with every seed (on the band: evaluated anew on
@@ -265,41 +338,37 @@ class Runner:
         return self.extend(ev, len(self.seeds), what) if ev.screened else ev
 
     def screen_on_band(self, model: Model, spread: Evaluation | None, n: int = 1
-                        ) -> Evaluation:
+                       ) -> Evaluation:
         """``model`` on the band's rows with the first ``n`` seeds: anchored there, its
         statistics against the band's measurement; with one seed (a screening) the spread
         is that of ``spread``'s simulations cut to the band."""
-        band = self.band
+        band, target = self.band, self.on_band
         assert band is not None
-        m_band, first = anchor(band.model(model), self.rec, self.meas_band, self.seeds[0],
+        assert target is not None
+        m_band, first = anchor(band.model(model), self.rec, target.obs, self.seeds[0],
                                self.settings, render=self.render, trusted=self.trusted_band,
                                band=band)
-
-        def sim(seed: int) -> tuple[Observation, dict[str, StatValue]]:
-            obs = observe(simulate_model(m_band, self.rec, seed, self.settings, self.render,
-                                         band), trusted=self.trusted_band)
-            return obs, summarise(obs)
-
-        jobs: list[Callable[[], tuple[Observation, dict[str, StatValue]]]] = [
-            partial(_summarised, first) if first is not None else partial(sim, self.seeds[0])]
-        jobs += [partial(sim, s) for s in self.seeds[1:n]]
-        if len(jobs) == 1:
-            done = [jobs[0]()]
-        else:
-            with ThreadPoolExecutor(max_workers=min(self.workers, len(jobs))) as pool:
-                done = list(pool.map(lambda job: job(), jobs))
-        sims = [o for o, _ in done]
-        summaries = [sm for _, sm in done]
+        jobs: list[Callable[[], tuple[Observation, dict[str, StatValue],
+                                      dict[str, StatValue]]]] = [
+            partial(_summarised, target, first) if first is not None
+            else partial(self._simulate, m_band, self.seeds[0], target, band)]
+        jobs += [partial(self._simulate, m_band, s, target, band) for s in self.seeds[1:n]]
+        done = _run_all(jobs, self.workers)
+        sims = [o for o, _, _ in done]
         if n == 1:
             sims[0].extra.clear()
-        disc = discrepancy(self.meas_stats_band, summaries,
-                           spread=self.band_spread(spread) if n == 1 and spread is not None
-                           else None)
-        return Evaluation(model, sims, disc, summaries, on_band=True)
+        spreads = self.band_spread(spread) if n == 1 and spread is not None else None
+        disc = discrepancy(target.stats, [s for _, s, _ in done],
+                           spread=None if spreads is None else spreads[0])
+        held = discrepancy(target.held_stats, [h for _, _, h in done],
+                           spread=None if spreads is None else spreads[1])
+        return Evaluation(model, sims, disc, held, [s for _, s, _ in done],
+                          [h for _, _, h in done], on_band=True)
 
-    def band_spread(self, ev: Evaluation) -> Discrepancy:
-        """``ev``'s discrepancy on the band (its simulations cut to the band's rows): the
-        spread that screenings on the band borrow."""
+    def band_spread(self, ev: Evaluation) -> tuple[Discrepancy, Discrepancy]:
+        """``ev``'s discrepancies on the band (its simulations cut to the band's rows; on
+        every row of it and on its held-out rows): the spread that screenings on the band
+        borrow."""
         hit = self._band_spread.get(id(ev))
         if hit is not None and hit[0]() is ev:
             return hit[1]
@@ -307,19 +376,24 @@ class Runner:
             raise GapError("a screening on the band needs an evaluation with simulations on "
                            "every seed for its spread")
         assert self.band is not None
-        sums = [summarise(rows_of(o, self.band.rows)) for o in ev.sims]
-        disc = discrepancy(self.meas_stats_band, sums)
+        assert self.on_band is not None
+        target = self.on_band
+        done = [_summarised(target, rows_of(o, self.band.rows)) for o in ev.sims]
+        discs = (discrepancy(target.stats, [s for _, s, _ in done]),
+                 discrepancy(target.held_stats, [h for _, _, h in done]))
         if len(self._band_spread) >= 4:  # the round's current and best are what is asked for
             self._band_spread.pop(next(iter(self._band_spread)))
-        self._band_spread[id(ev)] = (weakref.ref(ev), disc)
-        return disc
+        self._band_spread[id(ev)] = (weakref.ref(ev), discs)
+        return discs
 
-    def meas_disc(self, summaries: list[dict[str, StatValue]], spread: Evaluation | None
-                  ) -> Discrepancy:
-        if not summaries:
-            return Discrepancy({}, {}, {}, {}, {}, {}, 0)
-        return discrepancy(self.meas_stats, summaries,
-                           spread=spread.disc if spread is not None else None)
+    def screen_gap(self, ev: Evaluation) -> float:
+        """The held-out gap a screening on ``ev`` is compared with (the band's, on a
+        band)."""
+        if self.band is not None:
+            return self.band_spread(ev)[1].gap
+        return ev.held_gap
+
+    # ------------------------------------------------------------------------ models
 
     def candidate_model(self, current: Model, eff: Effect) -> Model:
         if eff.name == "log_offset":
@@ -336,42 +410,53 @@ class Runner:
             return self.candidate_model(current, eff)
         return near.with_effect(eff)
 
-    def let_go(self, *keep: Evaluation | None) -> None:
-        """The round's screened and confirmed evaluations let go of their simulations, but
-        for ``keep``: once the round has chosen what it finishes, no other candidate is
-        simulated on top of or refitted from (a few hundred MB each on a user's
-        recording)."""
-        kept = {id(ev) for ev in keep if ev is not None}
-        for ev in [ev for _, ev in self.screened_pool.values()] + \
-                [ev for _, _, ev in self.confirmed]:
-            if id(ev) not in kept:
-                ev.sims.clear()
-        self.released()
 
-    def evaluate_many(self, models: list[tuple[Effect, Model]], current: Evaluation
-                      ) -> list[Evaluation]:
-        """Each model evaluated on top of ``current``: screened on one seed when the config
-        says so (the models in parallel), else on every seed (one after the other, each on
-        every core)."""
-        if not self.cfg.screen:
-            return [self.evaluate(m, f"candidate {e.name}") for e, m in models]
-        if self.band is not None:
-            self.band_spread(current)  # once, before the threads ask for it
-        with ThreadPoolExecutor(max_workers=self.workers) as pool:
-            return list(pool.map(lambda em: self.evaluate(em[1], f"screen {em[0].name}",
-                                                          spread=current), models))
+def _summarised(target: _Measurement, obs: Observation
+                ) -> tuple[Observation, dict[str, StatValue], dict[str, StatValue]]:
+    return obs, summarise(obs), summarise(target.held_of(obs))
+
+
+def _run_all(jobs: list[Callable[[], Any]], workers: int) -> list[Any]:
+    if len(jobs) == 1:
+        return [jobs[0]()]
+    if not jobs:
+        return []
+    with ThreadPoolExecutor(max_workers=min(workers, len(jobs))) as pool:
+        return list(pool.map(lambda job: job(), jobs))
+
+
+def model_on_rows(model: Model, rows: np.ndarray) -> Model:
+    """``model`` with its maps and its effects' per-pixel maps on the sensor rows ``rows``
+    only (what a fitter on those rows compares with)."""
+    from dataclasses import replace  # noqa: PLC0415
+
+    return replace(model, contrast=model.contrast[rows], bias=model.bias[rows],
+                   effects={k: e.on_rows(rows) for k, e in model.effects.items()})  # type: ignore[arg-type]
+
+
+# the candidates' fit and screening, slowest first, before a run has timed them (their
+# fitters scan grids of offsets, lags or jitters over every pixel, or render frames anew)
+SLOW_FIRST = ("aps_fpn", "bandwidth", "exposure", "timestamp_jitter", "threshold_light",
+              "refractory", "threshold_noise")
+
+
+def longest_first(names: list[str], seconds: dict[str, float]) -> list[str]:
+    """``names`` by their time in ``seconds`` (those timed) or by :data:`SLOW_FIRST`
+    (the others, after them), longest first; ties keep the given order."""
+    def key(item: tuple[int, str]) -> tuple[int, float, int]:
+        i, n = item
+        if n in seconds:
+            return 0, -seconds[n], i
+        return 1, float(SLOW_FIRST.index(n)) if n in SLOW_FIRST else len(SLOW_FIRST), i
+    return [n for _, n in sorted(enumerate(names), key=key)]
 
 
 SCHEME_EFFECT = "timestamp_quantisation"  # a simulator's timestamp scheme, not a sensor effect
 
 
-def _summarised(obs: Observation) -> tuple[Observation, dict[str, StatValue]]:
-    return obs, summarise(obs)
-
-
-def need(cfg: GapConfig, current: Evaluation) -> float:
-    """The least gain that names a candidate against ``current``."""
-    return max(cfg.min_improvement, cfg.min_relative_improvement * (current.gap - 1.0))
+def need(cfg: GapConfig, gap: float) -> float:
+    """The least gain that names a candidate against a model whose gap is ``gap``."""
+    return max(cfg.min_improvement, cfg.min_relative_improvement * (gap - 1.0))
 
 
 def gain(gap: float, score: float) -> float:

@@ -216,14 +216,21 @@ def every_nth_row(obs: Observation, n: int) -> Observation:
     return rows_of(obs, np.arange(0, obs.shape[0], n))
 
 
-def rows_of(obs: Observation, rows: np.ndarray | slice) -> Observation:
+def rows_of(obs: Observation, rows: np.ndarray | slice,
+            frames_cache: dict[str, Any] | None = None) -> Observation:
     """``obs`` on the sensor rows ``rows`` (indices, or a slice: a band, whose per-pixel
-    arrays are views), as if recorded by a sensor of those rows."""
+    arrays are views), as if recorded by a sensor of those rows.
+
+    ``frames_cache``: a dictionary kept by the caller for one set of rows, in which the
+    frame-side arrays cut to them (intensity, log intensity, usable and trusted windows) and
+    their shared dictionary (static windows, ...) are kept: the observations of the same
+    frames (a measurement and its simulations) then share them instead of each cutting and
+    deriving its own."""
     h, w = obs.shape
     if isinstance(rows, slice):
         y0, y1, step = rows.indices(h)
         if step != 1:
-            return rows_of(obs, np.arange(y0, y1, step))
+            return rows_of(obs, np.arange(y0, y1, step), frames_cache)
         cols: np.ndarray | slice = slice(y0 * w, y1 * w)
         n_rows = y1 - y0
         keep = (obs.pix >= y0 * w) & (obs.pix < y1 * w)
@@ -236,10 +243,21 @@ def rows_of(obs: Observation, rows: np.ndarray | slice) -> Observation:
         new_index[cols] = np.arange(cols.size)
         keep = new_index[obs.pix] >= 0
         new_pix = new_index[obs.pix[keep]]
+    key = (id(obs.intensity), id(obs.trusted))
+    if frames_cache is not None and frames_cache.get("key") == key:
+        fa = frames_cache
+    else:
+        fa = {"key": key, "log_i": obs.log_i[:, cols], "intensity": obs.intensity[:, cols],
+              "usable": obs.usable[:, cols],
+              "trusted": None if obs.trusted is None else obs.trusted[:, cols],
+              "shared": {}, "source": (obs.intensity, obs.trusted)}
+        if frames_cache is not None:
+            frames_cache.clear()
+            frames_cache.update(fa)
     return Observation((n_rows, w), obs.frame_t_us, obs.on[:, cols], obs.off[:, cols],
-                       obs.log_i[:, cols], obs.intensity[:, cols], obs.usable[:, cols],
-                       obs.t_us[keep], new_pix, obs.p[keep],
-                       None if obs.trusted is None else obs.trusted[:, cols])
+                       fa["log_i"], fa["intensity"], fa["usable"],
+                       obs.t_us[keep], new_pix.astype(np.int32), obs.p[keep], fa["trusted"],
+                       shared=fa["shared"])
 
 
 def event_windows(obs: Observation) -> np.ndarray:

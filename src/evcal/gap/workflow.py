@@ -3,24 +3,30 @@
 1. Fit the base model (``c``, ``b`` by OffEI at the nominal log offset) and anchor it.
 2. Simulate the measured recording under the model with ``n_seeds`` seeds (driven by its
    frames) and compute the standardised discrepancy of every statistic (:mod:`.stats`); the
-   gap is their mean (about 1 when the model explains the data).
-3. For each effect not in the model yet: estimate its parameters (:func:`.model.fit_candidate`),
-   anchor, simulate with the same seeds, and compute the gap. The score is the gap plus
-   ``penalty_per_parameter`` per fitted parameter.
-4. The best candidate is named if it lowers the gap (counted down to 1, what a model that
-   explains the data leaves) by more than its penalty plus ``min_improvement`` and by at
-   least ``min_relative_improvement`` of the part of the gap above 1. Its moment estimate is
-   bias-corrected by simulation and, unless that confirms it, refined by a three-point
-   search. Repeat from 3 until nothing is named or ``max_effects`` are.
+   gap is their mean (about 1 when the model explains the data), on every row and on the
+   held-out rows (:mod:`.runner`).
+3. Null calibration (:mod:`.null`): what every candidate's fitter reads, and what its effect
+   gains, on the base model's own simulations.
+4. A round (:func:`.search.search`): each effect not in the model yet is fitted on the fit
+   rows (its fitter may say why it sees nothing), kept when its strength stands above the
+   null, simulated on one seed on top of the model; the best are simulated on every seed.
+5. The best confirmed candidate is named if it lowers the held-out gap (counted down to 1)
+   by more than its penalty, ``min_improvement`` and ``min_relative_improvement`` of the gap
+   above 1, and by more than the gain it shows with nothing missing. Its value is then
+   refitted on every row, bias-corrected by simulation and refined (:mod:`.finish`).
+   Repeat from 4 until nothing is named or ``max_effects`` are.
 
 The timestamp scheme of a frame-driven simulator (``timestamp_quantisation``) is not a
 sensor effect: once its fitter sees the timestamps on a step grid, the sensor candidates are
 evaluated on top of it, and it is named when it closes the gap alone or with the best of
 them.
+
+:class:`GapRun` owns a run: its evaluator, its null calibration, its rounds and steps.
 """
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -31,24 +37,29 @@ import numpy as np
 from ..jsonable import to_jsonable
 from ..recording import Recording
 from ..sim.effects import Effect
+from . import effects as registry
+from .effects import Fitted
 from .explain import unexplained
 from .finish import DEBIAS_STEPS, finish, refine
 from .model import fit_base
+from .null import NullCalibration, calibrate
 from .runner import (
     SCHEME_EFFECT,
     Evaluation,
+    Evaluator,
     GapConfig,
-    Runner,
     gain,
     moved_on,
     need,
     screening_band,
 )
-from .search import best_candidate, best_pair, runner_up, same_signature, scheme_candidate
+from .search import Candidate, Round, search
 from .stats import GapError
 
-__all__ = ["SCHEME_EFFECT", "Evaluation", "GapConfig", "GapResult", "Step", "n_simulations",
-           "run_gap", "screening_band", "working_window"]
+__all__ = ["SCHEME_EFFECT", "Evaluation", "GapConfig", "GapResult", "GapRun", "Step",
+           "n_simulations", "run_gap", "screening_band", "working_window"]
+
+_log = logging.getLogger("evcal.gap")
 
 
 @dataclass
@@ -57,6 +68,9 @@ class Step:
     before: Evaluation
     after: Evaluation
     candidates: dict[str, dict[str, Any]]
+    # why it was named: its held-out gain against what naming needed (and the null's gain),
+    # and the candidates it won over
+    why: dict[str, Any] = field(default_factory=dict)
     # refitted in the final model (GapConfig.refit_named): the value it was named with and
     # the final gap before and after; ``effect`` then holds the refitted value
     refit: dict[str, Any] | None = None
@@ -66,6 +80,13 @@ class Step:
                  for k in self.before.disc.per_stat}
         ranked = sorted(drops, key=lambda k: -drops[k])
         return [k for k in ranked[:top] if drops[k] > 0.5]
+
+    def worsened_statistics(self, top: int = 4) -> list[str]:
+        """Statistics the step made clearly worse (their D up by more than 1)."""
+        rises = {k: self.after.disc.per_stat[k] - self.before.disc.per_stat[k]
+                 for k in self.before.disc.per_stat}
+        ranked = sorted(rises, key=lambda k: -rises[k])
+        return [k for k in ranked[:top] if rises[k] > 1.0]
 
 
 @dataclass
@@ -78,13 +99,14 @@ class GapResult:
     settings: dict[str, Any] = field(default_factory=dict)
     # candidates of the round that named nothing (why the loop stopped)
     rejected: dict[str, dict[str, Any]] = field(default_factory=dict)
+    null: dict[str, Any] = field(default_factory=dict)
 
     @property
     def named_effects(self) -> list[str]:
         return [s.effect.name for s in self.steps]
 
     def to_json(self) -> dict[str, Any]:
-        """The stable ``report.json`` schema."""
+        """The stable ``report.json`` schema (docs/GAP.md writes it out)."""
         d0, d1 = self.initial.disc, self.final.disc
         stats = []
         for name in d0.per_stat:
@@ -96,18 +118,31 @@ class GapResult:
                 "z_initial": float(np.sqrt(d0.per_stat[name])),
                 "z_final": float(np.sqrt(d1.per_stat[name])),
             })
+        light = float(self.recording_info.get("median_light_dn", 128.0))
         return {
             "named_effects": self.named_effects,
             "gap_initial": float(self.initial.gap),
             "gap_final": float(self.final.gap),
+            "held_out_gap_initial": float(self.initial.held_gap),
+            "held_out_gap_final": float(self.final.held_gap),
             "steps": [{
                 "effect": s.effect.name,
+                "kind": registry.spec(s.effect.name).kind,
                 "parameters": to_jsonable(s.effect.parameters()),
+                "value": float(registry.spec(s.effect.name).value(s.effect, light)),
+                "in_words": registry.spec(s.effect.name).says(s.effect),
                 "gap_before": float(s.before.gap),
                 "gap_after": float(s.after.gap),
+                "held_out_gap_before": float(s.before.held_gap),
+                "held_out_gap_after": float(s.after.held_gap),
                 "moved_statistics": s.moved_statistics(),
+                "worsened_statistics": s.worsened_statistics(),
+                "why": to_jsonable(s.why),
                 "refit": to_jsonable(s.refit),
             } for s in self.steps],
+            "not_named": {name: {k: c[k] for k in ("status", "reason", "held_out_gap")
+                                 if k in c}
+                          for name, c in self.rejected.items()},
             "statistics": stats,
             # what the final model still does not explain, worst first (also when nothing
             # was named): statistic, regime, direction, in words
@@ -121,24 +156,24 @@ def _list(a: np.ndarray) -> list[float | None]:
     return [float(x) if np.isfinite(x) else None for x in np.asarray(a, np.float64).ravel()]
 
 
+# a confirmed candidate whose held-out score is within this (or this share of the best's gap
+# above 1) of the named one's explains the data as well: the report lists it beside it
+EQUIVALENT_MARGIN = 0.3
+EQUIVALENT_RELATIVE = 0.1
 ANCHOR_SIMS = 2  # simulations an anchor takes, typically (one of them counted as a seed's)
+NULL_SIMS = 3  # simulations of the null calibration's gains, typically
 
 
-def round_work(cfg: GapConfig, band_share: float, candidates: int, *, names: bool,
-               confirms: bool = True) -> float:
+def round_work(cfg: GapConfig, band_share: float, candidates: int, *, names: bool) -> float:
     """Work one round is expected to take, in simulations of the whole sensor: each of
-    ``candidates`` fitted candidates screened (on a band of ``band_share`` of the rows, see
-    :func:`screening_band`), the best confirmed when it ``confirms`` (a second one only on
-    a close call, which is not planned) and, in a round that ``names`` an effect, its bias
-    correction and refinement."""
+    ``candidates`` screened candidates (on a band of ``band_share`` of the rows, see
+    :func:`screening_band`), the best confirmed and, in a round that ``names`` an effect,
+    its bias correction and refinement."""
     full = ANCHOR_SIMS - 1 + cfg.n_seeds
     screen = ANCHOR_SIMS * band_share if cfg.screen else full
-    # a screening on the band is confirmed anew on the whole sensor, one on it is extended
     confirm = (full if band_share < 1.0 else cfg.n_seeds - 1) if cfg.screen else 0
-    total = candidates * screen + (confirm if confirms else 0)
+    total = candidates * screen + confirm
     if names:
-        # bias correction (its steps on the band with every seed, the corrected value on
-        # the whole sensor), refinement (three screenings)
         debias = DEBIAS_STEPS * full if band_share >= 1.0 else \
             DEBIAS_STEPS * (cfg.n_seeds + ANCHOR_SIMS - 1) * band_share + full
         total += debias + 3 * screen
@@ -149,22 +184,21 @@ def n_simulations(cfg: GapConfig, rounds: int = 1, band_share: float = 1.0, *,
                   candidates: int | None = None, named: int = 0, base: bool = True
                   ) -> float:
     """Work the workflow expects, in simulations of the whole sensor (for the progress
-    bar's estimate of the time left): the base model on every seed (``base``), ``rounds``
-    rounds that name an effect, and the round that names nothing, which ends the run (its
-    screenings: a screening that gains too little to name is not confirmed; none when
-    ``max_effects`` stops the run first; ``named``: the sensor effects named already).
+    bar's estimate of the time left): the base model on every seed and its null calibration
+    (``base``), ``rounds`` rounds that name an effect, and the round that names nothing,
+    which ends the run (none when ``max_effects`` stops the run first; ``named``: the
+    sensor effects named already).
 
-    An estimate, not a bound: the workflow plans anew at every round, from the candidates
-    the last round's fitters found evidence for (``candidates``; all of
-    ``cfg.candidates`` before the first round), which are most often far fewer. Planning
-    every round that ``max_effects`` allows put the estimate of a run at 2.6x its length."""
-    k = len(cfg.candidates) if candidates is None else candidates
-    total: float = ANCHOR_SIMS - 1 + cfg.n_seeds if base else 0.0
+    An estimate, not a bound: the workflow plans anew at every round from the candidates
+    the last round screened (``candidates``; before the first round a third of
+    ``cfg.candidates``: most fitters see no evidence on a given recording)."""
+    k = max(2, len(cfg.candidates) // 3) if candidates is None else candidates
+    total: float = ANCHOR_SIMS - 1 + cfg.n_seeds + NULL_SIMS if base else 0.0
     rounds = min(rounds, max(cfg.max_effects - named, 0))
     for i in range(rounds):
-        total += round_work(cfg, band_share, max(k - i, 0), names=True)
+        total += round_work(cfg, band_share, max(k - i, 1), names=True)
     if named + rounds < cfg.max_effects:
-        total += round_work(cfg, band_share, max(k - rounds, 0), names=False, confirms=False)
+        total += round_work(cfg, band_share, max(k - rounds, 1), names=False)
     return total
 
 
@@ -214,38 +248,236 @@ def working_window(rec: Recording, max_pixel_steps: int, internal_rate_hz: float
     return cut, info
 
 
-def lookahead(run: Runner, ev: Evaluation, eff: Effect) -> dict[str, Any]:
-    """Where naming ``eff`` (evaluated as ``ev``) leads: the round after it screened and
-    its best confirmed (:func:`.search.best_candidate`), and the path's score, the next
-    effect's when it would be named, else ``ev``'s own (each with ``eff``'s penalty)."""
-    pen = run.cfg.penalty_per_parameter
-    score = ev.gap + pen * eff.n_fitted
-    nxt = best_candidate(run, ev, {}, skip=SCHEME_EFFECT)
-    out: dict[str, Any] = {"gap": ev.gap, "next": None, "score": score}
-    if nxt is not None:
-        out["next"] = {"effect": nxt[1].name, "parameters": nxt[1].parameters(),
-                       "gap": nxt[2].gap}
-        if gain(ev.gap, nxt[0]) > need(run.cfg, ev):
-            out["score"] = nxt[0] + pen * eff.n_fitted
-    return out
+class GapRun:
+    """One run of the workflow on one recording: the evaluator (:class:`.runner.Evaluator`),
+    the null calibration, the rounds and the steps named, and the run's progress.
 
+    ``progress(work)`` is called after every simulation with its share of a simulation of
+    the whole sensor (a screening on a band of rows is less); ``plan(total)`` with the work
+    the run plans (in the same unit), at the start and whenever it changes. A caller that cut
+    ``rec`` to its working window (:func:`working_window`) gives ``window`` (the description
+    that returned). ``released()`` is called whenever the run has let go of simulations."""
 
-def refit_named(run: Runner, current: Evaluation, steps: list[Step], i: int) -> Evaluation:
-    """Step ``i``'s effect refined anew (:func:`.finish.refine`, the three-point search)
-    in the final model ``current``; the step then holds the value kept and its ``refit``
-    what it was named with. Each effect's value is settled in the model of its round: an
-    effect named later may explain part of what it took on (on the v2e mix a low-pass named
-    before the 1 ms dead time read 19.1 Hz for v2e's 16.2, and 16.6 Hz in the final model;
-    gap 3.54 -> 1.71). The search keeps the named value unless another clearly beats it on
-    every seed."""
-    step = steps[i]
-    eff = current.model.effects[step.effect.name]
-    key = eff.primary
-    new_eff, ev = refine(run, current.model, current, eff)
-    step.refit = {"named_value": step.effect.parameters()[key], "parameter": key,
-                  "gap_before": float(current.gap), "gap_after": float(ev.gap)}
-    step.effect = new_eff
-    return moved_on(current, ev)
+    def __init__(self, rec: Recording, config: GapConfig | None = None, *,
+                 progress: Callable[[float], None] | None = None,
+                 plan: Callable[[float], None] | None = None,
+                 window: dict[str, Any] | None = None,
+                 released: Callable[[], object] | None = None):
+        self.cfg = config or GapConfig()
+        if rec.frames is None or len(rec.frames) < 4:
+            raise GapError("the gap workflow needs a recording with at least 4 frames (APS "
+                           "or images.txt): simulations are driven by the measured frames")
+        if window is None:
+            rec, window = working_window(rec, self.cfg.max_pixel_steps,
+                                         self.cfg.internal_rate_hz, self.cfg.max_events)
+        self.rec = rec
+        self.window = window
+        self.tick = progress or (lambda _work: None)
+        self.plan_to = plan
+        self.released = released
+        self.steps: list[Step] = []
+        self.rejected: dict[str, dict[str, Any]] = {}
+        self.null = NullCalibration()
+        # seconds each candidate's fit and screening took in its last round (the next
+        # round starts the slowest first)
+        self.seconds: dict[str, float] = {}
+        self.ev: Evaluator | None = None
+
+    def _plan(self, total: float) -> None:
+        if self.plan_to is not None:
+            self.plan_to(total)
+
+    def n_sensor(self) -> int:
+        """Effects named that count against ``max_effects`` (not the timestamp scheme)."""
+        return sum(s.effect.name != SCHEME_EFFECT for s in self.steps)
+
+    def run(self) -> GapResult:
+        cfg = self.cfg
+        pen = cfg.penalty_per_parameter
+        # the base fit (its noise scale simulates) does not need the evaluator's measurement
+        # statistics: each is made while the other waits on numba or OpenCV
+        with ThreadPoolExecutor(max_workers=1) as pool:
+            fitting = pool.submit(fit_base, self.rec)
+            ev = self.ev = Evaluator(self.rec, cfg, self.tick, self.released)
+            share = 1.0 if ev.band is None else ev.band.share
+            self._plan(n_simulations(cfg, band_share=share))
+            base = fitting.result()
+        current = ev.evaluate(base, "base model")
+        initial = current
+        sensor = [n for n in cfg.candidates if n != SCHEME_EFFECT]
+        self.null = calibrate(ev, current, sensor)
+        screened: int | None = None
+        while self.n_sensor() < cfg.max_effects:
+            self._plan(ev.work + n_simulations(cfg, 1, share, candidates=screened,
+                                               named=self.n_sensor(), base=False))
+            scheme = self._scheme(current)
+            on = scheme[1] if scheme is not None else current
+            names = [n for n in sensor if n not in on.model.effects]
+            rnd = search(ev, self.null, on, names, self.seconds)
+            screened = max(sum(c.evaluation is not None for c in rnd.candidates.values()) - 1,
+                           1)
+            tried = rnd.to_json(pen)
+            best = rnd.best(pen)
+            if scheme is not None:
+                eff_q, ev_q, entry = scheme
+                tried = {SCHEME_EFFECT: entry, **tried}
+                pen_q = pen * eff_q.n_fitted
+                q_alone = gain(current.held_gap, ev_q.held_gap + pen_q) > \
+                    need(cfg, current.held_gap)
+                joint = best is not None and \
+                    gain(ev_q.held_gap, best.score(pen)) > need(cfg, ev_q.held_gap) and \
+                    gain(current.held_gap, best.score(pen) + pen_q) > \
+                    need(cfg, current.held_gap)
+                if not (q_alone or joint):
+                    self.rejected = tried
+                    break
+                # read off the timestamps: neither bias-corrected nor refined, so the
+                # candidates evaluated on top of it stand
+                self.steps.append(Step(eff_q, current, ev_q, {SCHEME_EFFECT: entry},
+                                       {"alone": bool(q_alone), "with_the_best": bool(joint)}))
+                current = moved_on(current, ev_q)
+            why = self._why(rnd, on, best)
+            if best is None or not why["named"]:
+                self.rejected = tried
+                rnd.let_go()
+                break
+            assert best.evaluation is not None
+            assert best.effect is not None
+            rnd.let_go(on, best.evaluation)
+            eff, after, info = self._finish(on, best)
+            tried[best.name]["status"] = "named"
+            tried[best.name]["finish"] = to_jsonable(info)
+            self.steps.append(Step(eff, current, after, tried, why))
+            if after is not best.evaluation:
+                moved_on(best.evaluation, after)
+            current = moved_on(current, after)
+            if ev.released is not None:
+                ev.released()
+        if cfg.refit_named:
+            todo = [i for i, s in enumerate(self.steps) if s.effect.name != SCHEME_EFFECT][:-1]
+            if todo:  # each: three screenings and a confirmation
+                self._plan(ev.work + len(todo) * round_work(cfg, share, 3, names=False))
+            for i in todo:
+                current = self._refit(current, i)
+        self._plan(ev.work)
+        return self._result(initial, current)
+
+    def _scheme(self, current: Evaluation) -> tuple[Effect, Evaluation, dict[str, Any]] | None:
+        """The timestamp scheme fitted (on every row: a property of every event's stamp)
+        and evaluated on every seed, when it is a candidate not yet in the model and its
+        fitter sees it."""
+        ev = self.ev
+        assert ev is not None
+        if SCHEME_EFFECT not in self.cfg.candidates or SCHEME_EFFECT in current.model.effects:
+            return None
+        res = registry.spec(SCHEME_EFFECT).fit(
+            ev.fit_context(current.model, current.sims, held_out=False))
+        if not isinstance(res, Fitted):
+            self.rejected[SCHEME_EFFECT] = {"status": "no evidence", "reason": res.reason}
+            return None
+        eff = res.effect
+        out = ev.evaluate(ev.candidate_model(current.model, eff), f"candidate {eff.name}")
+        entry = {"status": "confirmed", "parameters": to_jsonable(eff.parameters()),
+                 "gap": float(out.gap), "held_out_gap": float(out.held_gap),
+                 "score": float(out.held_gap + self.cfg.penalty_per_parameter * eff.n_fitted),
+                 "seeds": out.disc.n_sims}
+        return eff, out, entry
+
+    def _why(self, rnd: Round, on: Evaluation, best: Candidate | None) -> dict[str, Any]:
+        """Whether ``best`` is named, and why: its held-out gain, what naming needs (the
+        configured least gain, and the gain its effect shows with nothing missing), and
+        the candidates it was ranked above."""
+        cfg = self.cfg
+        pen = cfg.penalty_per_parameter
+        needed = need(cfg, on.held_gap)
+        if best is None:
+            return {"named": False, "held_out_gap": float(on.held_gap),
+                    "needed_gain": float(needed),
+                    "reason": "no candidate stood above the null and gained enough on one "
+                              "seed to be confirmed"}
+        g = gain(on.held_gap, best.score(pen))
+        assert self.ev is not None
+        # what the effect gains with nothing missing: measured only for a candidate that
+        # would be named without it (a simulation or three)
+        null_gain = self.null.gain(self.ev, best.name) if g > needed else 0.0
+        others = [{"effect": c.name, "status": c.status, "score": float(c.score(pen))}
+                  for c in rnd.ranked(pen) if c is not best]
+        # confirmed alternatives the held-out rows cannot tell from it: both at the floor
+        # of the comparison (a gap of 1), or within a close margin of it
+        close = max(EQUIVALENT_MARGIN, EQUIVALENT_RELATIVE * (best.score(pen) - 1.0))
+        floor = max(best.score(pen), 1.0) + close
+        equivalent = [c.name for c in rnd.ranked(pen) if c is not best and
+                      c.status == "confirmed" and max(c.score(pen), 1.0) <= floor]
+        return {"named": bool(g > needed + null_gain), "effect": best.name,
+                "held_out_gap": float(on.held_gap), "score": float(best.score(pen)),
+                "held_out_gain": float(g), "needed_gain": float(needed),
+                "null_gain": float(null_gain), "ranked_below": others,
+                "equivalent": equivalent}
+
+    def _finish(self, on: Evaluation, best: Candidate
+                ) -> tuple[Effect, Evaluation, dict[str, Any]]:
+        """``best`` refitted on every row (its moment), bias-corrected and refined."""
+        ev = self.ev
+        assert ev is not None
+        assert best.effect is not None
+        assert best.evaluation is not None
+        spec = registry.spec(best.name)
+        key = best.effect.primary
+        res = spec.fit(ev.fit_context(on.model, on.sims, held_out=False))
+        moment = float(res.effect.parameters()[key]) if isinstance(res, Fitted) else \
+            float(best.effect.parameters()[key])
+        eff, after, info = finish(ev, on, best.evaluation, best.effect, moment)
+        info["fit_rows_value"] = float(best.effect.parameters()[key])
+        return eff, after, info
+
+    def _refit(self, current: Evaluation, i: int) -> Evaluation:
+        """Step ``i``'s effect refined anew (:func:`.finish.refine`, the three-point
+        search) in the final model ``current``; the step then holds the value kept and its
+        ``refit`` what it was named with. Each effect's value is settled in the model of its
+        round: an effect named later may explain part of what it took on. The search keeps
+        the named value unless another clearly beats it on every seed."""
+        ev = self.ev
+        assert ev is not None
+        step = self.steps[i]
+        eff = current.model.effects[step.effect.name]
+        key = eff.primary
+        new_eff, out = refine(ev, current.model, current, eff)
+        step.refit = {"named_value": step.effect.parameters()[key], "parameter": key,
+                      "gap_before": float(current.gap), "gap_after": float(out.gap)}
+        step.effect = new_eff
+        return moved_on(current, out)
+
+    def _result(self, initial: Evaluation, current: Evaluation) -> GapResult:
+        ev = self.ev
+        assert ev is not None
+        cfg = self.cfg
+        window = self.window
+        rec = self.rec
+        info = {"sensor": str(rec.sensor), "n_events": window.get("of_events", rec.n_events),
+                "n_frames": window["of_frames"],
+                "duration_s": window.get("of_duration_s", rec.duration_s), "window": window,
+                "screen_band_rows": None if ev.band is None else
+                [ev.band.rows.start, ev.band.rows.stop],
+                "simulations": ev.simulations,
+                "median_light_dn": ev.light_dn}
+        settings = {"seed": cfg.seed, "n_seeds": cfg.n_seeds,
+                    "internal_rate_hz": cfg.internal_rate_hz,
+                    "read_noise_dn": ev.settings.read_noise_dn,
+                    "penalty_per_parameter": cfg.penalty_per_parameter,
+                    "min_improvement": cfg.min_improvement,
+                    "min_relative_improvement": cfg.min_relative_improvement,
+                    "null_factor": cfg.null_factor}
+        # the result keeps each evaluation's model and statistics, not its simulated
+        # observations (about 200 MB per evaluation at 2 s of 96x128)
+        light: dict[int, Evaluation] = {}
+
+        def lighten(e: Evaluation) -> Evaluation:
+            return light.setdefault(id(e), e.lightened())
+
+        steps = [Step(s.effect, lighten(s.before), lighten(s.after), s.candidates, s.why,
+                      s.refit) for s in self.steps]
+        return GapResult(info, ev.meas_stats, lighten(initial), lighten(current), steps,
+                         settings, self.rejected, self.null.to_json())
 
 
 def run_gap(rec: Recording, config: GapConfig | None = None, *,
@@ -253,167 +485,13 @@ def run_gap(rec: Recording, config: GapConfig | None = None, *,
             plan: Callable[[float], None] | None = None,
             window: dict[str, Any] | None = None,
             released: Callable[[], object] | None = None) -> GapResult:
-    """Run the gap workflow on ``rec`` (measured or simulated; it needs frames).
-
-    ``rec`` is first cut to its working window (:func:`working_window`). A caller that cut
-    it already gives ``window`` (the description that returned): the whole recording need
-    not stay in memory during the run. ``released()`` is called whenever the run has let go
-    of simulations (``evcal gap`` hands the freed memory back to the system there).
-
-    ``progress(work)`` is called after every simulation with its share of a simulation of
-    the whole sensor (a screening on a band of rows is less); ``plan(total)`` with the work
-    the run plans (in the same unit), at the start and whenever it changes (it names nothing
-    more: the rounds left drop out).
+    """Run the gap workflow on ``rec`` (measured or simulated; it needs frames): see
+    :class:`GapRun` for the arguments.
 
     Raises
     ------
     GapError
         When the recording lacks frames or events between them.
     """
-    cfg = config or GapConfig()
-    if rec.frames is None or len(rec.frames) < 4:
-        raise GapError("the gap workflow needs a recording with at least 4 frames (APS or "
-                       "images.txt): simulations are driven by the measured frames")
-    tick = progress or (lambda _work: None)
-    if window is None:
-        rec, window = working_window(rec, cfg.max_pixel_steps, cfg.internal_rate_hz,
-                                     cfg.max_events)
-    # the base fit (its noise scale simulates) does not need the runner's measurement
-    # statistics: each is made while the other waits on numba or OpenCV
-    with ThreadPoolExecutor(max_workers=1) as pool:
-        fitting = pool.submit(fit_base, rec)
-        run = Runner(rec, cfg, tick, released)
-        share = 1.0 if run.band is None else run.band.share
-        if plan is not None:
-            plan(n_simulations(cfg, band_share=share))
-        base = fitting.result()
-    current = run.evaluate(base, "base model")
-    initial = current
-    steps: list[Step] = []
-    rejected: dict[str, dict[str, Any]] = {}
-
-    def n_sensor() -> int:  # max_effects counts sensor effects, not the timestamp scheme
-        return sum(s.effect.name != SCHEME_EFFECT for s in steps)
-
-    fitted: int | None = None  # candidates the last round's fitters found evidence for
-
-    while n_sensor() < cfg.max_effects:
-        if plan is not None:  # this round and the one that names nothing
-            plan(run.work + n_simulations(cfg, 1, share, candidates=fitted, named=n_sensor(),
-                                          base=False))
-        tried: dict[str, dict[str, Any]] = {}
-        # the timestamp scheme first: once the timestamps are seen to lie on a step grid,
-        # every sensor candidate is fitted and simulated with the scheme (how a frame-driven
-        # simulator stamps its events changes what its dead time, noise and jitter look like:
-        # v2e's refractory period shows only in its slots, neither alone)
-        scheme = scheme_candidate(run, current, tried)
-        on = scheme[1] if scheme is not None else current
-        best = best_candidate(run, on, tried, skip=SCHEME_EFFECT)
-        n_fitted = len(run.screened_pool)  # the candidates fitted this round
-        fitted = max(n_fitted - 1, 0)  # the next round's: one of them is named
-        if scheme is not None:
-            eff_q, ev_q = scheme
-            pen_q = cfg.penalty_per_parameter * eff_q.n_fitted
-            q_alone = gain(current.gap, ev_q.gap + pen_q) > need(cfg, current)
-            joint = best is not None and gain(ev_q.gap, best[0]) > need(cfg, ev_q) and \
-                gain(current.gap, best[0] + pen_q) > need(cfg, current)
-            if not (q_alone or joint):
-                rejected = tried
-                break
-            # read off the timestamps: neither bias-corrected nor refined, so the candidates
-            # evaluated on top of it stand
-            steps.append(Step(eff_q, current, ev_q, tried))
-            current = moved_on(current, ev_q)
-            tried = {k: v for k, v in tried.items() if k != SCHEME_EFFECT}
-        if best is None or gain(current.gap, best[0]) <= need(cfg, current):
-            pair = None
-            if cfg.beam_width >= 2 and current.gap > cfg.beam_min_gap and \
-                    n_sensor() + 2 <= cfg.max_effects:
-                pair = best_pair(run, current, tried)
-            if pair is None or gain(current.gap, pair[0]) <= need(cfg, current):
-                rejected = tried
-                break
-            (eff_a, ev_a), (eff_b, ev_pair) = pair[1]
-            pen = cfg.penalty_per_parameter
-            score_a = ev_a.gap + pen * eff_a.n_fitted
-            if gain(current.gap, score_a) > need(cfg, current) and \
-                    gain(ev_a.gap, ev_pair.gap + pen * eff_b.n_fitted) <= need(cfg, ev_a):
-                # the first explains what the pair does alone (confirmed on every seed, it
-                # clears the bar that one seed on the band did not), and the second adds
-                # nothing that would name it: the first is named as a single, finished
-                # like one, and the loop goes on from it
-                tried[f"{eff_a.name} + {eff_b.name}"]["note"] = \
-                    f"{eff_b.name} adds nothing to {eff_a.name} alone"
-                ev_pair.sims.clear()
-                best = (score_a, eff_a, ev_a)
-            else:
-                # named together: each step as the loop would have named it
-                steps.append(Step(eff_a, current, ev_a, tried))
-                steps.append(Step(eff_b, ev_a, ev_pair, {}))
-                moved_on(ev_a, ev_pair)
-                current = moved_on(current, ev_pair)
-                run.let_go(current)
-                continue
-        close = runner_up(run, best, current)
-        run.let_go(current, best[2], None if close is None else close[2])
-        _, eff, ev = best
-        eff, ev = finish(run, current, ev, eff, tried)
-        finished = [ev]
-        if close is not None:
-            # a close second, compared at its bias-corrected value too
-            eff2, ev2 = finish(run, current, close[2], close[1], tried)
-            finished.append(ev2)
-            pen = cfg.penalty_per_parameter
-            tried[eff2.name]["finished_gap"] = ev2.gap
-            qualifies = gain(current.gap, ev2.gap + pen * eff2.n_fitted) > need(cfg, current)
-            if qualifies and same_signature(eff.name, eff2.name) and \
-                    n_sensor() + 1 < cfg.max_effects:
-                # two explanations of the same signature (a late frame stamp and a slow
-                # photoreceptor both delay the events): compared by where each leads, the
-                # best of the round after it, not by this round alone
-                if plan is not None:  # a screened round on each, then the rest as planned
-                    one = round_work(cfg, share, n_fitted, names=False)
-                    plan(run.work + 2 * one + n_simulations(
-                        cfg, 1, share, candidates=fitted, named=n_sensor() + 1, base=False))
-                ahead = {e.name: lookahead(run, v, e) for e, v in ((eff, ev), (eff2, ev2))}
-                tried[eff2.name]["lookahead"] = ahead
-                run.let_go(current, ev, ev2)
-                if ahead[eff2.name]["score"] < ahead[eff.name]["score"]:
-                    eff, ev = eff2, ev2
-            elif ev2.gap + pen * eff2.n_fitted < ev.gap + pen * eff.n_fitted and qualifies:
-                eff, ev = eff2, ev2
-        steps.append(Step(eff, current, ev, tried))
-        current = moved_on(current, ev)
-        for other in finished:
-            moved_on(other, current)
-        run.let_go(current)
-    if cfg.refit_named:
-        todo = [i for i, s in enumerate(steps) if s.effect.name != SCHEME_EFFECT][:-1]
-        if plan is not None and todo:  # each: three screenings and a confirmation
-            plan(run.work + len(todo) * round_work(cfg, share, 3, names=False))
-        for i in todo:
-            current = refit_named(run, current, steps, i)
-    if plan is not None:
-        plan(run.work)
-    info = {"sensor": str(rec.sensor), "n_events": window.get("of_events", rec.n_events),
-            "n_frames": window["of_frames"],
-            "duration_s": window.get("of_duration_s", rec.duration_s), "window": window,
-            "screen_band_rows": None if run.band is None else
-            [run.band.rows.start, run.band.rows.stop],
-            "simulations": run.simulations}
-    settings = {"seed": cfg.seed, "n_seeds": cfg.n_seeds, "internal_rate_hz": cfg.internal_rate_hz,
-                "read_noise_dn": run.settings.read_noise_dn,
-                "penalty_per_parameter": cfg.penalty_per_parameter,
-                "min_improvement": cfg.min_improvement,
-                "min_relative_improvement": cfg.min_relative_improvement}
-    # the result keeps each evaluation's model and statistics, not its simulated
-    # observations (about 200 MB per evaluation at 2 s of 96x128: a run held 0.4 GB)
-    light: dict[int, Evaluation] = {}
-
-    def lighten(ev: Evaluation) -> Evaluation:
-        return light.setdefault(id(ev), Evaluation(ev.model, [], ev.disc))
-
-    steps = [Step(s.effect, lighten(s.before), lighten(s.after), s.candidates, s.refit)
-             for s in steps]
-    return GapResult(info, run.meas_stats, lighten(initial), lighten(current), steps, settings,
-                     rejected)
+    return GapRun(rec, config, progress=progress, plan=plan, window=window,
+                  released=released).run()

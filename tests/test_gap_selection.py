@@ -1,0 +1,162 @@
+"""How the gap workflow chooses: the registry of effects, the fitters' evidence and reasons,
+physics that tells effects apart which mimic each other, the held-out rows and the null
+calibration.
+
+Recordings are those of tests/test_gap.py (48x64, 2 s, a still stretch then a pan, 200 Hz
+frames) with their own seeds; the properties, not the figures of a seed, are asserted.
+"""
+
+from __future__ import annotations
+
+from functools import cache
+
+import numpy as np
+import pytest
+from test_gap import hidden_recording
+
+from evcal.gap import effects as registry
+from evcal.gap.effects import EffectSpec, Fitted, NoEvidence
+from evcal.gap.model import fit_base, simulate_model
+from evcal.gap.null import calibrate
+from evcal.gap.runner import Evaluation, Evaluator, GapConfig
+from evcal.gap.stats import STATISTICS
+from evcal.gap.workflow import run_gap
+from evcal.recording import Recording
+from evcal.sim.effects import (
+    EFFECT_NAMES,
+    Bandwidth,
+    Effect,
+    Exposure,
+    Leak,
+    ShotNoise,
+)
+
+
+@cache
+def _evaluated(key: str, seed: int) -> tuple[Recording, Evaluator, Evaluation]:
+    effects: dict[str, list[Effect]] = {
+        "none": [],
+        "leak": [Leak(rate_hz=1.5, spread_log=0.2)],
+        "shot": [ShotNoise(rate_hz=2.0)],
+        "lag": [Exposure(lag_us=2500.0, exposure_us=5000.0)],
+        "lowpass": [Bandwidth(cutoff_hz=40.0)],
+    }
+    rec = hidden_recording(effects[key], seed)
+    ev = Evaluator(rec, GapConfig(seed=2, candidates=tuple(registry.names())),
+                   lambda _w: None)
+    return rec, ev, ev.evaluate(fit_base(rec), "base")
+
+
+def _fit(key: str, seed: int, name: str) -> Fitted | NoEvidence:
+    _, ev, cur = _evaluated(key, seed)
+    return registry.spec(name).fit(ev.fit_context(cur.model, cur.sims))
+
+
+def test_every_effect_of_the_simulator_has_one_spec() -> None:
+    assert set(registry.names()) == set(EFFECT_NAMES)
+    _, ev, _ = _evaluated("none", 31)
+    stats = set(ev.meas_stats)
+    assert len(stats) == len(STATISTICS)
+    kinds = set()
+    for name in registry.names():
+        spec = registry.spec(name)
+        assert spec.effect.name == name
+        kinds.add(spec.kind)
+        eff = spec.effect()
+        assert spec.says(eff)  # the report's words for a value
+        assert spec.strength(eff, 100.0) >= 0.0
+        assert spec.alternatives(eff)[0] is eff
+        assert spec.moves, name
+        assert set(spec.moves) <= stats, (name, set(spec.moves) - stats)
+    assert kinds == {"sensor", "frames", "scheme"}
+    with pytest.raises(ValueError, match="registered already"):
+        registry.register(registry.spec("leak"))
+    with pytest.raises(KeyError, match="known"):
+        registry.spec("flux_capacitor")
+
+
+def test_a_spec_must_hold_its_own_effect() -> None:
+    spec = registry.spec("leak")
+    with pytest.raises(ValueError, match="holds effect"):
+        EffectSpec("shot_noise", Leak, spec.fit, spec.strength, spec.moves, spec.says)
+
+
+def test_fitters_that_see_nothing_say_why() -> None:
+    """Nothing hidden: the fitters of effects that add or remove events find none, and each
+    says why in words (the report prints them). (Fitters of subtler signatures may read
+    something into what the interpolated frames miss: the held-out gain judges those.)"""
+    for name in ("leak", "shot_noise", "hot_pixels", "row_noise", "refractory"):
+        res = _fit("none", 31, name)
+        assert isinstance(res, NoEvidence), (name, res)
+        assert len(res.reason) > 20, name
+    for name in registry.names():
+        res = _fit("none", 31, name)
+        assert isinstance(res, Fitted | NoEvidence)
+
+
+def test_leak_and_shot_noise_are_told_apart_by_polarity() -> None:
+    """A leak adds ON events only: the shot-noise fitter, which needs an excess of both
+    polarities, sees none of it; shot noise adds both alike: the leak fitter, which needs
+    a net excess of ON, sees none of it."""
+    on_leak = _fit("leak", 33, "shot_noise")
+    assert isinstance(on_leak, NoEvidence)
+    assert "OFF" in on_leak.reason
+    leak = _fit("leak", 33, "leak")
+    assert isinstance(leak, Fitted)
+    on_shot = _fit("shot", 35, "leak")
+    assert isinstance(on_shot, NoEvidence)
+    shot = _fit("shot", 35, "shot_noise")
+    assert isinstance(shot, Fitted)
+
+
+def test_a_frame_lag_is_not_read_as_a_slow_photoreceptor() -> None:
+    """A late frame stamp delays every pixel's events alike; a photoreceptor low-pass
+    delays the dark pixels' more (its cutoff follows the photocurrent). Each fitter sees
+    its own and not the other's."""
+    lag = _fit("lag", 37, "exposure")
+    assert isinstance(lag, Fitted)
+    assert isinstance(_fit("lag", 37, "bandwidth"), NoEvidence)
+    low = _fit("lowpass", 39, "bandwidth")
+    assert isinstance(low, Fitted)
+    assert isinstance(_fit("lowpass", 39, "exposure"), NoEvidence)
+
+
+def test_a_map_is_fitted_on_the_fit_rows_and_drawn_on_the_others() -> None:
+    rec, ev, cur = _evaluated("none", 31)
+    ctx = ev.fit_context(cur.model, cur.sims)
+    assert ctx.rows is not None
+    assert ctx.meas.shape == (rec.sensor.height // 2, rec.sensor.width)
+    part = np.arange(ctx.meas.n_pixels, dtype=np.float64).reshape(ctx.meas.shape)
+    whole = ctx.whole_map(part, spread=2.0)
+    assert whole.shape == rec.sensor.shape
+    np.testing.assert_array_equal(whole[ctx.rows], part)
+    held = np.setdiff1d(np.arange(rec.sensor.height), ctx.rows)
+    assert np.std(whole[held]) == pytest.approx(2.0, rel=0.15)
+    # the fit rows and the held-out rows interleave and cover the sensor once
+    assert np.intersect1d(ctx.rows, ev.whole.held_rows).size == 0
+    assert ctx.rows.size + ev.whole.held_rows.size == rec.sensor.height
+
+
+def test_null_calibration_reads_every_fitter_on_the_models_own_simulations() -> None:
+    _, ev, cur = _evaluated("none", 31)
+    names = [n for n in registry.names() if registry.spec(n).kind != "scheme"]
+    null = calibrate(ev, cur, names)
+    assert set(null.strengths) == set(names)
+    for name in names:
+        assert null.limit(name, 2.0) == pytest.approx(2.0 * max(null.strengths[name]))
+        assert null.gain(ev, name) >= 0.0
+    # the tested fitters see nothing in a simulation of the model itself
+    for name in ("leak", "shot_noise", "hot_pixels", "row_noise"):
+        assert null.strengths[name] == [0.0], name
+        assert null.reasons[name]
+
+
+@pytest.mark.slow
+def test_nothing_is_named_on_a_recording_of_the_model_itself() -> None:
+    """The base model fitted to a recording, simulated anew with another seed, is a
+    recording from which nothing is missing: the workflow names nothing on it."""
+    rec = hidden_recording([Leak(rate_hz=0.5)], 41)
+    base = fit_base(rec)
+    own = simulate_model(base, rec, 777, Evaluator(rec, GapConfig(), lambda _w: None).settings)
+    res = run_gap(own, GapConfig(seed=3, max_effects=2))
+    assert [n for n in res.named_effects if n != "timestamp_quantisation"] == []
