@@ -161,6 +161,30 @@ def test_read_noise_of_still_pixels_is_taken_out_and_motion_kept() -> None:
     np.testing.assert_array_equal(latent_frames(frames, 0.2), frames.images)
 
 
+def test_a_slow_change_of_the_light_is_kept_in_still_pixels() -> None:
+    """Still pixels under a light that ramps by 1.5 % a frame (about 1 DN, within the
+    noise): the latent frames follow the ramp (a sensor fires all the while) and lose the
+    noise; a moving pixel is kept as it is."""
+    rng = np.random.default_rng(1)
+    k, h, w = 40, 16, 16
+    gain = 1.015 ** np.arange(k)
+    scene = rng.uniform(40.0, 120.0, (h, w))
+    clean = gain[:, None, None] * scene[None]
+    imgs = clean + rng.normal(0.0, 1.0, clean.shape)
+    imgs[:, 0, 0] = 60.0 + 40.0 * (np.arange(k) % 2)  # a pixel an edge crosses back and forth
+    frames = Frames(np.arange(k, dtype=np.int64) * 40_000, imgs.astype(np.float32),
+                    np.zeros(k, np.int64))
+    lat = latent_frames(frames, 1.0)
+    still = np.ones((h, w), bool)
+    still[0, 0] = False
+    err_lat = np.abs(lat - clean)[:, still].mean()
+    err_raw = np.abs(imgs - clean)[:, still].mean()
+    assert err_lat < 0.5 * err_raw  # the noise is taken out ...
+    ratio = lat[-1][still] / lat[0][still]
+    assert np.median(ratio) == pytest.approx(gain[-1] / gain[0], rel=0.02)  # ... the ramp kept
+    np.testing.assert_allclose(lat[:, 0, 0], imgs[:, 0, 0], rtol=1e-5)
+
+
 def test_an_evaluation_that_let_go_of_its_simulations_is_extended_anew() -> None:
     """A round lets go of the simulations of candidates it does not keep; confirming one of
     them later simulates every seed again rather than counting its first seed's summary

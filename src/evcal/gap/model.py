@@ -280,23 +280,46 @@ def fit_base(rec: Recording, log_offset: float = NOMINAL_LOG_OFFSET_DN, *,
     return Model(c, b, float(log_offset), noise_scale=scale)
 
 
+def light_gain(images: np.ndarray) -> np.ndarray:
+    """Per frame, the factor the light common to the whole scene has changed by since the
+    first frame (``[K]``, the first 1): the cumulative product of each frame's median ratio
+    to the previous one over the pixels lit well inside the range in both (10..245 DN). A
+    moving scene brightens as many pixels as it darkens (median ratio 1); a light that
+    ramps, breathes or flickers scales them all."""
+    f = images.reshape(images.shape[0], -1).astype(np.float32)
+    k = f.shape[0]
+    log_r = np.zeros(k)
+    for i in range(1, k):
+        a, b = f[i - 1], f[i]
+        lit = (a > 10) & (a < 245) & (b > 10) & (b < 245)
+        if lit.sum() >= 100:
+            log_r[i] = float(np.median(np.log(b[lit]) - np.log(a[lit])))
+    out: np.ndarray = np.exp(np.cumsum(log_r))
+    return out
+
+
 def latent_frames(frames: Frames, read_noise_dn: float) -> np.ndarray:
     """The frames as float32 latent intensity, their read noise taken out where a pixel is
-    still: each pixel's frames are cut into runs within which every frame lies within the
-    noise (``3 read_noise_dn + 1`` DN) of the run's mean so far, and a run is replaced by its
-    mean (the scene is still there; the noise is in the frames, not in the light the events
-    saw). A pixel that changes makes runs of one frame: its frames are kept as they are.
+    still: each pixel's frames, divided by the light common to the scene
+    (:func:`light_gain`), are cut into runs within which every frame lies within the noise
+    (``3 read_noise_dn + 1`` DN) of the run's mean so far; a run is replaced by its mean
+    (the scene is still there; the noise is in the frames, not in the light the events saw),
+    and the common light is put back. A pixel that changes makes runs of one frame: its
+    frames are kept as they are.
 
     Without the runs a still pixel's frames (or a short moving mean of them) carry the noise
     into the simulation, whose events then follow it: on a DAVIS346 recording of a still
     scene (1 DN read noise) the simulated still pixels fired 5x the measured rate, the dark
-    ones most."""
+    ones most. Without the common light taken out first, a slow change of the light (a ramp
+    of a few DN a frame) made runs too, and the simulated still pixels never fired where a
+    sensor fires all the time the light changes."""
     imgs = frames.images.astype(np.float32)
     if read_noise_dn <= 0.5 or imgs.shape[0] < 3:
         return imgs
     tol = 3.0 * read_noise_dn + 1.0
     k = imgs.shape[0]
-    f = imgs.reshape(k, -1)
+    gain = light_gain(imgs).astype(np.float32)
+    f = imgs.reshape(k, -1) / gain[:, None]
     # a pass forward over the frames (vectorised over pixels) keeps each run's mean so far,
     # one backward gives every frame its run's final mean
     mean_so_far = np.empty(f.shape, np.float64)
@@ -312,10 +335,10 @@ def latent_frames(frames: Frames, read_noise_dn: float) -> np.ndarray:
         mean_so_far[i] = total / n
     out = np.empty(f.shape, np.float32)
     last = mean_so_far[k - 1]
-    out[k - 1] = last
+    out[k - 1] = last * gain[k - 1]
     for i in range(k - 2, -1, -1):
         last = np.where(joins[i + 1], last, mean_so_far[i])
-        out[i] = last
+        out[i] = last * gain[i]
     return out.reshape(imgs.shape)
 
 

@@ -84,7 +84,7 @@ class StatValue:
     name: str
     values: np.ndarray
     labels: list[str]
-    floor: float
+    floor: float | np.ndarray  # one for every component, or one each
 
 
 @dataclass
@@ -488,22 +488,36 @@ def _static_bins(obs: Observation, n_bins: int = 4
     return result
 
 
+# a still-window bin of fewer pixel-seconds than this says nothing (NaN: left out); above it,
+# a rate is never told apart by less than one event in the bin (its floor)
+MIN_STILL_PIXEL_S = 2.0
+
+
+def _still_rate(num: np.ndarray, den: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per bin, events per pixel-second (NaN below :data:`MIN_STILL_PIXEL_S`) and the floor
+    of its spread: 0.05 Hz, or the rate of one event in the bin when that is more (a count
+    of a few events is as uncertain as a Poisson count, whatever the seeds show)."""
+    ok = den >= MIN_STILL_PIXEL_S
+    v = np.where(ok, num / np.maximum(den, 1e-12), np.nan)
+    floor = np.maximum(0.05, 1.0 / np.maximum(den, MIN_STILL_PIXEL_S))
+    return v, floor
+
+
 def stat_static_rate(obs: Observation) -> StatValue:
     st, idx, edges, den = _static_bins(obs)
     e = (obs.on + obs.off)[st].astype(np.float64)
     # events per pixel-second: sum(E) / sum(window seconds) per bin
-    num = np.bincount(idx, weights=e, minlength=edges.size - 1)
-    v = np.where(den > 0, num / np.maximum(den, 1e-12), 0.0)
-    return StatValue("static_rate_vs_intensity", v, _edge_labels(edges, "static, I (DN)"), 0.05)
+    v, floor = _still_rate(np.bincount(idx, weights=e, minlength=edges.size - 1), den)
+    return StatValue("static_rate_vs_intensity", v, _edge_labels(edges, "static, I (DN)"),
+                     floor)
 
 
 def stat_static_balance(obs: Observation) -> StatValue:
     st, idx, edges, den = _static_bins(obs)
     pnet = (obs.on - obs.off)[st].astype(np.float64)
-    num = np.bincount(idx, weights=pnet, minlength=edges.size - 1)
-    v = np.where(den > 0, num / np.maximum(den, 1e-12), 0.0)
+    v, floor = _still_rate(np.bincount(idx, weights=pnet, minlength=edges.size - 1), den)
     return StatValue("static_balance_vs_intensity", v, _edge_labels(edges, "static, I (DN)"),
-                     0.05)
+                     floor)
 
 
 def stat_on_fraction_over_time(obs: Observation, n_bins: int = 6) -> StatValue:
