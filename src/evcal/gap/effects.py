@@ -93,6 +93,9 @@ class FitContext:
     whole: Observation
     rows: np.ndarray | None = None
     seed: int = 0
+    # the rows of the recording's frames that ``meas`` holds when they are not ``rows``
+    # (a band of rows the fit sees as a sensor of its own)
+    frame_rows: slice | None = None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -111,7 +114,8 @@ class FitContext:
         ev["y"] = self.meas.pix // w
         ev["p"] = self.meas.p
         fr = self.rec.frames
-        images = fr.images if self.rows is None else fr.images[:, self.rows]
+        rows = self.frame_rows if self.frame_rows is not None else self.rows
+        images = fr.images if rows is None else fr.images[:, rows]
         return Recording(SensorSize(h, w), ev, Frames(fr.t_us, images, fr.exposure_us),
                          dict(self.rec.metadata))
 

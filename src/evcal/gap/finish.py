@@ -114,7 +114,8 @@ def _debias_on_band(ev: Evaluator, on: Evaluation, best: Evaluation, eff: Effect
     spec = registry.spec(eff.name)
 
     def ctx(meas: Observation) -> FitContext:
-        return FitContext(meas, on_band, model_band, ev.rec, meas, None, ev.cfg.seed)
+        return FitContext(meas, on_band, model_band, ev.rec, meas, None, ev.cfg.seed,
+                          frame_rows=band.rows)
 
     def refit_band(sim: Observation) -> Effect | None:
         res = spec.fit(ctx(sim))

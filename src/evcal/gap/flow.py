@@ -223,6 +223,72 @@ class FlowInterpolator(FrameInterpolator):
         return out
 
 
+# the longest blur (pixels) the second-order correction is trusted with: beyond it, the
+# Taylor series of the box blur is no longer a small correction
+MAX_BLUR_PX = 6.0
+DEBLUR_SAMPLES = 7  # points along the blur segment
+DEBLUR_ITERATIONS = 4
+
+
+def deblurred(images: np.ndarray, t_us: np.ndarray, exposure_us: np.ndarray,
+              flow_images: np.ndarray | None = None, *, min_size: int = 192) -> np.ndarray:
+    """``images`` (``[K, H, W]``, frames averaged over their exposure) with the motion blur
+    of their exposure taken out: a frame exposed for ``e`` while the image
+    moves at ``v`` (px/s, from the flow to the neighbouring frames, where it is consistent)
+    is the sharp image averaged along a segment ``L = v e``: the sharp image is found by
+    Van Cittert's iteration ``I <- I + (B - blur_L(I))`` from ``I = B``
+    (:data:`DEBLUR_ITERATIONS` steps, the blur sampled at :data:`DEBLUR_SAMPLES` points
+    along the segment), kept within the range of the blurred frame around the pixel (a
+    sharp edge does not overshoot). Blurs are limited to :data:`MAX_BLUR_PX` (the direction
+    kept): beyond, two frames do not say enough of the path.
+
+    A simulation driven by blurred frames fires an edge's events spread over the time the
+    blur spans: at 10 ms exposure and a fast pan over text, 3x too few same-pixel intervals
+    of 0.3-1 ms against the sensor, which saw the sharp edge."""
+    cv2 = _cv2()
+    imgs = np.asarray(images, np.float32)
+    k = imgs.shape[0]
+    exp_s = np.asarray(exposure_us, np.float64).reshape(-1) * 1e-6
+    if k < 2 or not (exp_s > 0).any():
+        return imgs
+    src = imgs if flow_images is None else np.asarray(flow_images, np.float32)
+    fwd, bwd, v_fwd, v_bwd = frame_flows(src, min_size=min_size)
+    dt = np.diff(np.asarray(t_us, np.float64)) * 1e-6
+    out = imgs.copy()
+    for i in range(k):
+        if exp_s[i] <= 0:
+            continue
+        parts, wts = [], []
+        if i < k - 1:  # towards the next frame, on frame i's grid
+            parts.append(fwd[i] / dt[i])
+            wts.append(v_fwd[i])
+        if i > 0:  # from the previous frame: minus the flow back to it, on frame i's grid
+            parts.append(-bwd[i - 1] / dt[i - 1])
+            wts.append(v_bwd[i - 1])
+        wsum = np.sum(wts, axis=0)
+        vel = np.sum([p * w[..., None] for p, w in zip(parts, wts, strict=True)], axis=0) / \
+            np.maximum(wsum, 1e-6)[..., None]
+        blur = vel * np.float32(exp_s[i]) * np.clip(wsum, 0.0, 1.0)[..., None]
+        length = np.hypot(blur[..., 0], blur[..., 1])
+        blur = (blur * (np.minimum(length, MAX_BLUR_PX) / np.maximum(length, 1e-6))[..., None]
+                ).astype(np.float32)
+        b = imgs[i]
+        r = int(np.ceil(MAX_BLUR_PX / 2))
+        kernel = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
+        lo, hi = cv2.erode(b, kernel), cv2.dilate(b, kernel)
+        gy, gx = np.mgrid[0:b.shape[0], 0:b.shape[1]].astype(np.float32)
+        steps = (np.arange(DEBLUR_SAMPLES, dtype=np.float32) + 0.5) / DEBLUR_SAMPLES - 0.5
+        sharp = b.copy()
+        for _ in range(DEBLUR_ITERATIONS):  # Van Cittert: I <- I + (B - blur(I))
+            again = np.mean([cv2.remap(sharp, gx + f * blur[..., 0], gy + f * blur[..., 1],
+                                       cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+                             for f in steps], axis=0)
+            sharp = np.clip(sharp + (b - again), lo, hi).astype(np.float32)
+        out[i] = sharp
+    result: np.ndarray = out
+    return result
+
+
 def trusted_windows(frames: Frames, *, max_px: float = 2.0, min_consistency: float = 0.5,
                     min_size: int = 192) -> np.ndarray:
     """``[n_frames - 1, n_pixels]`` bool: windows of pixels where the motion between the two

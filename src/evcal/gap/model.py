@@ -409,13 +409,16 @@ def simulate_model(model: Model, rec: Recording, seed: int, settings: SimSetting
         latent = Frames(drive.t_us, latent_frames(drive, settings.read_noise_dn),
                         drive.exposure_us)
         if settings.interpolation == "flow":
-            from .flow import FlowInterpolator  # noqa: PLC0415
+            from .flow import FlowInterpolator, deblurred  # noqa: PLC0415
 
             # the motion is the scene's: the flow of the measured frames serves every model
             # (a dark-offset map subtracted from the frames would otherwise cost a flow of
-            # its own per candidate, for the same motion)
-            return FlowInterpolator(latent, shape, t_origin_us=t0,
-                                    flow_images=fr.images.astype(np.float32))
+            # its own per candidate, for the same motion); the frames' exposure blur along
+            # it is taken out, as the events saw the light sharp
+            flow_images = fr.images.astype(np.float32)
+            latent = Frames(latent.t_us, deblurred(latent.images, fr.t_us, fr.exposure_us,
+                                                   flow_images), latent.exposure_us)
+            return FlowInterpolator(latent, shape, t_origin_us=t0, flow_images=flow_images)
         return FrameInterpolator(latent, shape, t_origin_us=t0)
 
     cache = render if render is not None else RenderCache(max_bytes=0)
