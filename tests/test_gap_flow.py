@@ -351,7 +351,7 @@ def test_timing_statistics_leave_out_windows_with_a_clipped_frame() -> None:
 
 
 def test_the_exposure_blur_of_moving_frames_is_taken_out() -> None:
-    """Frames of a textured scene panning at 100 px/s, each the mean over a 10 ms exposure
+    """Frames of a textured scene panning at 300 px/s, each the mean over a 10 ms exposure
     (3 px of blur along the motion): deblurred along their flow they are closer to the
     sharp images than the blurred ones are, and a still scene is left as it is."""
     from evcal.gap.flow import deblurred
