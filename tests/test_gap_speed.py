@@ -185,6 +185,19 @@ def test_a_slow_change_of_the_light_is_kept_in_still_pixels() -> None:
     np.testing.assert_allclose(lat[:, 0, 0], imgs[:, 0, 0], rtol=1e-5)
 
 
+def test_the_common_light_keeps_a_breathing_light_and_drops_an_aliased_flicker() -> None:
+    from evcal.gap.model import smooth_gain
+
+    k = np.arange(60)
+    breathing = np.exp(0.2 * np.sin(2 * np.pi * k / 25.0))  # 1 Hz at 25 frames per second
+    np.testing.assert_allclose(smooth_gain(breathing), breathing, rtol=0.02)
+    ramp = 1.01 ** k
+    np.testing.assert_allclose(smooth_gain(ramp), ramp, rtol=1e-6)
+    rng = np.random.default_rng(2)
+    flicker = np.exp(0.08 * rng.uniform(-1, 1, k.size))  # a mains flicker sampled by frames
+    assert np.std(np.log(smooth_gain(flicker))) < 0.7 * np.std(np.log(flicker))
+
+
 def test_an_evaluation_that_let_go_of_its_simulations_is_extended_anew() -> None:
     """A round lets go of the simulations of candidates it does not keep; confirming one of
     them later simulates every seed again rather than counting its first seed's summary

@@ -18,11 +18,12 @@ def build_parser() -> argparse.ArgumentParser:
         prog="evcal gap",
         description="Find where simulation and measurement disagree, name the missing sensor "
                     "effect, add it and show the gap shrink.",
-        epilog="Cost: about 2 minutes for a 3 s 240x180 recording on 2 cores (some 90 "
-               "simulations, half on a quarter of the rows); a longer recording is cut to "
-               "its busiest stretch within --max-events and --max-pixel-steps. Progress "
-               "goes to stderr: a bar on a terminal, else a line every 10 s with the time "
-               "left.")
+        epilog="Candidates are fitted on the sensor's even rows and judged on its odd rows, "
+               "held to what their fitters read on the model's own simulations (docs/GAP.md). "
+               "Cost: about a minute for a 3 s 240x180 recording on 2 cores; a longer "
+               "recording is cut to its busiest stretch within --max-events and "
+               "--max-pixel-steps. Progress goes to stderr: a bar on a terminal, else a line "
+               "every 10 s with the time left.")
     p.add_argument("recording", help="ECD folder, .aedat4, .mcap or .npz (needs frames)")
     p.add_argument("--out", required=True, help="output directory (report.json, report.md, "
                    "PNG plots, gap.rrd)")
@@ -30,12 +31,14 @@ def build_parser() -> argparse.ArgumentParser:
                    help="at most this many sensor effects named (the timestamp scheme of a "
                    "frame-driven simulator is named apart)")
     p.add_argument("--seed", type=int, default=0, help="seed of the simulations")
-    p.add_argument("--n-seeds", type=int, default=3, help="simulations per model (spread)")
+    p.add_argument("--n-seeds", type=int, default=3,
+                   help="simulations per model (their spread; at least 3: the null calibration "
+                        "takes one as a pseudo-measurement; default %(default)s)")
     p.add_argument("--internal-rate-hz", type=float, default=1000.0,
                    help="internal sample rate of the simulations")
     p.add_argument("--sensor", default=None, help="WxH, for recordings that do not store it")
     p.add_argument("--candidates", default=",".join(EFFECT_NAMES),
-                   help="comma-separated effects to try")
+                   help="comma-separated effects to try (default: every effect)")
     p.add_argument("--interpolation", choices=("flow", "linear"), default="flow",
                    help="latent intensity between frames: motion-compensated (flow, default) "
                         "or a linear blend")

@@ -128,6 +128,11 @@ def _slot_dead_time(meas: Observation, sims: list[Observation], model: Model
     return float(np.percentile(u_m, 2.0))
 
 
+# the longest dead time taken for a pixel's refractory period (DVS pixels: 0.1-3 ms at usual
+# biases); fewer intervals up to longer ones are another effect's (a low-pass, for one)
+REFRACTORY_MAX_US = 5000.0
+
+
 def fit_refractory(ctx: FitContext) -> FitResult:
     """A dead time: read off the slots of a frame-driven simulator's stamps when the model
     has that scheme; else the shortest same-pixel interval of the measurement (the 1e-4
@@ -161,6 +166,10 @@ def fit_refractory(ctx: FitContext) -> FitResult:
                               f"the shortest measured ({p:.3g} us) and no pairs are missing "
                               "at short intervals")
         p = p_def
+    if p > REFRACTORY_MAX_US:
+        return NoEvidence(f"the short intervals missing reach {p / 1000:.3g} ms, beyond any "
+                          f"pixel's dead time ({REFRACTORY_MAX_US / 1000:g} ms at most): "
+                          "something else thins them")
     pile_m = np.mean((iei_m >= p) & (iei_m < 1.05 * p + 2))
     pile_s = np.mean((iei_s >= p) & (iei_s < 1.05 * p + 2))
     mode = "delay" if pile_m > 3 * pile_s + 2e-3 else "drop"
@@ -369,8 +378,9 @@ def fit_bandwidth(ctx: FitContext) -> FitResult:
     photocurrent), a frame's timing delays every event alike. When the lag is measured in
     the darkest and the brightest third of the cells (window, pixel) by their light
     (:func:`evcal.gap.frames._lag_by_light`) and is not longer in the dark by twice its
-    noise, there is no evidence of a low-pass. Without a positive lag, the frame-rate
-    filter's cutoff (the bias correction makes up part of its error).
+    noise, there is no evidence of a low-pass; nor without a lag of the events behind the
+    frames' changes. A lag beyond the grid's reach (a slow photoreceptor in the dark) takes
+    the frame-rate filter's cutoff (the bias correction makes up part of its error).
 
     Whatever the frames see, the lag alone is not trusted: with nothing hidden, the
     simulations driven by interpolated frames leave the events a few grid steps of lag
@@ -389,30 +399,37 @@ def fit_bandwidth(ctx: FitContext) -> FitResult:
         if den > 0:
             f = float(np.exp(x[1] + 0.5 * (x[1] - x[0]) * (y[0] - y[2]) / den))
     frame_rate_hz = 1e6 / float(np.median(np.diff(meas.frame_t_us)))
-    found = _frames.event_lag(meas, sims, rec) if f < frame_rate_hz else None
+    if f >= frame_rate_hz:
+        return NoEvidence(f"the low-pass that explains the events best ({f:.3g} Hz) is faster "
+                          "than the frames can tell")
+    found = _frames.event_lag(meas, sims, rec)
     detail: dict[str, Any] = {"frame_filter_hz": f}
-    if found is not None:
-        lag, lags = found
-        detail["lag_us"] = lag
-        by_light = _frames._lag_by_light(meas, sims, lags)
-        if by_light is not None:
-            detail["lag_by_light_us"] = by_light.lags_us
-            detail["noise_us"] = by_light.noise_us
-            if not by_light.later_in_the_dark():
-                dark, bright = by_light.lags_us[0], by_light.lags_us[-1]
-                return NoEvidence(f"the events are about as late in the brightest third of "
-                                  f"the moments ({bright:.0f} us) as in the darkest "
-                                  f"({dark:.0f} us, noise {by_light.noise_us:.0f} us): a "
-                                  "low-pass delays the dark ones more")
-    if found is not None and found[0] > 0:
+    if found is None or found[0] <= 0:
+        return NoEvidence("the events do not lag the frames' changes more than the model's "
+                          "do: a low-pass would delay them")
+    lag, lags = found
+    detail["lag_us"] = lag
+    by_light = _frames._lag_by_light(meas, sims, lags)
+    if by_light is not None:
+        detail["lag_by_light_us"] = by_light.lags_us
+        detail["noise_us"] = by_light.noise_us
+        if not by_light.later_in_the_dark():
+            dark, bright = by_light.lags_us[0], by_light.lags_us[-1]
+            return NoEvidence(f"the events are about as late in the brightest third of "
+                              f"the moments ({bright:.0f} us) as in the darkest "
+                              f"({dark:.0f} us, noise {by_light.noise_us:.0f} us): a "
+                              "low-pass delays the dark ones more")
+    if np.isfinite(lag):
         ref = float(Bandwidth().ref_dn)
         light = meas.intensity.mean(0).astype(np.float64) + float(model.log_offset)
         w = (meas.on.sum(0) + meas.off.sum(0)).astype(np.float64)
         ok = (light > 0) & (w > 0)
         if ok.any():
             inv = float(np.sum(w[ok] / light[ok]) / np.sum(w[ok]))
-            return Fitted(Bandwidth(cutoff_hz=round(
-                ref * inv / (2.0 * np.pi * found[0] * 1e-6), 3)), detail)
+            return Fitted(Bandwidth(cutoff_hz=round(ref * inv / (2.0 * np.pi * lag * 1e-6),
+                                                    3)), detail)
+    # later than the lag grid reaches: the frame-rate filter's cutoff (several times low; the
+    # bias correction makes up part of it)
     return Fitted(Bandwidth(cutoff_hz=round(f, 3)), detail)
 
 

@@ -408,8 +408,9 @@ def event_lag(meas: Observation, sims: list[Observation], rec: Recording
     """How much later than the frames' stamps the measured events follow the frames'
     changes, less the same on the simulations (us; :func:`lag_residuals` on a grid of
     +-1.5 times the larger of the exposure and a quarter of the frame interval), and that
-    grid. ``None`` when the measurement's least residual lies at an end of the grid or the
-    lag is within one grid step."""
+    grid. ``inf`` when the measurement's least residual lies at the grid's late end (a delay
+    the grid does not reach); ``None`` when it lies at the early end or the lag is within
+    one grid step."""
     if not sims:
         return None
     ft = meas.frame_t_us
@@ -420,8 +421,12 @@ def event_lag(meas: Observation, sims: list[Observation], rec: Recording
     scale = max(exp_us, 0.25 * interval)
     lags = LAG_GRID * scale
     rm = lag_residuals(meas, lags)
-    if not np.isfinite(rm).any() or _at_grid_end(rm):
+    if not np.isfinite(rm).any():
         return None
+    if _at_grid_end(rm):
+        # later than the grid reaches (a slow photoreceptor's delay in the dark): inf; earlier
+        # than it reaches, nothing a frame or a photoreceptor does
+        return (float(np.inf), lags) if int(np.nanargmin(rm)) == rm.size - 1 else None
     lm = _lag_minimum(lags, rm)
     ls = [_lag_minimum(lags, r) for r in (lag_residuals(s, lags) for s in sims)
           if np.isfinite(r).any()]
@@ -450,6 +455,9 @@ def fit_exposure(ctx: FitContext) -> FitResult:
         return NoEvidence("the events follow the frames' changes as the model's do (no lag "
                           "beyond one step of the grid, or none the grid brackets)")
     lag, lags = found
+    if not np.isfinite(lag):
+        return NoEvidence(f"the events lag the frames' changes by more than "
+                          f"{lags[-1] / 1000:.3g} ms: later than any frame timing")
     # a frame's timing moves every pixel's events alike; a slow photoreceptor (bandwidth)
     # delays the events of dark moments most: the lag must be the same at every light
     by_light = _lag_by_light(meas, sims, lags)
@@ -515,7 +523,11 @@ class LagByLight:
         return self.lags_us[0] - self.lags_us[-1]
 
     def later_in_the_dark(self, k: float = 2.0) -> bool:
-        """The dark third's events later than the bright third's by ``k`` noise."""
+        """The dark third's events later than the bright third's by ``k`` noise, or later
+        than the grid reaches (then the bright third's may be too: a delay no frame timing
+        makes)."""
+        if not np.isfinite(self.lags_us[0]):
+            return True
         return self.dark_minus_bright_us > k * self.noise_us
 
     def alike(self, k: float = 2.0) -> bool:

@@ -298,13 +298,39 @@ def light_gain(images: np.ndarray) -> np.ndarray:
     return out
 
 
+GAIN_SMOOTH_FRAMES = 7  # the window of the local quadratic that smooths the common light
+
+
+def smooth_gain(gain: np.ndarray) -> np.ndarray:
+    """``gain`` (:func:`light_gain`) smoothed by a local quadratic in its log over
+    :data:`GAIN_SMOOTH_FRAMES` frames (Savitzky-Golay): a ramp or a light breathing at a
+    few Hz passes, a flicker faster than the frames (mains at 100 Hz, which each frame's
+    exposure samples at another phase) does not: the frames cannot say how the light went
+    between them."""
+    lg = np.log(np.asarray(gain, np.float64))
+    k = lg.size
+    half = GAIN_SMOOTH_FRAMES // 2
+    if k < GAIN_SMOOTH_FRAMES:
+        return np.asarray(gain, np.float64)
+    out = np.empty(k)
+    idx = np.arange(k)
+    for i in range(k):
+        lo = min(max(i - half, 0), k - GAIN_SMOOTH_FRAMES)
+        x = idx[lo:lo + GAIN_SMOOTH_FRAMES] - i
+        coef = np.polyfit(x, lg[lo:lo + GAIN_SMOOTH_FRAMES], 2)
+        out[i] = coef[-1]
+    result: np.ndarray = np.exp(out)
+    return result
+
+
 def latent_frames(frames: Frames, read_noise_dn: float) -> np.ndarray:
     """The frames as float32 latent intensity, their read noise taken out where a pixel is
     still: each pixel's frames, divided by the light common to the scene
     (:func:`light_gain`), are cut into runs within which every frame lies within the noise
     (``3 read_noise_dn + 1`` DN) of the run's mean so far; a run is replaced by its mean
     (the scene is still there; the noise is in the frames, not in the light the events saw),
-    and the common light is put back. A pixel that changes makes runs of one frame: its
+    and the common light is put back, smoothed (:func:`smooth_gain`: a flicker the frames
+    alias is not the light between them). A pixel that changes makes runs of one frame: its
     frames are kept as they are.
 
     Without the runs a still pixel's frames (or a short moving mean of them) carry the noise
@@ -318,7 +344,9 @@ def latent_frames(frames: Frames, read_noise_dn: float) -> np.ndarray:
         return imgs
     tol = 3.0 * read_noise_dn + 1.0
     k = imgs.shape[0]
-    gain = light_gain(imgs).astype(np.float32)
+    raw_gain = light_gain(imgs)
+    gain = raw_gain.astype(np.float32)
+    back = smooth_gain(raw_gain).astype(np.float32)
     f = imgs.reshape(k, -1) / gain[:, None]
     # a pass forward over the frames (vectorised over pixels) keeps each run's mean so far,
     # one backward gives every frame its run's final mean
@@ -335,10 +363,15 @@ def latent_frames(frames: Frames, read_noise_dn: float) -> np.ndarray:
         mean_so_far[i] = total / n
     out = np.empty(f.shape, np.float32)
     last = mean_so_far[k - 1]
-    out[k - 1] = last * gain[k - 1]
+    # a pixel that changed (a run of one frame) keeps its frame as it is
+    single = np.ones(f.shape, bool)
+    single[1:] &= ~joins[1:]
+    single[:-1] &= ~joins[1:]
+    out[k - 1] = last * back[k - 1]
     for i in range(k - 2, -1, -1):
         last = np.where(joins[i + 1], last, mean_so_far[i])
-        out[i] = last * gain[i]
+        out[i] = last * back[i]
+    out = np.where(single, imgs.reshape(k, -1), out)
     return out.reshape(imgs.shape)
 
 
