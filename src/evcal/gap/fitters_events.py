@@ -222,10 +222,14 @@ def fit_row_noise(ctx: FitContext) -> FitResult:
         return NoEvidence(f"still events coincide along a {axis} as often as in the model "
                           f"({excess:+.3g} per pixel-second more, z = {z:+.1f})")
     frac = burst_fraction(meas, axis)
+    detail: dict[str, object] = {"z": float(z)}
     if not np.isfinite(frac):
-        return NoEvidence("too few bursts to measure their size")
+        # too few bursts in half-still lines to measure their size: the effect's default
+        # share, its rate from the excess (the bias correction moves the rate)
+        frac = float(RowNoise().fraction)
+        detail["fraction"] = "default: too few bursts to measure their size"
     return Fitted(RowNoise(rate_hz=round(excess / frac, 4), fraction=round(frac, 4),
-                           axis=axis), {"z": float(z)})
+                           axis=axis), detail)
 
 
 # ----------------------------------------------------------------------------------- leak

@@ -307,10 +307,11 @@ class GapRun:
         sensor = [n for n in cfg.candidates if n != SCHEME_EFFECT]
         self.null = calibrate(ev, current, sensor)
         screened: int | None = None
+        scheme_refused = False
         while self.n_sensor() < cfg.max_effects:
             self._plan(ev.work + n_simulations(cfg, 1, share, candidates=screened,
                                                named=self.n_sensor(), base=False))
-            scheme = self._scheme(current)
+            scheme = self._scheme(current) if not scheme_refused else None
             on = scheme[1] if scheme is not None else current
             names = [n for n in sensor if n not in on.model.effects]
             rnd = search(ev, self.null, on, names, self.seconds)
@@ -324,13 +325,24 @@ class GapRun:
                 pen_q = pen * eff_q.n_fitted
                 q_alone = gain(current.held_gap, ev_q.held_gap + pen_q) > \
                     need(cfg, current.held_gap)
-                joint = best is not None and \
+                # with the best sensor candidate only when the scheme alone makes the model
+                # no worse: a scheme that helps only beside another effect is that effect's
+                # doing (a simulator's leak stamped on its steps puts events on a grid too)
+                joint = best is not None and ev_q.held_gap <= current.held_gap and \
                     gain(ev_q.held_gap, best.score(pen)) > need(cfg, ev_q.held_gap) and \
                     gain(current.held_gap, best.score(pen) + pen_q) > \
                     need(cfg, current.held_gap)
                 if not (q_alone or joint):
-                    self.rejected = tried
-                    break
+                    # the round again without it (its candidates were fitted on top of it)
+                    entry["status"] = "not named"
+                    entry["reason"] = ("the timestamps lie on a grid, but a simulator's scheme "
+                                       "neither closes the gap alone nor leaves the model no "
+                                       "worse beside the best sensor effect")
+                    self.rejected[SCHEME_EFFECT] = entry
+                    scheme_refused = True
+                    rnd.let_go()
+                    ev_q.sims.clear()
+                    continue
                 # read off the timestamps: neither bias-corrected nor refined, so the
                 # candidates evaluated on top of it stand
                 self.steps.append(Step(eff_q, current, ev_q, {SCHEME_EFFECT: entry},
