@@ -413,7 +413,7 @@ def fit_bandwidth(ctx: FitContext) -> FitResult:
     if by_light is not None:
         detail["lag_by_light_us"] = by_light.lags_us
         detail["noise_us"] = by_light.noise_us
-        if not by_light.later_in_the_dark():
+        if not by_light.later_in_the_dark(lag):
             dark, bright = by_light.lags_us[0], by_light.lags_us[-1]
             return NoEvidence(f"the events are about as late in the brightest third of "
                               f"the moments ({bright:.0f} us) as in the darkest "

@@ -518,22 +518,23 @@ class LagByLight:
     lags_us: list[float]
     noise_us: float
 
-    @property
-    def dark_minus_bright_us(self) -> float:
-        return self.lags_us[0] - self.lags_us[-1]
-
-    def later_in_the_dark(self, k: float = 2.0) -> bool:
-        """The dark third's events later than the bright third's by ``k`` noise, or later
-        than the grid reaches (then the bright third's may be too: a delay no frame timing
-        makes)."""
-        if not np.isfinite(self.lags_us[0]):
-            return True
-        return self.dark_minus_bright_us > k * self.noise_us
+    def later_in_the_dark(self, overall_us: float, k: float = 2.0) -> bool:
+        """The darkest third's events later than the brightest third's by ``k`` noise.
+        Thirds whose lag the grid does not reach count as the latest when the whole
+        recording's lag (``overall_us``) is beyond it too (a delay no frame timing makes);
+        otherwise such a third's minimum is its noise at the grid's end (few events in the
+        dark) and the darkest third the grid reaches stands for it."""
+        v = np.asarray(self.lags_us)
+        if not np.isfinite(overall_us):
+            return not np.isfinite(v[0]) or bool(v[0] - v[-1] > k * self.noise_us)
+        fin = v[np.isfinite(v)]
+        return fin.size >= 2 and bool(fin[0] - fin[-1] > k * self.noise_us)
 
     def alike(self, k: float = 2.0) -> bool:
-        """Every third within ``k`` noise of the others (a finite lag in each)."""
+        """The thirds the grid reaches (at least two) within ``k`` noise of each other."""
         v = np.asarray(self.lags_us)
-        return bool(np.isfinite(v).all() and v.max() - v.min() <= k * self.noise_us)
+        fin = v[np.isfinite(v)]
+        return fin.size >= 2 and bool(fin.max() - fin.min() <= k * self.noise_us)
 
 
 def _lag_by_light(meas: Observation, sims: list[Observation], lags: np.ndarray

@@ -325,13 +325,23 @@ class GapRun:
                 pen_q = pen * eff_q.n_fitted
                 q_alone = gain(current.held_gap, ev_q.held_gap + pen_q) > \
                     need(cfg, current.held_gap)
-                # with the best sensor candidate only when the scheme alone makes the model
-                # no worse: a scheme that helps only beside another effect is that effect's
-                # doing (a simulator's leak stamped on its steps puts events on a grid too)
-                joint = best is not None and ev_q.held_gap <= current.held_gap and \
+                joint = best is not None and not q_alone and \
                     gain(ev_q.held_gap, best.score(pen)) > need(cfg, ev_q.held_gap) and \
                     gain(current.held_gap, best.score(pen) + pen_q) > \
                     need(cfg, current.held_gap)
+                if joint:
+                    assert best is not None
+                    # with the best sensor effect only when the pair beats that effect alone
+                    # by what naming needs: a scheme that helps only beside an effect which
+                    # does as well without it is that effect's doing (a simulator's leak
+                    # stamped on its steps puts events on a grid too); v2e's dead time shows
+                    # only in its slots, with the scheme
+                    alone = self._without_scheme(current, best.name)
+                    if alone is not None:
+                        entry["best_without_scheme"] = float(alone.held_gap)
+                        joint = gain(alone.held_gap, best.score(pen) + pen_q) > \
+                            need(cfg, alone.held_gap)
+                        alone.sims.clear()
                 if not (q_alone or joint):
                     # the round again without it (its candidates were fitted on top of it)
                     entry["status"] = "not named"
@@ -394,6 +404,16 @@ class GapRun:
                  "score": float(out.held_gap + self.cfg.penalty_per_parameter * eff.n_fitted),
                  "seeds": out.disc.n_sims}
         return eff, out, entry
+
+    def _without_scheme(self, current: Evaluation, name: str) -> Evaluation | None:
+        """Effect ``name`` fitted on ``current`` (no timestamp scheme) and evaluated on
+        every seed; ``None`` when its fitter sees nothing there."""
+        ev = self.ev
+        assert ev is not None
+        res = registry.spec(name).fit(ev.fit_context(current.model, current.sims))
+        if not isinstance(res, Fitted):
+            return None
+        return ev.evaluate(ev.candidate_model(current.model, res.effect), f"{name} alone")
 
     def _why(self, rnd: Round, on: Evaluation, best: Candidate | None) -> dict[str, Any]:
         """Whether ``best`` is named, and why: its held-out gain, what naming needs (the
