@@ -398,10 +398,6 @@ def fit_bandwidth(ctx: FitContext) -> FitResult:
         den = y[0] - 2 * y[1] + y[2]
         if den > 0:
             f = float(np.exp(x[1] + 0.5 * (x[1] - x[0]) * (y[0] - y[2]) / den))
-    frame_rate_hz = 1e6 / float(np.median(np.diff(meas.frame_t_us)))
-    if f >= frame_rate_hz:
-        return NoEvidence(f"the low-pass that explains the events best ({f:.3g} Hz) is faster "
-                          "than the frames can tell")
     found = _frames.event_lag(meas, sims, rec)
     detail: dict[str, Any] = {"frame_filter_hz": f}
     if found is None or found[0] <= 0:
@@ -430,6 +426,11 @@ def fit_bandwidth(ctx: FitContext) -> FitResult:
                                                     3)), detail)
     # later than the lag grid reaches: the frame-rate filter's cutoff (several times low; the
     # bias correction makes up part of it)
+    frame_rate_hz = 1e6 / float(np.median(np.diff(meas.frame_t_us)))
+    if f >= frame_rate_hz:
+        return NoEvidence(f"the events lag the frames beyond the grid's reach, but the "
+                          f"low-pass that explains them best ({f:.3g} Hz) is faster than the "
+                          "frames can tell")
     return Fitted(Bandwidth(cutoff_hz=round(f, 3)), detail)
 
 

@@ -448,14 +448,33 @@ def stat_iei_lower_edge(obs: Observation) -> StatValue:
     return StatValue("iei_lower_edge", v, [f"IEI quantile {x:g} (log10 us)" for x in q], 0.05)
 
 
+def _common_dl(obs: Observation) -> np.ndarray:
+    """Per window, the change of the light common to the scene (log units): the median
+    change over the pixels lit inside the range in both frames (10..245 DN). A moving scene
+    brightens as many pixels as it darkens; a ramp or a breathing light moves them all."""
+    def make() -> np.ndarray:
+        i = obs.intensity
+        lit = (i[1:] > 10) & (i[1:] < 245) & (i[:-1] > 10) & (i[:-1] < 245)
+        dl = _dl(obs)
+        out = np.zeros(obs.n_windows)
+        for k in range(obs.n_windows):
+            m = lit[k]
+            if m.sum() >= 100:
+                out[k] = float(np.median(dl[k][m]))
+        return out
+
+    return _shared(obs, "common_dl", make)
+
+
 def _static(obs: Observation) -> np.ndarray:
-    """Windows of a still pixel: |dL| < STATIC_DL in the window and STATIC_HALF_WIDTH windows
-    either side (a short pause of a moving texture is not still: sub-quantum changes there
-    still make events that frames cannot show)."""
+    """Windows of a still pixel: |dL| < STATIC_DL (less the change of the light common to the
+    scene, :func:`_common_dl`: a still scene under a ramping light is still) in the window
+    and STATIC_HALF_WIDTH windows either side (a short pause of a moving texture is not
+    still: sub-quantum changes there still make events that frames cannot show)."""
     if "static" in obs.shared:
         result: np.ndarray = obs.shared["static"]
         return result
-    dl = np.abs(_dl(obs)) < STATIC_DL
+    dl = np.abs(_dl(obs) - _common_dl(obs)[:, None]) < STATIC_DL
     st = dl.copy()
     for k in range(1, STATIC_HALF_WIDTH + 1):
         st[k:] &= dl[:-k]
