@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 from test_gap import hidden_recording
 
+from evcal.errors import ConfigError
 from evcal.gap import effects as registry
 from evcal.gap.effects import EffectSpec, Fitted, NoEvidence
 from evcal.gap.model import fit_base, simulate_model
@@ -69,15 +70,15 @@ def test_every_effect_of_the_simulator_has_one_spec() -> None:
         assert spec.moves, name
         assert set(spec.moves) <= stats, (name, set(spec.moves) - stats)
     assert kinds == {"sensor", "frames", "scheme"}
-    with pytest.raises(ValueError, match="registered already"):
+    with pytest.raises(ConfigError, match="registered already"):
         registry.register(registry.spec("leak"))
-    with pytest.raises(KeyError, match="known"):
+    with pytest.raises(ConfigError, match="known"):
         registry.spec("flux_capacitor")
 
 
 def test_a_spec_must_hold_its_own_effect() -> None:
     spec = registry.spec("leak")
-    with pytest.raises(ValueError, match="holds effect"):
+    with pytest.raises(ConfigError, match="holds effect"):
         EffectSpec("shot_noise", Leak, spec.fit, spec.strength, spec.moves, spec.says)
 
 

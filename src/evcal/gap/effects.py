@@ -29,6 +29,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ..errors import ConfigError
 from ..recording import Recording
 from ..sim.effects import (
     ApsFpn,
@@ -158,9 +159,9 @@ class EffectSpec:
 
     def __post_init__(self) -> None:
         if self.kind not in ("sensor", "frames", "scheme"):
-            raise ValueError(f"{self.name}: kind {self.kind!r}")
+            raise ConfigError(f"{self.name}: kind {self.kind!r} is not sensor, frames or scheme")
         if self.effect.name != self.name:
-            raise ValueError(f"spec {self.name!r} holds effect {self.effect.name!r}")
+            raise ConfigError(f"spec {self.name!r} holds effect {self.effect.name!r}")
 
 
 # ------------------------------------------------------------------------- strengths
@@ -236,7 +237,7 @@ REGISTRY: dict[str, EffectSpec] = {}
 def register(spec: EffectSpec) -> EffectSpec:
     """Add ``spec`` to :data:`REGISTRY` (one per effect name)."""
     if spec.name in REGISTRY:
-        raise ValueError(f"effect {spec.name!r} is registered already")
+        raise ConfigError(f"effect {spec.name!r} is registered already")
     REGISTRY[spec.name] = spec
     return spec
 
@@ -321,7 +322,7 @@ def spec(name: str) -> EffectSpec:
     try:
         return REGISTRY[name]
     except KeyError:
-        raise KeyError(f"no gap effect {name!r}; known: {', '.join(names())}") from None
+        raise ConfigError(f"no gap effect {name!r}; known: {', '.join(names())}") from None
 
 
 def names() -> tuple[str, ...]:
