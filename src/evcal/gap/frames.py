@@ -521,11 +521,12 @@ class LagByLight:
     def later_in_the_dark(self, overall_us: float, k: float = 2.0) -> bool:
         """The darkest third's events later than the brightest third's by ``k`` noise.
         Thirds whose lag the grid does not reach count as the latest when the whole
-        recording's lag (``overall_us``) is beyond it too (a delay no frame timing makes);
+        recording's lag (``overall_us``) is beyond it too, or none is within it (a delay no
+        frame timing makes);
         otherwise such a third's minimum is its noise at the grid's end (few events in the
         dark) and the darkest third the grid reaches stands for it."""
         v = np.asarray(self.lags_us)
-        if not np.isfinite(overall_us):
+        if not np.isfinite(overall_us) or not np.isfinite(v).any():
             return not np.isfinite(v[0]) or bool(v[0] - v[-1] > k * self.noise_us)
         fin = v[np.isfinite(v)]
         return fin.size >= 2 and bool(fin[0] - fin[-1] > k * self.noise_us)
