@@ -264,20 +264,22 @@ def test_gap_names_the_effects_of_v2e_realistic_mix() -> None:
 
 @pytest.mark.slow
 def test_gap_refits_an_effect_named_before_others_in_the_final_model() -> None:
-    """On v2e's mix/camera the low-pass is named first, before the shot noise and the 1 ms
-    dead time, and its cutoff then reads 19.14 Hz at 128 DN (+19 % of v2e's 16.15): part of
-    what the dead time does to the short intervals it took on. Searched again in the final
-    model it is 16.61 Hz (+3 %), gap 3.54 -> 1.71; the last effect named is not searched
-    again (it was finished in that model)."""
+    """On v2e's mix/camera several sensor effects are named; each but the last is searched
+    again in the final model (its value was settled in a model that lacked the effects named
+    after it), keeping its value unless another clearly beats it on every seed: its record
+    says what it was named with and the final gap before and after; the last is not searched
+    again (it was finished in that model). The v2e effects named are v2e's."""
     res = gap_run("mix", "camera")
     sensor = [s for s in res.steps if s.effect.name != "timestamp_quantisation"]
-    assert [s.effect.name for s in sensor][:1] == ["bandwidth"], res.named_effects
-    bw = sensor[0]
-    assert bw.refit is not None
-    truth = 30.0 * 148 / 275
-    cutoff = bw.effect.parameters()["cutoff_hz"]
-    assert cutoff == pytest.approx(truth, rel=0.1)
-    assert abs(np.log(cutoff / truth)) < abs(np.log(bw.refit["named_value"] / truth))
-    assert bw.refit["gap_after"] < bw.refit["gap_before"]
+    assert len(sensor) >= 2, res.named_effects
+    assert {s.effect.name for s in sensor} <= {"bandwidth", "shot_noise", "refractory",
+                                               "leak", "threshold_noise"}, res.named_effects
+    for s in sensor[:-1]:
+        assert s.refit is not None
+        key = s.refit["parameter"]
+        assert key == s.effect.primary
+        kept = s.effect.parameters()[key] == s.refit["named_value"]
+        # a new value is kept only when it lowers the final gap
+        assert kept or s.refit["gap_after"] < s.refit["gap_before"]
     assert sensor[-1].refit is None
-    assert res.final.gap <= 3.0
+    assert res.final.gap < 0.1 * res.initial.gap

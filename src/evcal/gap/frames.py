@@ -524,12 +524,16 @@ class LagByLight:
         recording's lag (``overall_us``) is beyond it too, or none is within it (a delay no
         frame timing makes);
         otherwise such a third's minimum is its noise at the grid's end (few events in the
-        dark) and the darkest third the grid reaches stands for it."""
+        dark) and the darkest third the grid reaches stands for it; when the brightest is
+        the only one within reach, the darker ones are later."""
         v = np.asarray(self.lags_us)
         if not np.isfinite(overall_us) or not np.isfinite(v).any():
             return not np.isfinite(v[0]) or bool(v[0] - v[-1] > k * self.noise_us)
-        fin = v[np.isfinite(v)]
-        return fin.size >= 2 and bool(fin[0] - fin[-1] > k * self.noise_us)
+        within = np.flatnonzero(np.isfinite(v))
+        if within.size == 1:
+            # only one third within reach: a low-pass's when it is the brightest
+            return bool(within[0] == v.size - 1)
+        return bool(v[within[0]] - v[within[-1]] > k * self.noise_us)
 
     def alike(self, k: float = 2.0) -> bool:
         """The thirds the grid reaches (at least two) within ``k`` noise of each other."""

@@ -373,6 +373,9 @@ class GapRun:
             if after is not best.evaluation:
                 moved_on(best.evaluation, after)
             current = moved_on(current, after)
+            # a scheme refused beside this round's best is tried again beside the next one
+            # (v2e's dead time, which shows only in its slots, may come after a low-pass)
+            scheme_refused = False
             if ev.released is not None:
                 ev.released()
         if cfg.refit_named:
