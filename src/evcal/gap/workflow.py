@@ -322,32 +322,9 @@ class GapRun:
             if scheme is not None:
                 eff_q, ev_q, entry = scheme
                 tried = {SCHEME_EFFECT: entry, **tried}
-                pen_q = pen * eff_q.n_fitted
-                q_alone = gain(current.held_gap, ev_q.held_gap + pen_q) > \
-                    need(cfg, current.held_gap)
-                joint = best is not None and not q_alone and \
-                    gain(ev_q.held_gap, best.score(pen)) > need(cfg, ev_q.held_gap) and \
-                    gain(current.held_gap, best.score(pen) + pen_q) > \
-                    need(cfg, current.held_gap)
-                if joint:
-                    assert best is not None
-                    # with the best sensor effect only when the pair beats that effect alone
-                    # by what naming needs: a scheme that helps only beside an effect which
-                    # does as well without it is that effect's doing (a simulator's leak
-                    # stamped on its steps puts events on a grid too); v2e's dead time shows
-                    # only in its slots, with the scheme
-                    alone = self._without_scheme(current, best.name)
-                    if alone is not None:
-                        entry["best_without_scheme"] = float(alone.held_gap)
-                        joint = gain(alone.held_gap, best.score(pen) + pen_q) > \
-                            need(cfg, alone.held_gap)
-                        alone.sims.clear()
-                if not (q_alone or joint):
+                how = self._scheme_named(current, scheme, best)
+                if how is None:
                     # the round again without it (its candidates were fitted on top of it)
-                    entry["status"] = "not named"
-                    entry["reason"] = ("the timestamps lie on a grid, but a simulator's scheme "
-                                       "neither closes the gap alone nor leaves the model no "
-                                       "worse beside the best sensor effect")
                     self.rejected[SCHEME_EFFECT] = entry
                     scheme_refused = True
                     rnd.let_go()
@@ -355,8 +332,7 @@ class GapRun:
                     continue
                 # read off the timestamps: neither bias-corrected nor refined, so the
                 # candidates evaluated on top of it stand
-                self.steps.append(Step(eff_q, current, ev_q, {SCHEME_EFFECT: entry},
-                                       {"alone": bool(q_alone), "with_the_best": bool(joint)}))
+                self.steps.append(Step(eff_q, current, ev_q, {SCHEME_EFFECT: entry}, how))
                 current = moved_on(current, ev_q)
             why = self._why(rnd, on, best)
             if best is None or not why["named"]:
@@ -407,6 +383,42 @@ class GapRun:
                  "score": float(out.held_gap + self.cfg.penalty_per_parameter * eff.n_fitted),
                  "seeds": out.disc.n_sims}
         return eff, out, entry
+
+    def _scheme_named(self, current: Evaluation,
+                      scheme: tuple[Effect, Evaluation, dict[str, Any]],
+                      best: Candidate | None) -> dict[str, bool] | None:
+        """Whether the timestamp scheme is named against ``current`` (how: ``alone``,
+        ``with_the_best``), or ``None`` (its entry then says why not). Alone when it
+        closes the gap by what naming needs; with the round's best sensor effect (evaluated
+        on top of it) when the pair does and beats that effect fitted without the scheme by
+        what naming needs: a scheme that helps only beside an effect which does as well
+        without it is that effect's doing (a simulator's leak stamped on its steps puts
+        events on a grid too), while v2e's dead time shows only in its slots, with the
+        scheme."""
+        cfg = self.cfg
+        pen = cfg.penalty_per_parameter
+        eff_q, ev_q, entry = scheme
+        pen_q = pen * eff_q.n_fitted
+        if gain(current.held_gap, ev_q.held_gap + pen_q) > need(cfg, current.held_gap):
+            return {"alone": True, "with_the_best": False}
+        joint = best is not None and \
+            gain(ev_q.held_gap, best.score(pen)) > need(cfg, ev_q.held_gap) and \
+            gain(current.held_gap, best.score(pen) + pen_q) > need(cfg, current.held_gap)
+        if joint:
+            assert best is not None
+            alone = self._without_scheme(current, best.name)
+            if alone is not None:
+                entry["best_without_scheme"] = float(alone.held_gap)
+                joint = gain(alone.held_gap, best.score(pen) + pen_q) > \
+                    need(cfg, alone.held_gap)
+                alone.sims.clear()
+        if joint:
+            return {"alone": False, "with_the_best": True}
+        entry["status"] = "not named"
+        entry["reason"] = ("the timestamps lie on a grid, but a simulator's scheme neither "
+                           "closes the gap alone nor, beside the best sensor effect, beats "
+                           "that effect without it")
+        return None
 
     def _without_scheme(self, current: Evaluation, name: str) -> Evaluation | None:
         """Effect ``name`` fitted on ``current`` (no timestamp scheme) and evaluated on
