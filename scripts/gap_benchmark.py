@@ -74,6 +74,7 @@ SIM_EFFECTS = ("refractory", "leak", "shot_noise", "bandwidth", "threshold_noise
 V2E_EFFECTS = ("refractory", "leak", "shot_noise", "bandwidth")
 MIX_CORE = ("bandwidth", "leak", "shot_noise", "refractory")
 SCHEME_EFFECT = "timestamp_quantisation"  # a frame-driven simulator's stamps, not a sensor's
+SCENE_EFFECTS = ("flicker",)  # the scene's light: scored against the case's illumination
 V2E_SHARE = 0.4
 CATEGORY_SHARES = {"none": 0.20, "single": 0.45, "pair": 0.20, "mix": 0.15}
 SIM_LOG_OFFSET = 1.0          # SimConfig.log_offset: the base model's nominal offset
@@ -802,13 +803,14 @@ def cmd_run(args: argparse.Namespace) -> int:
         # a seeded order: the first results of a long run are a fair sample of the split
         order = np.random.default_rng(args.shuffle).permutation(len(todo))
         todo = [todo[i] for i in order]
+    n_done = len(cases) - len(todo) - len(missing)
     if args.limit:
         todo = todo[:args.limit]
     if missing:
         print(f"not generated (skipped): {', '.join(missing)}", flush=True)
     commit = evcal_source()["commit"]
-    print(f"{len(cases)} cases in {args.split}, {len(cases) - len(todo) - len(missing)} "
-          f"already in {results_path}, {len(todo)} to run (evcal {commit})", flush=True)
+    print(f"{len(cases)} cases in {args.split}, {n_done} already in {results_path}, "
+          f"{len(todo)} to run (evcal {commit})", flush=True)
     t_all = time.time()
     for k, c in enumerate(todo, 1):
         npz, _ = case_paths(data, c)
@@ -907,11 +909,14 @@ def score_case(r: dict[str, Any]) -> dict[str, Any]:
         "activity": (r["n_events"] / (h * w * r["duration_s"])
                      if r.get("n_events") and h and r.get("duration_s") else None)}
     if out["error"]:
-        out.update(named=[], scheme=False, false=[], gap_final=None, param_err={})
+        out.update(named=[], scheme=False, flicker_named=False, false=[], gap_final=None,
+                   param_err={})
         return out
-    named = [n for n in r.get("named_effects", []) if n != SCHEME_EFFECT]
+    named = [n for n in r.get("named_effects", [])
+             if n != SCHEME_EFFECT and n not in SCENE_EFFECTS]
     out["named"] = named
     out["scheme"] = SCHEME_EFFECT in r.get("named_effects", [])
+    out["flicker_named"] = "flicker" in r.get("named_effects", [])
     out["false"] = [n for n in named if n not in hidden]
     out["gap_final"] = r.get("gap_final")
     median = float(truth.get("median_dn", REF_DN))
@@ -987,6 +992,11 @@ def split_metrics(scored: list[dict[str, Any]]) -> dict[str, Any]:
                       and s["duration_s"] is not None and 2.5 <= s["duration_s"] <= 3.0]),
                   "simulations": _spread([s["simulations"] for s in scored
                                           if s["simulations"] is not None])}
+    flick = [s for s in scored if s["illumination"] == "flicker" and not s["error"]]
+    other = [s for s in scored if s["illumination"] != "flicker" and not s["error"]]
+    m["flicker"] = {"n": len(flick), "named": sum(s["flicker_named"] for s in flick),
+                    "n_without": len(other),
+                    "named_without": sum(s["flicker_named"] for s in other)}
     m["illumination"] = {
         k: {"n": len(cs), "false": sum(bool(s["false"]) for s in cs)}
         for k in ("constant", "ramp", "sine", "flicker")
@@ -1094,6 +1104,10 @@ def report_text(scored: list[dict[str, Any]], markdown: bool = False
         out.append(confusion(ss, markdown))
         out.append(f"\n   {SCHEME_EFFECT} named (not a sensor effect): " + ", ".join(
             f"{b} {v['scheme_named']}/{v['n']}" for b, v in ms["all"]["scheme"].items()))
+        fl = ms["all"]["flicker"]
+        out.append(f"   flicker (the scene's light) named: in {fl['named']}/{fl['n']} cases "
+                   f"under a flickering light, {fl['named_without']}/{fl['n_without']} "
+                   "without")
         out.append("   false effects by illumination: " + ", ".join(
             f"{k} {v['false']}/{v['n']}" for k, v in ms["all"]["illumination"].items()))
         out.append("\n6. speed (wall seconds of run_gap) and simulations")

@@ -39,6 +39,7 @@ from evcal.sim.effects import (
     Bandwidth,
     Effect,
     Exposure,
+    Flicker,
     HotPixels,
     Leak,
     LogOffset,
@@ -89,11 +90,13 @@ CASES: dict[str, list[Effect]] = {
     "row_noise": [RowNoise(rate_hz=0.5)],
     "aps_fpn": [ApsFpn(sigma_dn=5.0, seed=2)],
     "exposure": [Exposure(lag_us=2000.0, exposure_us=4000.0)],
+    "flicker": [Flicker(freq_hz=120.0, depth=0.06, phase_rad=1.0)],
 }
 SEEDS = {"refractory": 23, "leak": 29, "shot_noise": 31, "bandwidth": 37,
          "threshold_noise": 41, "hot_pixels": 43, "log_offset": 47, "timestamp_jitter": 53,
          "timestamp_quantisation": 59,
-         "threshold_light": 73, "row_noise": 79, "aps_fpn": 83, "exposure": 89}
+         "threshold_light": 73, "row_noise": 79, "aps_fpn": 83, "exposure": 89,
+         "flicker": 97}
 # effects whose signatures this small recording (48x64, 8-240 DN) cannot tell apart: a power
 # law of the thresholds in light and a dark level under the log both desensitise the darker
 # pixels; their fitters' estimates are equally consistent over the darker and the brighter
@@ -306,7 +309,7 @@ def test_cli_runs_on_a_file_and_rejects_bad_input(tmp_path, capsys) -> None:
     no_frames = Recording(rec.sensor, rec.events, Frames.empty(H, W))
     with pytest.raises(GapError, match="frames"):
         run_gap(no_frames)
-    assert gap_main([str(path), "--out", str(out), "--candidates", "flicker", "--quiet"]) == 2
+    assert gap_main([str(path), "--out", str(out), "--candidates", "strobe", "--quiet"]) == 2
 
 
 def test_the_lower_edge_of_intervals_moves_with_the_share_of_ties_not_by_jumps() -> None:

@@ -168,3 +168,57 @@ def test_anchor_gives_pixels_without_a_fit_the_population_correction(ideal) -> N
     np.testing.assert_allclose(k[cols], np.exp(np.clip(lr_all, -0.7, 0.7)), rtol=1e-9)
     # the fitted pixels follow their activity bins: not one factor for all
     assert np.ptp(k[~cols]) > 1e-3
+
+
+@pytest.mark.parametrize(("contrast", "seed"), [(0.5, 5), (0.6, 2)])
+def test_anchor_matches_unfitted_pixels_to_their_events(contrast, seed) -> None:
+    """A sparse recording (a few events per pixel: OffEI fits none, so every pixel holds the
+    fit's default threshold, 0.15): the anchored model's unfitted pixels fire as many events
+    as the measured ones where the frames change slowly, and their thresholds move from the
+    default to the truth: ``c`` within 10 %, ``b`` within 0.02 (the ideal sensor loses no
+    events; the latent intensity between frames follows the motion, as in the workflow)."""
+    rec = simulate_ideal(SimConfig(height=60, width=80, duration_s=1.0, contrast_mean=contrast,
+                                   bias_mean=0.03, seed=seed)).recording
+    base = fit_base(rec, 30.0)
+    meas = observe(rec)
+    unfit = model_module._quiet(meas)
+    u = unfit.reshape(base.contrast.shape)
+    assert unfit.mean() > 0.5
+    assert abs(np.median(base.contrast[u]) / contrast - 1) > 0.5
+    settings = SimSettings(interpolation="flow")
+    anchored, _ = anchor(base, rec, meas, 3, settings)
+    counted = model_module._counted(meas)
+    n_meas = model_module._unfitted_counts(meas, counted, unfit)
+    assert min(n_meas) >= model_module.COUNT_MATCH_MIN_EVENTS
+    # another seed's simulation of the anchored model
+    again = observe(simulate_model(anchored, rec, 4, settings))
+    n_sim = model_module._unfitted_counts(again, counted, unfit)
+    for s, m in zip(n_sim, n_meas, strict=True):
+        # another seed: its Poisson noise and the anchor's tolerance (2 sigma) on top
+        assert abs(s / m - 1) < 0.1
+    assert abs(np.median(anchored.contrast[u]) / contrast - 1) < 0.1
+    assert abs(np.median(anchored.bias[u]) - 0.03) < 0.02
+
+
+def test_anchor_leaves_a_model_without_countable_unfitted_events_alone(ideal) -> None:
+    """A dense recording whose unfitted pixels fire fewer than COUNT_MATCH_MIN_EVENTS events
+    of a polarity in windows of slow change: no count match, the anchor as before (at most
+    max_iter simulations, the unfitted pixels with the population's correction)."""
+    meas = observe(ideal)
+    counted = model_module._counted(meas)
+    n_meas = model_module._unfitted_counts(meas, counted, model_module._quiet(meas))
+    assert min(n_meas) < model_module.COUNT_MATCH_MIN_EVENTS
+    calls = []
+    real = model_module.simulate_model
+
+    def counting(*a, **k):
+        calls.append(1)
+        return real(*a, **k)
+
+    base = fit_base(ideal, 30.0)
+    try:
+        model_module.simulate_model = counting
+        anchor(base, ideal, meas, 7, SimSettings(), max_iter=2)
+    finally:
+        model_module.simulate_model = real
+    assert len(calls) <= 2

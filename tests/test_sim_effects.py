@@ -247,7 +247,7 @@ def test_effect_validation() -> None:
     with pytest.raises(EffectError, match="mode"):
         Refractory(mode="skip")
     with pytest.raises(EffectError, match="unknown effect"):
-        make_effect("flicker")
+        make_effect("strobe")
     with pytest.raises(EffectError, match="unknown parameter"):
         make_effect("leak", rate=1.0)
     with pytest.raises(EffectError, match="twice"):
@@ -259,3 +259,38 @@ def test_bench_simulator_reports_events_per_second() -> None:
     assert out["events_per_s"] > 0
     assert out["n_events"] > 0
     assert out["sensor"] == "34x26"
+
+
+def test_flicker_is_a_line_in_the_net_polarity_and_in_the_frames() -> None:
+    """A flicker of the light: the events' ON minus OFF count carries a line at its
+    frequency (none without it), and the frames (exposure 4 ms, stamped at its middle)
+    each see the light's mean over their exposure, the flicker's factor at their phase."""
+    from evcal.gap.flicker import find_line, line_at, net_series  # noqa: PLC0415
+    from evcal.gap.model import light_gain  # noqa: PLC0415
+    from evcal.gap.stats import observe  # noqa: PLC0415
+    from evcal.sim.effects import Flicker  # noqa: PLC0415
+
+    cfg = SimConfig(**{**CFG.to_dict(), "duration_s": 1.5, "frame_rate_hz": 23.0,
+                       "trajectory": CFG.trajectory})
+    aps = ApsConfig(exposure_us=4000, quantise=False)
+    flick = Flicker(freq_hz=100.0, depth=0.08, phase_rad=0.7)
+    lines = []
+    for effects in ([], [flick]):
+        rec = simulate(cfg, effects, aps=aps).recording
+        t0, x = net_series(observe(rec))
+        f, ratio = find_line(t0, x)
+        lines.append((f, ratio, abs(line_at(t0, x, 100.0))))
+    assert lines[0][1] < 30.0
+    assert lines[1][0] == pytest.approx(100.0, abs=0.5)
+    assert lines[1][1] > 100.0
+    assert lines[1][2] > 20 * lines[0][2]
+    # the frames of a still scene: their common light is the flicker's exposure mean
+    still = SimConfig(**{**cfg.to_dict(), "trajectory": Trajectory(pan_px=0.0, seed=5)})
+    fr = simulate(still, [flick], aps=aps).recording.frames
+    # (from the second frame: the first one's exposure starts before the recording; five
+    # samples of it against the mean of a sine over it, within 1 %)
+    want = flick.exposure_mean(fr.t_us, fr.exposure_us)[1:]
+    got = light_gain(fr.images)[1:]
+    np.testing.assert_allclose(got / got[0], want / want[0], rtol=1e-2)
+    with pytest.raises(EffectError, match="depth"):
+        Flicker(depth=1.2)

@@ -12,8 +12,9 @@ enters the gap workflow through its spec here, which says
 - ``moves``: the statistics (:mod:`evcal.gap.stats`) its signature shows in;
 - ``says``: the sentence the report uses for a fitted value;
 - ``kind``: ``"sensor"`` (the DVS pixel), ``"frames"`` (the APS readout: the frames that
-  drive the simulation) or ``"scheme"`` (how a frame-driven simulator stamps its events:
-  not a property of a sensor, reported apart).
+  drive the simulation), ``"scheme"`` (how a frame-driven simulator stamps its events:
+  not a property of a sensor, reported apart) or ``"scene"`` (the light itself, a lamp's
+  flicker: read before the sensor's effects, reported apart).
 
 To add an effect: write its parameter object and simulation hook in
 :mod:`evcal.sim.effects`, its fitter (a function of a :class:`FitContext`) beside the others
@@ -36,6 +37,7 @@ from ..sim.effects import (
     Bandwidth,
     Effect,
     Exposure,
+    Flicker,
     HotPixels,
     Leak,
     LogOffset,
@@ -97,6 +99,10 @@ class FitContext:
     # the rows of the recording's frames that ``meas`` holds when they are not ``rows``
     # (a band of rows the fit sees as a sensor of its own)
     frame_rows: slice | None = None
+    # the current model (whole sensor) with an effect added, simulated on one seed, its
+    # observation on the rows of ``meas``: for a fitter that matches by simulation (a
+    # scene's flicker); ``None`` where the workflow offers none
+    simulate: Callable[[Effect], Observation] | None = None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -134,6 +140,11 @@ class FitContext:
         return out
 
 
+KINDS = ("sensor", "frames", "scheme", "scene")
+# the kinds that count as the sensor's (``max_effects``, the benchmark's confusion table)
+SENSOR_KINDS = ("sensor", "frames")
+
+
 @dataclass(frozen=True)
 class EffectSpec:
     name: str
@@ -158,8 +169,8 @@ class EffectSpec:
         default=lambda e, _light: float(e.parameters()[e.primary]))
 
     def __post_init__(self) -> None:
-        if self.kind not in ("sensor", "frames", "scheme"):
-            raise ConfigError(f"{self.name}: kind {self.kind!r} is not sensor, frames or scheme")
+        if self.kind not in KINDS:
+            raise ConfigError(f"{self.name}: kind {self.kind!r} is not one of {KINDS}")
         if self.effect.name != self.name:
             raise ConfigError(f"spec {self.name!r} holds effect {self.effect.name!r}")
 
@@ -245,6 +256,7 @@ def register(spec: EffectSpec) -> EffectSpec:
 def _register_all() -> None:
     from . import fitters as fx  # noqa: PLC0415 - the fitters import this module's types
     from . import fitters_events as fe  # noqa: PLC0415
+    from . import flicker as fl  # noqa: PLC0415
     from . import frames as fr  # noqa: PLC0415
 
     def plain(key: str) -> Callable[[Effect, float], float]:
@@ -313,6 +325,11 @@ def _register_all() -> None:
         ("lag_vs_intensity", "speed_response", "offei_residual_vs_dl"),
         lambda e: f"the frames' exposure centred {_fmt(_p(e, 'lag_us'))} us after their "
                   "stamps (every pixel alike)", kind="frames"))
+    register(EffectSpec(
+        "flicker", Flicker, fl.fit_flicker, plain("depth"),
+        ("polarity_alternation", "iei_distribution", "static_rate_vs_intensity"),
+        lambda e: f"the scene's light flickers at {_fmt(_p(e, 'freq_hz'))} Hz, "
+                  f"{_fmt(100 * _p(e, 'depth'))} % deep (a lamp on the mains)", kind="scene"))
 
 
 def spec(name: str) -> EffectSpec:

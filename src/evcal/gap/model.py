@@ -35,6 +35,7 @@ from ..sim.effects import Effect, Exposure
 from ..sim.ideal import SimConfig
 from ..sim.nonideal import simulate
 from ..sim.sources import FrameInterpolator
+from .pixelfit import MIN_FIT_EVENTS
 from .render import RenderCache, frames_key
 from .stats import NOMINAL_LOG_OFFSET_DN, Observation, _fit, observe
 
@@ -487,13 +488,55 @@ def _bins(meas: Observation, ok: np.ndarray, n_bins: int) -> np.ndarray:
     return result
 
 
+# the windows whose events the unfitted pixels' thresholds are matched on: a pixel's
+# frames change there (not still, :func:`.stats._static`) by at least COUNT_MATCH_MIN_DL
+# (log units; about a threshold: the events there are the change's, not noise's, which
+# fires in every window alike) and at most COUNT_MATCH_MAX_DL: a change this slow is
+# followed by every pixel whatever its photoreceptor's bandwidth or dead time, so the count
+# says what the thresholds are and not what loses events on fast edges
+COUNT_MATCH_MIN_DL = 0.15
+COUNT_MATCH_MAX_DL = 0.6
+# the unfitted pixels' events of each polarity in those windows that a match needs
+COUNT_MATCH_MIN_EVENTS = 300
+
+
+def _counted(meas: Observation) -> np.ndarray:
+    """``[n_w, N]`` windows whose events the count match uses (see
+    :data:`COUNT_MATCH_MAX_DL`); the frames' alone, so the same for each simulation."""
+    from .stats import _dl, _shared, _static  # noqa: PLC0415
+
+    def make() -> np.ndarray:
+        dl = np.abs(_dl(meas))
+        out: np.ndarray = meas.usable & ~_static(meas) & (dl >= COUNT_MATCH_MIN_DL) & \
+            (dl <= COUNT_MATCH_MAX_DL)
+        return out
+
+    out: np.ndarray = _shared(meas, "count_match_windows", make)
+    return out
+
+
+def _quiet(meas: Observation) -> np.ndarray:
+    """The pixels without a fit for want of events (flat): those the count match is for. A
+    pixel that fires plenty but fits badly (one polarity only, say) is not among them: its
+    count would pull the quiet pixels' thresholds."""
+    out: np.ndarray = ~_fit(meas)["ok"] & ((meas.on + meas.off).sum(0) < MIN_FIT_EVENTS)
+    return out
+
+
+def _unfitted_counts(obs: Observation, counted: np.ndarray, unfit: np.ndarray
+                     ) -> tuple[float, float]:
+    """ON and OFF events of the ``unfit`` pixels in the ``counted`` windows."""
+    w = counted & unfit[None, :]
+    return float(obs.on[w].sum()), float(obs.off[w].sum())
+
+
 def anchor(model: Model, rec: Recording, meas: Observation, seed: int,
            settings: SimSettings, *, n_bins: int = 6, max_iter: int = 3,
            tol: float = 0.01, render: RenderCache | None = None,
            trusted: np.ndarray | None = None, band: Band | None = None
            ) -> tuple[Model, Observation | None]:
     """Correct ``c`` and ``b`` so a simulation of the model, fitted like the measurement, gives
-    the measured fits.
+    the measured fits, and fires as many events as the measurement where the fit cannot say.
 
     Effects bias the per-pixel fit by an amount that depends on how busy the pixel is
     (refractory loses more events of busy pixels, leak adds relatively more to quiet ones), so
@@ -502,17 +545,27 @@ def anchor(model: Model, rec: Recording, meas: Observation, seed: int,
     simulated fit (to the power ``1/g``, ``g`` the secant slope of log fitted against log
     model contrast, since under refractory the fit follows the model only in part) and ``b``
     shifted by the median difference. Curves, not per-pixel ratios, so the fit noise of single
-    pixels does not enter the maps. Pixels without a measured fit hold the population's
-    threshold and take the population's correction (the median over every pixel fitted in
-    both), not that of the least active bin: that bin's fits are the pixels that barely
-    passed the fit's minimum of events, on a sparse recording a few hundred of them against
-    the whole sensor's unfitted pixels. Up to ``max_iter`` simulations, until the population
-    median agrees within ``tol`` after at least one correction.
+    pixels does not enter the maps.
+
+    Pixels without a measured fit hold the population's threshold. Where those too quiet for
+    one (:func:`_quiet`) fire at least :data:`COUNT_MATCH_MIN_EVENTS` of each polarity in
+    windows of a change between :data:`COUNT_MATCH_MIN_DL` and :data:`COUNT_MATCH_MAX_DL`,
+    each polarity's threshold ``c +- b`` of theirs is scaled
+    by the ratio of the simulated to the measured count there (events go as one over the
+    threshold): on a sparse recording (a few events per pixel, none fitted) the fit's
+    default of 0.15 against a sensor's 0.26 made the model fire 3.5x the measured events,
+    a gap no effect can close. Otherwise they take the population's correction (the median
+    over every pixel fitted in both), not that of the least active bin: that bin's fits are
+    the pixels that barely passed the fit's minimum of events, on a sparse recording a few
+    hundred of them against the whole sensor's unfitted pixels. Up to ``max_iter``
+    simulations (one more where counts are matched), until the population median agrees
+    within ``tol`` after at least one correction and the counts within their own noise.
 
     A model whose maps were anchored before (``model.anchored``: an effect added to an
     anchored model, or a parameter changed) is accepted after its first simulation without
     a correction when that agrees within ``2 tol`` in every activity bin, not only in the
-    median (an effect that does not move the fit costs one simulation, not two).
+    median, and in the counts (an effect that does not move the fit costs one simulation,
+    not two).
 
     Returns the anchored model (``anchored`` set once a simulation agreed or the maps were
     corrected) and, when the loop ended on a simulation of that very model
@@ -520,46 +573,95 @@ def anchor(model: Model, rec: Recording, meas: Observation, seed: int,
     the seed's simulation instead of running it again.
     """
     fm = _fit(meas)
-    if fm["ok"].sum() < 20:
+    fitted = fm["ok"].sum() >= 20
+    unfit = _quiet(meas)
+    counted = _counted(meas)
+    n_meas = _unfitted_counts(meas, counted, unfit)
+    match = min(n_meas) >= COUNT_MATCH_MIN_EVENTS
+    if not (fitted or match):
         return model, None
-    bins = _bins(meas, fm["ok"], n_bins)
+    # the counts agree within twice their Poisson noise (and at least 3 %)
+    count_tol = max(0.03, 2.0 / np.sqrt(min(n_meas))) if match else np.inf
+    bins = _bins(meas, fm["ok"], n_bins) if fitted else np.zeros(unfit.size, np.int64)
     nb = int(bins.max()) + 1
     g = 1.0
     prev: tuple[float, float] | None = None  # (log model median c, log sim median c)
-    for it in range(max_iter):
+    # per polarity: (log median threshold, log count ratio) of the last simulation, exponent
+    secant: list[tuple[float, float] | None] = [None, None]
+    gamma = [1.0, 1.0]
+    for it in range(max_iter + int(match)):
         obs = observe(simulate_model(model, rec, seed, settings, render, band),
                       trusted=trusted)
+        ratio = (1.0, 1.0)
+        if match:
+            n_sim = _unfitted_counts(obs, counted, unfit)
+            ratio = (max(n_sim[0], 1.0) / n_meas[0], max(n_sim[1], 1.0) / n_meas[1])
+        counts_agree = max(abs(np.log(r)) for r in ratio) < np.log1p(count_tol)
+        _log.debug("anchor, simulation %d: unfitted pixels' ON, OFF events %.3g, %.3g of the "
+                   "measured", it + 1, *ratio)
         fs = _fit(obs)
         both = fm["ok"] & fs["ok"]
-        if both.sum() < 20:
-            return model, obs
-        med_s = float(np.median(fs["c"][both]))
-        med_m = float(np.median(fm["c"][both]))
-        cur = (float(np.log(np.median(model.contrast))), float(np.log(med_s)))
-        if prev is not None and abs(cur[0] - prev[0]) > 1e-6:
-            g = float(np.clip((cur[1] - prev[1]) / (cur[0] - prev[0]), 0.2, 1.5))
-        prev = cur
-        if abs(med_s / med_m - 1.0) < tol and (it > 0 or nb == 1):
+        fit_agree = True
+        if fitted and both.sum() >= 20:
+            med_s = float(np.median(fs["c"][both]))
+            med_m = float(np.median(fm["c"][both]))
+            # the fitted pixels' own median: the unfitted ones move by their counts
+            cur = (float(np.log(np.median(model.contrast.ravel()[fm["ok"]]))),
+                   float(np.log(med_s)))
+            if prev is not None and abs(cur[0] - prev[0]) > 1e-6:
+                g = float(np.clip((cur[1] - prev[1]) / (cur[0] - prev[0]), 0.2, 1.5))
+            prev = cur
+            fit_agree = abs(med_s / med_m - 1.0) < tol and (it > 0 or nb == 1)
+        elif fitted:
+            if not match:
+                return model, obs
+            fitted = False  # the simulation fits too few pixels: counts alone from here
+        if fit_agree and counts_agree and (it > 0 or nb == 1 or not fitted):
             return replace(model, anchored=True), obs
-        lr = np.zeros(nb)
-        db = np.zeros(nb)
-        lr_all = float(np.median(np.log(fm["c"][both] / fs["c"][both])))
-        for j in range(nb):
-            m = both & (bins == j)
-            lr[j] = np.median(np.log(fm["c"][m] / fs["c"][m])) if m.sum() >= 10 else lr_all
-        lr_pix = np.where(fm["ok"], lr[bins], lr_all)
-        k_pix = np.exp(np.clip(lr_pix / g, -0.7, 0.7)).reshape(model.contrast.shape)
-        b_pred = fs["b"] * k_pix.ravel()
-        d_all = float(np.median(fm["b"][both] - b_pred[both]))
-        for j in range(nb):
-            m = both & (bins == j)
-            db[j] = np.median(fm["b"][m] - b_pred[m]) if m.sum() >= 10 else d_all
-        db_pix = np.where(fm["ok"], db[bins], d_all)
-        if it == 0 and model.anchored and abs(med_s / med_m - 1.0) < tol and \
-                np.all(np.abs(lr) < 2 * tol) and np.all(np.abs(db) < 2 * tol * med_m):
-            return model, obs
-        c = np.maximum(model.contrast * k_pix, 1e-3)
-        b = np.clip(model.bias * k_pix + db_pix.reshape(model.bias.shape),
-                    -MAX_BIAS_RATIO * c, MAX_BIAS_RATIO * c)
+        c = model.contrast.copy()
+        b = model.bias.copy()
+        if fitted and not fit_agree:
+            lr = np.zeros(nb)
+            db = np.zeros(nb)
+            lr_all = float(np.median(np.log(fm["c"][both] / fs["c"][both])))
+            for j in range(nb):
+                m = both & (bins == j)
+                lr[j] = np.median(np.log(fm["c"][m] / fs["c"][m])) if m.sum() >= 10 \
+                    else lr_all
+            lr_pix = np.where(fm["ok"], lr[bins], lr_all)
+            k_pix = np.exp(np.clip(lr_pix / g, -0.7, 0.7)).reshape(model.contrast.shape)
+            b_pred = fs["b"] * k_pix.ravel()
+            d_all = float(np.median(fm["b"][both] - b_pred[both]))
+            for j in range(nb):
+                m = both & (bins == j)
+                db[j] = np.median(fm["b"][m] - b_pred[m]) if m.sum() >= 10 else d_all
+            db_pix = np.where(fm["ok"], db[bins], d_all)
+            if it == 0 and model.anchored and counts_agree and \
+                    abs(med_s / med_m - 1.0) < tol and np.all(np.abs(lr) < 2 * tol) and \
+                    np.all(np.abs(db) < 2 * tol * med_m):
+                return model, obs
+            c = np.maximum(model.contrast * k_pix, 1e-3)
+            b = model.bias * k_pix + db_pix.reshape(model.bias.shape)
+        if match:
+            # the unfitted pixels' thresholds by the count ratio, each polarity its own
+            # (the count goes as the threshold to a power -gamma, gamma measured by the
+            # secant over the simulations so far: a pixel crosses a few thresholds, so a
+            # count falls faster than one over its threshold)
+            u = unfit.reshape(c.shape)
+            th = [model.contrast[u] + model.bias[u], model.contrast[u] - model.bias[u]]
+            s_pol = []
+            for k in range(2):
+                now = (float(np.log(np.median(th[k]))), float(np.log(ratio[k])))
+                last = secant[k]
+                if last is not None and abs(now[0] - last[0]) > 1e-3:
+                    gamma[k] = float(np.clip((last[1] - now[1]) / (now[0] - last[0]), 0.5, 3.0))
+                secant[k] = now
+                s_pol.append(float(np.clip(ratio[k] ** (1.0 / gamma[k]), 1 / 3, 3.0)))
+            s_on, s_off = s_pol
+            th_on = (model.contrast + model.bias) * s_on
+            th_off = (model.contrast - model.bias) * s_off
+            c = np.where(u, np.maximum(0.5 * (th_on + th_off), 1e-3), c)
+            b = np.where(u, 0.5 * (th_on - th_off), b)
+        b = np.clip(b, -MAX_BIAS_RATIO * c, MAX_BIAS_RATIO * c)
         model = replace(model, contrast=c, bias=b, anchored=True)
     return model, None

@@ -169,6 +169,9 @@ def _why_lines(name: str, why: dict[str, Any]) -> list[str]:
             f"{why['held_out_gain']:.2f} where {why['needed_gain']:.2f} was needed")
     if why.get("null_gain", 0.0) > 0:
         text += f" plus {why['null_gain']:.2f}, what it gains with nothing missing"
+    if why.get("scene"):
+        text += (" (the scene's light, not the sensor: tried before the sensor's effects, "
+                 "and again after each one named)")
     below = [f"{o['effect']} ({o['score']:.2f})" for o in why.get("ranked_below", [])]
     if below:
         text += "; it ranked above " + ", ".join(below)

@@ -29,7 +29,8 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -38,7 +39,7 @@ from ..jsonable import to_jsonable
 from ..recording import Recording
 from ..sim.effects import Effect
 from . import effects as registry
-from .effects import Fitted
+from .effects import SENSOR_KINDS, FitResult, Fitted
 from .explain import unexplained
 from .finish import DEBIAS_STEPS, finish, refine
 from .model import fit_base
@@ -277,6 +278,11 @@ class GapRun:
         self.released = released
         self.steps: list[Step] = []
         self.rejected: dict[str, dict[str, Any]] = {}
+        # scene effects fitted before the rounds and not named (with the reason)
+        self.scene_rejected: dict[str, dict[str, Any]] = {}
+        # the model each scene effect was last tried on
+        self._scene_tried: dict[str, Evaluation] = {}
+        self._scene_fit: dict[str, FitResult] = {}
         self.null = NullCalibration()
         # seconds each candidate's fit and screening took in its last round (the next
         # round starts the slowest first)
@@ -288,8 +294,9 @@ class GapRun:
             self.plan_to(total)
 
     def n_sensor(self) -> int:
-        """Effects named that count against ``max_effects`` (not the timestamp scheme)."""
-        return sum(s.effect.name != SCHEME_EFFECT for s in self.steps)
+        """Effects named that count against ``max_effects``: the sensor's (not the timestamp
+        scheme, not the scene's flicker)."""
+        return sum(registry.spec(s.effect.name).kind in SENSOR_KINDS for s in self.steps)
 
     def run(self) -> GapResult:
         cfg = self.cfg
@@ -304,13 +311,19 @@ class GapRun:
             base = fitting.result()
         current = ev.evaluate(base, "base model")
         initial = current
-        sensor = [n for n in cfg.candidates if n != SCHEME_EFFECT]
+        # the scene's light before the sensor: a flicker the frames cannot show moves every
+        # statistic, and each sensor effect fitted under it would answer for part of it
+        current = self._scenes(current)
+        sensor = [n for n in cfg.candidates if registry.spec(n).kind in SENSOR_KINDS]
         self.null = calibrate(ev, current, sensor)
         screened: int | None = None
         scheme_refused = False
         while self.n_sensor() < cfg.max_effects:
             self._plan(ev.work + n_simulations(cfg, 1, share, candidates=screened,
                                                named=self.n_sensor(), base=False))
+            # tried again on what the last round named (a flicker's gain is small beside
+            # the gap of a simulator's scheme, and shows once that is named)
+            current = self._scenes(current)
             scheme = self._scheme(current) if not scheme_refused else None
             on = scheme[1] if scheme is not None else current
             names = [n for n in sensor if n not in on.model.effects]
@@ -354,14 +367,70 @@ class GapRun:
             scheme_refused = False
             if ev.released is not None:
                 ev.released()
+        current = self._scenes(current)
         if cfg.refit_named:
-            todo = [i for i, s in enumerate(self.steps) if s.effect.name != SCHEME_EFFECT][:-1]
+            todo = [i for i, s in enumerate(self.steps)
+                    if registry.spec(s.effect.name).kind in SENSOR_KINDS][:-1]
             if todo:  # each: three screenings and a confirmation
                 self._plan(ev.work + len(todo) * round_work(cfg, share, 3, names=False))
             for i in todo:
                 current = self._refit(current, i)
         self._plan(ev.work)
         return self._result(initial, current)
+
+    def _scenes(self, current: Evaluation) -> Evaluation:
+        """``current`` with the scene effects it lacks that :meth:`_scene` names, each
+        tried once on a given model."""
+        for name in self.cfg.candidates:
+            if registry.spec(name).kind != "scene" or name in current.model.effects or \
+                    self._scene_tried.get(name) is current:
+                continue
+            self._scene_tried[name] = current
+            current = self._scene(current, name)
+        return current
+
+    def _scene(self, current: Evaluation, name: str) -> Evaluation:
+        """Scene effect ``name`` (a flicker of the light) fitted on the fit rows (by
+        simulations of the model with it), evaluated on every seed and named when it gains on
+        the held-out rows what naming needs; ``current`` unchanged otherwise (the reason in
+        the report's candidates of the last round)."""
+        ev = self.ev
+        assert ev is not None
+        cfg = self.cfg
+        # fitted once, on the first model tried (the base model: a simulator's scheme named
+        # later stamps the simulations on steps that reshape the line the fit matches),
+        # judged again on each model after it
+        res = self._scene_fit.get(name)
+        if res is None:
+            ctx = replace(ev.fit_context(current.model, current.sims),
+                          simulate=partial(ev.simulate_with, current.model))
+            res = self._scene_fit[name] = registry.spec(name).fit(ctx)
+        if not isinstance(res, Fitted):
+            self.scene_rejected[name] = {"status": "no evidence", "reason": res.reason}
+            return current
+        eff = res.effect
+        out = ev.evaluate(ev.candidate_model(current.model, eff), f"candidate {name}")
+        pen = cfg.penalty_per_parameter * eff.n_fitted
+        score = float(out.held_gap + pen)
+        g = gain(current.held_gap, score)
+        needed = need(cfg, current.held_gap)
+        entry = {"status": "confirmed", "parameters": to_jsonable(eff.parameters()),
+                 "gap": float(out.gap), "held_out_gap": float(out.held_gap), "score": score,
+                 "seeds": out.disc.n_sims, "fit": to_jsonable(res.detail)}
+        if g <= needed:
+            entry["status"] = "not named"
+            entry["reason"] = (f"its held-out gain {g:.3g} is below the {needed:.3g} naming "
+                               "needs")
+            self.scene_rejected[name] = entry
+            out.sims.clear()
+            return current
+        entry["status"] = "named"
+        self.scene_rejected.pop(name, None)
+        why = {"named": True, "effect": name, "held_out_gap": float(current.held_gap),
+               "score": score, "held_out_gain": float(g), "needed_gain": float(needed),
+               "null_gain": 0.0, "ranked_below": [], "equivalent": [], "scene": True}
+        self.steps.append(Step(eff, current, out, {name: entry}, why))
+        return moved_on(current, out)
 
     def _scheme(self, current: Evaluation) -> tuple[Effect, Evaluation, dict[str, Any]] | None:
         """The timestamp scheme fitted (on every row: a property of every event's stamp)
@@ -524,7 +593,8 @@ class GapRun:
         steps = [Step(s.effect, lighten(s.before), lighten(s.after), s.candidates, s.why,
                       s.refit) for s in self.steps]
         return GapResult(info, ev.meas_stats, lighten(initial), lighten(current), steps,
-                         settings, self.rejected, self.null.to_json())
+                         settings, {**self.scene_rejected, **self.rejected},
+                         self.null.to_json())
 
 
 def run_gap(rec: Recording, config: GapConfig | None = None, *,

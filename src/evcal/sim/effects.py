@@ -44,6 +44,10 @@ name                      what the sensor does                                  
                           spread ``sigma_dn``, mean ``mean_dn``); the DVS part of the
                           pixel does not see it. A given ``offset_dn`` map, else drawn
                           from ``seed``
+``flicker``               the scene's light (not the sensor) multiplied by               depth
+                          ``1 + depth sin(2 pi freq_hz t + phase_rad)`` (``t`` in
+                          seconds of the recording's time: mains lighting flickers at
+                          twice the mains frequency); events and frames both see it
 ``exposure``              APS frames only: a frame averages the intensity over           lag_us
                           ``exposure_us``, its exposure's centre ``lag_us`` after the
                           frame's timestamp (``exposure_us / 2``: stamped at the start
@@ -66,6 +70,8 @@ overrides those of the stages it acts at (:meth:`Effect.hooks` lists them). The 
 runs the stages in this sequence, and in each asks every effect in the fixed order of
 :attr:`Effect.order` (ties by name; :func:`simulation_order`), never by its class:
 
+0. ``on_light(t_s)``: the factor the scene's light is multiplied by at the output times
+   ``t_s`` (seconds), applied to the source the events and the frames are made from;
 1. ``on_aps(aps)``: the APS frame model (:meth:`ApsConfig.with_effects`);
 2. ``log_offset(nominal)``: the dark level of the log response ``log(I + dark)``
    (:func:`~evcal.sim.nonideal.effective_log_offset`);
@@ -103,6 +109,7 @@ name                       order  hooks (what the fixed order keeps)
 ``timestamp_jitter``       110    ``on_timestamps`` (``rng_timestamps``)
 ``aps_fpn``                120    ``on_aps``
 ``exposure``               130    ``on_aps``
+``flicker``                140    ``on_light``
 =========================  =====  ===========================================================
 
 To add an effect: subclass :class:`Effect` as a frozen, keyword-only dataclass with a unique
@@ -167,6 +174,11 @@ class Effect:
     # the simulation hooks, one per stage (the module doc gives the stages and their order);
     # each does nothing here, an effect overrides those of the stages it acts at
 
+    def on_light(self, t_s: np.ndarray) -> np.ndarray | None:
+        """The factor the scene's light is multiplied by at the times ``t_s`` (seconds of
+        output time), or ``None``: the light as the source gives it."""
+        return None
+
     def on_aps(self, aps: ApsConfig) -> ApsConfig:
         """The APS frame model with this effect (frames only)."""
         return aps
@@ -200,7 +212,7 @@ class Effect:
         return tuple(h for h in HOOKS if getattr(cls, h) is not getattr(Effect, h))
 
 
-HOOKS: tuple[str, ...] = ("on_aps", "log_offset", "applies_dead_time", "kernel_setup",
+HOOKS: tuple[str, ...] = ("on_light", "on_aps", "log_offset", "applies_dead_time", "kernel_setup",
                           "after_kernel", "on_timestamps")
 
 
@@ -837,6 +849,47 @@ class Exposure(Effect):
         return replace(aps, exposure_us=int(round(self.exposure_us)), lag_us=float(self.lag_us))
 
 
+@dataclass(frozen=True, kw_only=True)
+class Flicker(Effect):
+    """The light of the scene flickers: multiplied by ``1 + depth sin(2 pi freq_hz t +
+    phase_rad)``, ``t`` the recording's time in seconds (lamps on the mains flicker at twice
+    its frequency, 100 or 120 Hz; an LED's driver at its own). A property of the scene,
+    not of the sensor: the events see it between the frames, the frames average it over
+    their exposure (one at each phase: they alias it)."""
+
+    name: ClassVar[str] = "flicker"
+    primary: ClassVar[str] = "depth"
+    n_fitted: ClassVar[int] = 3
+    order: ClassVar[int] = 140
+    freq_hz: float = 100.0
+    depth: float = 0.05
+    phase_rad: float = 0.0
+
+    def __post_init__(self) -> None:
+        _check(self.name, np.isfinite(self.freq_hz) and self.freq_hz > 0,
+               "freq_hz must be finite and > 0", self.freq_hz)
+        _check(self.name, np.isfinite(self.depth) and 0 <= self.depth < 1,
+               "depth must be in [0, 1)", self.depth)
+        _check(self.name, bool(np.isfinite(self.phase_rad)), "phase_rad must be finite",
+               self.phase_rad)
+
+    def on_light(self, t_s: np.ndarray) -> np.ndarray:
+        t = np.asarray(t_s, np.float64)
+        out: np.ndarray = 1.0 + self.depth * np.sin(2 * np.pi * self.freq_hz * t
+                                                    + self.phase_rad)
+        return out
+
+    def exposure_mean(self, t_us: np.ndarray, exposure_us: np.ndarray) -> np.ndarray:
+        """The factor's mean over each exposure ``[t - e/2, t + e/2]`` (centres ``t_us``,
+        lengths ``exposure_us``): what a frame stamped at its exposure's centre saw."""
+        t = np.asarray(t_us, np.float64) * 1e-6
+        e = np.asarray(exposure_us, np.float64) * 1e-6
+        # the mean of sin over a window of length e is sin at its centre times sinc(f e)
+        out: np.ndarray = 1.0 + self.depth * np.sinc(self.freq_hz * e) * np.sin(
+            2 * np.pi * self.freq_hz * t + self.phase_rad)
+        return out
+
+
 def quantise_events(t_us: np.ndarray, pix: np.ndarray, pol: np.ndarray, lab: np.ndarray,
                     q: TimestampQuantisation, t0_us: int, *, n_pix: int,
                     t_end_us: float | None = None, refractory: Refractory | None = None
@@ -941,7 +994,7 @@ EFFECTS: dict[str, type[Effect]] = {
     cls.name: cls
     for cls in (Refractory, Leak, ShotNoise, Bandwidth, ThresholdNoise, HotPixels, LogOffset,
                 TimestampJitter, TimestampQuantisation, ThresholdLight, RowNoise, ApsFpn,
-                Exposure)
+                Exposure, Flicker)
 }
 EFFECT_NAMES: tuple[str, ...] = tuple(EFFECTS)
 

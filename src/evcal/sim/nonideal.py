@@ -66,6 +66,40 @@ def effective_log_offset(cfg: SimConfig, effects: Mapping[str, Effect]) -> float
     return offset
 
 
+class _LitSource:
+    """``source`` (a callable of time in seconds, relative to the run) under the light
+    factors of the effects with an ``on_light`` hook (functions of output time): what the
+    events and the frames both see. Keeps the source's ``render_block`` where it has one."""
+
+    def __init__(self, source: Source, effects: list[Effect], t_origin_us: int):
+        self.source = source
+        self.effects = effects
+        self.t_origin_s = int(t_origin_us) * 1e-6
+        if getattr(source, "render_block", None) is not None:
+            self.render_block = self._render_block
+
+    def factor(self, t_s: np.ndarray | float) -> np.ndarray:
+        t = np.asarray(t_s, np.float64) + self.t_origin_s
+        out = np.ones(t.shape)
+        for e in self.effects:
+            g = e.on_light(t)
+            if g is not None:
+                out = out * g
+        return out
+
+    def __call__(self, t_s: float) -> np.ndarray:
+        img = np.asarray(self.source(t_s), np.float32)
+        out: np.ndarray = img * np.float32(self.factor(t_s))
+        return out
+
+    def _render_block(self, t_s: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        block = np.asarray(self.source.render_block(t_s, out=out), np.float32)  # type: ignore[attr-defined]
+        g = self.factor(t_s).astype(np.float32).reshape((-1,) + (1,) * (block.ndim - 1))
+        # a new array: the source may hand out a cached render
+        result: np.ndarray = block * g
+        return result
+
+
 def _aps_frame(source: Source, t_us: int, aps: ApsConfig, rng: np.random.Generator,
                first: np.ndarray | None = None) -> np.ndarray:
     """The APS frame stamped ``t_us``: the intensity averaged over the exposure (centred
@@ -171,6 +205,9 @@ def simulate(
     if source is None:
         source = MovingScene(cfg.scene, (cfg.height, cfg.width), cfg.trajectory,
                              min_dn=cfg.min_dn, max_dn=cfg.max_dn)
+    lights = [e for e in ordered if "on_light" in e.hooks()]
+    if lights:
+        source = _LitSource(source, lights, int(t_origin_us))
     times = internal_times_us(cfg) if times_us is None else np.asarray(times_us, np.int64)
     if times.size < 2 or (np.diff(times) <= 0).any():
         raise ConfigError("internal sample times must be at least two, increasing")
