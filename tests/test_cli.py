@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from evcal.cli import main
-from evcal.io import load_calibration
+from evcal.io import load_calibration, save_calibration
 
 
 @pytest.fixture(scope="module")
@@ -75,6 +75,18 @@ def test_calibrate_offei_then_evaluate_beats_di(small_sim, tmp_path, capsys):
         assert key in summary["di"]
     assert summary["calibrated"]["psnr"] > summary["di"]["psnr"] + 1.0
     assert "psnr_paper" in capsys.readouterr().out
+    # pixels without an estimate: integrated with the valid pixels' median, and counted
+    valid = v.copy()
+    valid[:10] = False
+    holed = cal.replace(valid=valid, reason=np.where(valid, cal.reason, 2).astype(np.uint8),
+                        contrast=np.where(valid, cal.contrast, 0.1).astype(cal.contrast.dtype),
+                        bias=np.where(valid, cal.bias, 0.0).astype(cal.bias.dtype))
+    save_calibration(holed, tmp_path / "holed.npz")
+    assert main(["evaluate", str(small_sim), "--calibration", str(tmp_path / "holed.npz"),
+                 "--frames-per-image", "10"]) == 0
+    n = int((~valid).sum())
+    assert f"{n} of {valid.size} pixels ({100 * n / valid.size:.1f} %) have no valid " \
+           "estimate" in capsys.readouterr().err
 
 
 def test_errors_are_reported_not_raised(tmp_path, capsys):

@@ -831,6 +831,29 @@ def test_a_late_message_whose_time_still_fits_is_accepted():
     assert g.sessions == 0
 
 
+def test_a_sequence_number_far_ahead_is_a_new_numbering_not_loss():
+    # issue 40: seq 2**64 - 1 after 0, 1 counted 2**64 - 3 messages lost; a jump beyond
+    # MAX_SEQ_GAP is a counter that started anew (counted as a restart), a smaller one loss
+    from evcal.stream import StreamGuard
+
+    g = StreamGuard()
+    size = (6, 8)
+    for k in range(2):
+        assert g.accept("events", t_first_us=10 * k, t_last_us=10 * k + 5, what=f"m{k}",
+                        seq=k, size=size).lost == 0
+    far = g.accept("events", t_first_us=20, t_last_us=25, what="far", seq=2**64 - 1, size=size)
+    assert far.lost == 0
+    assert far.restart
+    nxt = g.accept("events", t_first_us=30, t_last_us=35, what="next", seq=2**64, size=size)
+    assert nxt.lost == 0
+    assert not nxt.restart
+    near = g.accept("events", t_first_us=40, t_last_us=45, what="near",
+                    seq=2**64 + 1 + StreamGuard.MAX_SEQ_GAP, size=size)
+    assert near.lost == StreamGuard.MAX_SEQ_GAP
+    assert not near.restart
+    assert g.sessions == 0
+
+
 def test_an_exact_duplicate_is_dropped_and_counted_not_a_restart():
     svc, pub = make_service()
     try:

@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from .clihelp import HelpFormatter
 from .estimators import ESTIMATORS
 from .events import SensorSize
 
@@ -316,6 +317,14 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     for note in (res.params.get("events_per_image_note"), res.log_offset_note):
         if note and note not in ("given", "from the calibration"):
             _note(args, "evaluate", f"note: {note}")
+    n_invalid = int((~cal.valid).sum())
+    if n_invalid and cal.valid.any():
+        # the reconstruction integrates them with the valid pixels' median (with_invalid_filled)
+        _note(args, "evaluate", f"note: {n_invalid} of {cal.valid.size} pixels "
+              f"({100 * n_invalid / cal.valid.size:.1f} %) have no valid estimate and are "
+              f"integrated with the valid pixels' median c = "
+              f"{float(np.median(cal.contrast[cal.valid])):.4g}, b = "
+              f"{float(np.median(cal.bias[cal.valid])):.4g}")
     if args.json == "-":
         _write_json("-", summary)
         return 0
@@ -419,11 +428,14 @@ DELEGATED: dict[str, tuple[Callable[[list[str]], int], str]] = {
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="evcal", description=DESCRIPTION, epilog=EPILOG,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+                                formatter_class=HelpFormatter)
     from . import __version__  # noqa: PLC0415
 
     p.add_argument("--version", action="version", version=f"evcal {__version__}")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    def add_parser(name: str, **kw: Any) -> argparse.ArgumentParser:
+        return sub.add_parser(name, formatter_class=HelpFormatter, **kw)
 
     def common(sp: argparse.ArgumentParser, recording: bool = True) -> None:
         if recording:
@@ -458,12 +470,12 @@ def build_parser() -> argparse.ArgumentParser:
         sp.add_argument("-v", "--verbose", action="count", default=0,
                         help="log what is done on stderr (-vv: debug detail)")
 
-    sp = sub.add_parser("info", help="sensor size, duration, counts and event rate")
+    sp = add_parser("info", help="sensor size, duration, counts and event rate")
     common(sp)
     sp.add_argument("--json", action="store_true", help="print JSON")
     sp.set_defaults(func=cmd_info)
 
-    sp = sub.add_parser("calibrate", help="estimate per-pixel contrast and bias")
+    sp = add_parser("calibrate", help="estimate per-pixel contrast and bias")
     common(sp)
     sp.add_argument("--method", choices=list(ESTIMATORS), default="offei",
                     help="; ".join(f"{e.name}: {e.summary}" for e in ESTIMATORS.values()))
@@ -498,7 +510,7 @@ def build_parser() -> argparse.ArgumentParser:
     review(sp, "the maps, their masks, standard errors and histograms")
     sp.set_defaults(func=cmd_calibrate)
 
-    sp = sub.add_parser("evaluate", help="reconstruction quality against DI")
+    sp = add_parser("evaluate", help="reconstruction quality against DI")
     common(sp)
     sp.add_argument("--calibration", required=True,
                     help="calibration .npz (evcal calibrate, evcal query or the service's)")
@@ -516,7 +528,7 @@ def build_parser() -> argparse.ArgumentParser:
                "the events")
     sp.set_defaults(func=cmd_evaluate)
 
-    sp = sub.add_parser("simulate", help="ideal event camera simulation with known c, b")
+    sp = add_parser("simulate", help="ideal event camera simulation with known c, b")
     common(sp, recording=False)
     sp.add_argument("--out", required=True, help="recording to write (.mcap, .npz or folder)")
     sp.add_argument("--sensor-size", metavar="WxH", default="240x180",
@@ -542,14 +554,14 @@ def build_parser() -> argparse.ArgumentParser:
                     help="seed of the maps and the motion (default 0)")
     sp.set_defaults(func=cmd_simulate)
 
-    sp = sub.add_parser("bench", help="print speed and memory figures")
+    sp = add_parser("bench", help="print speed and memory figures")
     sp.add_argument("--json", metavar="OUT.json", help="also write the figures as JSON")
     sp.add_argument("--quick", action="store_true", help="smaller sizes (for CI smoke runs)")
     verbosity(sp)
     sp.set_defaults(func=cmd_bench)
 
     for name, (_, helptext) in DELEGATED.items():
-        sub.add_parser(name, help=helptext, add_help=False)
+        add_parser(name, help=helptext, add_help=False)
     return p
 
 

@@ -152,7 +152,8 @@ class StreamPolicy:
 class SeqCheck:
     """What a message says about its stream: ``lost`` messages before it (a sequence gap,
     less the messages of the gap that arrived and were refused), a sequence ``restart`` (a
-    number below the expected one that is neither a duplicate nor a late message), whether
+    number below the expected one that is neither a duplicate nor a late message, or one
+    more than :attr:`StreamGuard.MAX_SEQ_GAP` above it), whether
     it starts a ``new_session`` (the stream's time base changed; ``new_sensor``: with another
     size), and ``recovered``: this message had been counted lost (it arrived late, after a
     later one, and its time still fits the stream)."""
@@ -192,6 +193,10 @@ class StreamGuard:
 
     RECENT_MESSAGES = 64  # accepted (seq, t_first, t_last) kept per stream for duplicates
     MISSING_WINDOW = 1024  # how far back a late message may fill a sequence gap
+    # a forward jump of the sequence number beyond this is a numbering that started anew (a
+    # publisher's counter reset to a random or wrapped value, a forged number), not loss:
+    # a million messages is many minutes of any camera's stream
+    MAX_SEQ_GAP = 1 << 20
 
     def __init__(self, sensor: SensorSize | None = None, *, max_pixels: int | None = None,
                  policy: StreamPolicy | None = None) -> None:
@@ -304,6 +309,9 @@ class StreamGuard:
             refused.popleft()
         if expected is None or seq == expected:
             return SeqCheck()
+        if seq > expected + self.MAX_SEQ_GAP:
+            self._reset_windows((kind,))
+            return SeqCheck(restart=True)
         if seq > expected:
             self._note_missing(kind, expected, seq)
             return SeqCheck(lost=seq - expected - n_refused)

@@ -19,11 +19,12 @@ from evcal.service import keys
 from evcal.service.signing import SignatureError, generate_keys
 from evcal.service.transport import Transport, TransportError, options_from_args
 
+from ..clihelp import HelpFormatter
 from .common import add_verbosity, base_parser, camera_arg, fail
 
 
 def main_keygen(argv: Sequence[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="evcal keygen", description=(
+    p = argparse.ArgumentParser(prog="evcal keygen", formatter_class=HelpFormatter, description=(
         "Make an Ed25519 key pair: PREFIX.key for `evcal serve --sign-key`, PREFIX.pub for "
         "`evcal query --verify`."))
     p.add_argument("--out", required=True, metavar="PREFIX",
@@ -44,7 +45,8 @@ def main_forget(argv: Sequence[str] | None = None) -> int:
     p = base_parser("evcal forget", "Ask the service to drop a camera's state (memory and "
                                     "disk).")
     p.add_argument("--camera", required=True, type=camera_arg, help="camera id")
-    p.add_argument("--timeout", type=float, default=5.0, metavar="S")
+    p.add_argument("--timeout", type=float, default=5.0, metavar="S",
+                   help="seconds to wait for the service's answer")
     args = p.parse_args(argv)
     prog = "evcal forget"
     try:

@@ -8,6 +8,8 @@ import sys
 from evcal.service import keys
 from evcal.service.transport import add_zenoh_arguments
 
+from ..clihelp import HelpFormatter
+
 
 class _Verbosity(argparse.Action):
     """-v / -q of the clients: stderr logging is set as the flag is parsed, so every client
@@ -32,7 +34,8 @@ def add_verbosity(p: argparse.ArgumentParser) -> None:
 
 
 def base_parser(prog: str, description: str) -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog=prog, description=description)
+    p = argparse.ArgumentParser(prog=prog, description=description,
+                                formatter_class=HelpFormatter)
     add_zenoh_arguments(p)
     p.add_argument("--prefix", default="evcal", help="key prefix (default: evcal)")
     add_verbosity(p)

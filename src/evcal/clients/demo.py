@@ -24,6 +24,8 @@ from typing import Any
 
 import numpy as np
 
+from ..clihelp import HelpFormatter
+
 
 def _say(msg: str) -> None:
     print(f"evcal demo: {msg}", file=sys.stderr, flush=True)
@@ -86,12 +88,15 @@ def warm_up(onei: Any) -> float:
 
 def build_parser() -> argparse.ArgumentParser:
     from .common import add_verbosity
-    p = argparse.ArgumentParser(prog="evcal demo", description=__doc__.split("\n")[0])
-    p.add_argument("--out", default="demo.rrd", help="Rerun recording to write (demo.rrd)")
+    p = argparse.ArgumentParser(prog="evcal demo", description=__doc__.split("\n")[0],
+                                formatter_class=HelpFormatter)
+    p.add_argument("--out", default="demo.rrd", help="Rerun recording to write")
     p.add_argument("--size", default="240x180", help="simulated sensor WxH (default 240x180)")
     p.add_argument("--duration", type=float, default=6.0, help="seconds of simulated data")
-    p.add_argument("--seed", type=int, default=1)
-    p.add_argument("--camera", default="demo/cam0")
+    p.add_argument("--seed", type=int, default=1,
+                   help="seed of the simulated sensor's maps and motion")
+    p.add_argument("--camera", default="demo/cam0",
+                   help="camera id the recording is replayed under")
     p.add_argument("--n-small", type=int, default=100_000,
                    help="OnEI events per small buffer (default 100000: ~30 updates)")
     p.add_argument("--n-large", type=int, default=5_000_000,

@@ -232,7 +232,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", metavar="CALIB.npz", help="write the calibration here")
     p.add_argument("--status", action="store_true", help="print the camera's status (JSON)")
     p.add_argument("--list", action="store_true", help="list the cameras of every instance")
-    p.add_argument("--timeout", type=float, default=5.0, metavar="S")
+    p.add_argument("--timeout", type=float, default=5.0, metavar="S",
+                   help="seconds to wait for the answers")
     trust = p.add_mutually_exclusive_group()
     trust.add_argument("--verify", metavar="KEY.pub",
                        help="accept only calibrations signed with this Ed25519 public key "

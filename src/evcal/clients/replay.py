@@ -60,6 +60,7 @@ from evcal.service.cli import add_ros2_arguments, add_ros_distro_argument, ros_d
 from evcal.service.transport import Publisher, Transport, TransportError, options_from_args
 from evcal.stream import frame_cuts
 
+from ..clihelp import HelpFormatter
 from .common import base_parser, camera_arg, fail
 from .delivery import (
     CONFIRM_TIMEOUT_S,
@@ -285,7 +286,7 @@ def replay(t: Transport, rec: Recording, camera: str, *, prefix: str = "evcal",
 def build_parser() -> argparse.ArgumentParser:
     p = base_parser("evcal replay", "Publish a recording onto zenoh in evcal's wire format.")
     p.epilog = exit_code_table()
-    p.formatter_class = argparse.RawDescriptionHelpFormatter
+    p.formatter_class = HelpFormatter
     p.add_argument("recording", help="any recording evcal reads (.aedat4, .mcap, .npz, ECD "
                                      "folder)")
     p.add_argument("--camera", type=camera_arg,
@@ -297,8 +298,10 @@ def build_parser() -> argparse.ArgumentParser:
     rate.add_argument("--max-rate", action="store_true",
                       help="as fast as the link and the subscribers allow")
     p.add_argument("--loop", action="store_true", help="replay again and again (until Ctrl-C)")
-    p.add_argument("--chunk-events", type=int, default=50_000)
-    p.add_argument("--chunk-ms", type=float, default=10.0)
+    p.add_argument("--chunk-events", type=int, default=50_000,
+                   help="at most this many events per message")
+    p.add_argument("--chunk-ms", type=float, default=10.0,
+                   help="at most this many milliseconds of events per message")
     p.add_argument("--sensor", help="WxH, for recordings that do not tell it")
     p.add_argument("--wait-subscriber", type=float, default=5.0, metavar="S",
                    help="wait up to S seconds for a subscriber before sending (default 5); "

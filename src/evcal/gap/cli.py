@@ -10,12 +10,13 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from ..clihelp import HelpFormatter
 from ..sim.effects import EFFECT_NAMES
 
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
-        prog="evcal gap",
+        prog="evcal gap", formatter_class=HelpFormatter,
         description="Find where simulation and measurement disagree, name the missing sensor "
                     "effect, add it and show the gap shrink.",
         epilog="Candidates are fitted on the sensor's even rows and judged on its odd rows, "

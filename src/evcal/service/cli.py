@@ -10,6 +10,7 @@ import sys
 import threading
 from collections.abc import Sequence
 
+from ..clihelp import HelpFormatter
 from ..errors import ConfigError
 from ..online import OnEIConfig
 from ..signals import STOP_SIGNALS, SignalRelay
@@ -28,7 +29,7 @@ from .transport import (
 
 def build_parser(prog: str = "evcal serve") -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
-        prog=prog,
+        prog=prog, formatter_class=HelpFormatter,
         description="Live per-pixel calibration service: subscribes to every camera's events "
                     "and frames on <prefix>/<camera>/events|frames, keeps an online (OnEI) "
                     "calibration per camera, publishes <prefix>/<camera>/calibration|status|"
@@ -98,10 +99,14 @@ def build_parser(prog: str = "evcal serve") -> argparse.ArgumentParser:
                         "publishers)")
     p.add_argument("--queue-mb", type=float, default=64.0,
                    help="input queue size per camera in MiB (default 64)")
-    p.add_argument("--max-cameras", type=int, default=64)
+    p.add_argument("--max-cameras", type=int, default=64,
+                   help="cameras served at once; a new camera takes the slot of one idle past "
+                        "its probation, else it is refused and counted")
     p.add_argument("--max-pixels", type=int, default=1280 * 1024,
                    help="largest sensor accepted, in pixels (default 1280x1024)")
-    p.add_argument("--max-message-mb", type=float, default=32.0)
+    p.add_argument("--max-message-mb", type=float, default=32.0,
+                   help="largest events or frames message accepted (MB); a larger one is "
+                        "refused and counted in the camera's errors")
     g = add_ros2_arguments(
         p, "also be a ROS 2 node over rmw_zenoh: take event_camera_msgs/EventPacket and "
            "sensor_msgs/Image topics as camera input (camera id = the topic's namespace) and "
