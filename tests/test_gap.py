@@ -385,3 +385,24 @@ def test_the_lower_edge_of_intervals_leaves_simultaneous_pairs_out() -> None:
     a = stat_iei_lower_edge(obs(0)).values
     np.testing.assert_allclose(stat_iei_lower_edge(obs(200)).values, a)
     assert a[0] == pytest.approx(np.log10(400 + 4600 * 0.001), abs=0.05)
+
+
+def test_report_lists_the_candidates_judged_alike_together_best_first() -> None:
+    """report.md's candidate list: those judged on every seed first, by their score (so the
+    named one, the lowest, heads it), then the screenings (one seed, labelled as such), then
+    the fitters' reasons (issue 40: a screened gap listed above the named effect's read as
+    if it were better)."""
+    from evcal.gap.report import _candidate_lines
+
+    cands = {
+        "bandwidth": {"status": "screened", "held_out_gap": 5.07, "score": 5.17,
+                      "parameters": {"cutoff_hz": 40.0}},
+        "leak": {"status": "no evidence", "reason": "still pixels make no excess"},
+        "refractory": {"status": "confirmed", "held_out_gap": 9.3, "score": 9.4},
+        "exposure": {"status": "named", "held_out_gap": 8.12, "score": 8.32},
+    }
+    lines = _candidate_lines(cands)
+    assert [ln.split()[1] for ln in lines] == ["exposure", "refractory", "bandwidth", "leak"]
+    assert "one seed" in lines[2]
+    assert "one seed" not in lines[0]
+    assert lines[3].endswith("still pixels make no excess")

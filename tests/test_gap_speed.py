@@ -318,6 +318,17 @@ def test_progress_without_a_terminal_prints_lines_with_the_time_left(capsys,
     assert lines[0].endswith("about ? left")  # no rate from the first simulation alone
     assert "1.2 of 6.0 simulations planned" in lines[1]
     assert "left" in lines[1]
+    # an opening line at once; a run past its plan says 0:00 left, not a negative time
+    with Progress(2.0, "gap", unit="simulations planned", tty=False, decimals=1,
+                  opening="fitting the base model") as o:
+        first = capsys.readouterr().err.strip().splitlines()
+        o.update(1.0)
+        o.update(2.0)
+        assert "-" not in o.line().split("elapsed")[1]
+        assert o.line().endswith("about 0:00 left")
+    assert first == ["evcal gap: 0.0 of 2.0 simulations planned, 0:00 elapsed, about ? left; "
+                     "fitting the base model"]
+    capsys.readouterr()
     quiet = Progress(10.0, "gap", unit="simulations planned", quiet=True, tty=False)
     quiet.update(1.0)
     assert capsys.readouterr().err == ""

@@ -17,7 +17,8 @@ class Progress:
     EVERY_S = 10.0
 
     def __init__(self, total: float | None, desc: str, *, unit: str, quiet: bool = False,
-                 tty: bool | None = None, decimals: int = 0, skip_first: bool = False) -> None:
+                 tty: bool | None = None, decimals: int = 0, skip_first: bool = False,
+                 opening: str | None = None) -> None:
         self.desc = desc
         self.unit = unit
         self.total = None if total is None else float(total)
@@ -35,6 +36,9 @@ class Progress:
             self._bar = tqdm(total=self._bar_total(), desc=f"{desc} ({unit})", file=sys.stderr,
                              leave=False, bar_format="{l_bar}{bar}| " + n + "/{total} "
                              "[{elapsed}<{remaining}]")
+        elif not quiet and opening is not None:
+            # a line at once: the first update may be a minute away (``opening`` says why)
+            print(f"evcal {desc}: {self.line()}; {opening}", file=sys.stderr, flush=True)
 
     def _bar_total(self) -> float | None:
         return None if self.total is None else round(self.total, 1)
@@ -74,7 +78,8 @@ class Progress:
             return line
         left = float("nan")
         if self._first is not None and self.done > self._first[1]:
-            left = (self.total - self.done) * (now - self._first[0]) / (
+            # never negative: work done beyond the plan (renewed only each round) is done
+            left = max(self.total - self.done, 0.0) * (now - self._first[0]) / (
                 self.done - self._first[1])
         return f"{line}, about {_clock(left)} left"
 

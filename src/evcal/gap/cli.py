@@ -112,7 +112,9 @@ def run(args: argparse.Namespace) -> int:
     # the first simulation also renders the latent intensity and follows the measurement's
     # analysis: the rate is taken from the ones after it
     progress = Progress(n_simulations(cfg), "gap", unit="simulations planned",
-                        quiet=args.quiet, decimals=1, skip_first=True)
+                        quiet=args.quiet, decimals=1, skip_first=True,
+                        opening="fitting the base model; the first simulation also renders "
+                                "the light between the frames")
     try:
         result = run_gap(rec, cfg, progress=progress.update, plan=progress.plan, window=window,
                          released=trim_freed_memory)

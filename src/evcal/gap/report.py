@@ -115,8 +115,8 @@ def write_markdown(result: GapResult, out_dir: Path, *, plots: bool = True) -> P
         for i, s in enumerate(result.steps, 1):
             lines += [f"### Step {i}: {s.effect.name}", ""]
             lines += _why_lines(s.effect.name, s.why)
-            lines += ["Candidates (held-out gap with the candidate added; the fitter's "
-                      "reason where it saw none):", ""]
+            lines += ["Candidates (held-out gap with the candidate added, those judged on "
+                      "every seed first; the fitter's reason where it saw none):", ""]
             lines += _candidate_lines(s.candidates)
             lines.append("")
     lines += ["## Why the search stopped", "",
@@ -184,13 +184,27 @@ def _why_lines(name: str, why: dict[str, Any]) -> list[str]:
     return out
 
 
+# the order candidates are listed in: those judged on every seed and the whole sensor
+# first (their held-out gaps compare), then those screened on one seed (on a band of rows
+# when the recording is large: their gaps are the band's), then those without a simulation
+_ORDER = {"named": 0, "confirmed": 0, "not named": 0, "screened": 1}
+
+
 def _candidate_lines(cands: dict[str, dict[str, Any]]) -> list[str]:
+    """The candidates, best first within each kind of judgement (:data:`_ORDER`)."""
+    def key(item: tuple[str, dict[str, Any]]) -> tuple[int, float]:
+        c = item[1]
+        rank = _ORDER.get(c.get("status", ""), 2) if "held_out_gap" in c else 3
+        return rank, float(c.get("score", c.get("held_out_gap", 0.0)))
+
     out = []
-    for name, c in cands.items():
+    for name, c in sorted(cands.items(), key=key):
         status = c.get("status", "")
         if "held_out_gap" in c:
             params = ", ".join(f"{k}={v}" for k, v in (c.get("parameters") or {}).items())
-            out.append(f"- {name} ({status}): held-out gap {c['held_out_gap']:.2f}, "
+            how = " (one seed, screening: not comparable with those judged on every seed)" \
+                if status == "screened" else ""
+            out.append(f"- {name} ({status}): held-out gap {c['held_out_gap']:.2f}{how}, "
                        f"{params}")
         else:
             out.append(f"- {name} ({status}): {c.get('reason', '')}")
