@@ -52,3 +52,24 @@ def test_query_without_a_service_fails_clearly(tmp_path):
     assert res.returncode == 1
     assert "no service answered" in res.stderr
     assert not (tmp_path / "c.npz").exists()
+
+
+def test_the_camera_table_has_a_row_per_camera_and_one_per_empty_instance():
+    from evcal.clients.query import format_instances
+
+    infos = [
+        {"instance": "w1", "pid": 12, "shard": "1/2", "cameras": [
+            {"id": "lab/a", "sensor": "346x260", "updates": 4, "events": 1234567,
+             "last_update_t_us": 99}]},
+        {"instance": "sup", "pid": 10, "supervisor": True, "cameras": []},
+        {"instance": "w0", "pid": 11, "shard": "0/2", "cameras": [
+            {"id": "lab/b", "sensor": None, "updates": 0, "events": 0,
+             "last_update_t_us": None}]},
+    ]
+    lines = format_instances(infos).splitlines()
+    assert lines[0].startswith("instance")
+    assert lines[1].split()[:3] == ["sup", "(supervisor)", "10"]
+    assert "1,234,567" in lines[3]
+    assert lines[3].split()[-1] == "99"
+    assert lines[2].split()[-1] == "-"  # no calibration yet
+    assert len(lines) == 4

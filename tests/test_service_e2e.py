@@ -132,6 +132,25 @@ def test_service_matches_offline_onei_exactly(two_cameras, sims):
         assert live.method == "onei"
 
 
+def test_query_list_prints_a_table_of_instances_and_cameras(two_cameras, service):
+    """``query --list``: a short table, a row per camera (issue 40: it printed 60 lines of
+    counters); ``--json`` the whole replies."""
+    res = run_client("query", ["--list", "--connect", service["ep"], *ZARGS])
+    assert res.returncode == 0, res.stderr
+    lines = res.stdout.strip().splitlines()
+    assert lines[0].split()[:4] == ["instance", "pid", "camera", "sensor"]
+    rows = {ln.split()[2]: ln.split() for ln in lines[1:]}
+    assert set(rows) == {"lab/rig1/cam0", "lab/rig2/cam1"}
+    assert rows["lab/rig1/cam0"][3] == "64x48"
+    assert rows["lab/rig2/cam1"][3] == "48x36"
+    assert len(lines) == 3
+    res = run_client("query", ["--list", "--json", "--connect", service["ep"], *ZARGS])
+    assert res.returncode == 0, res.stderr
+    doc = json.loads(res.stdout)
+    assert {c["id"] for c in doc["cameras"]} == {"lab/rig1/cam0", "lab/rig2/cam1"}
+    assert "gc" in doc
+
+
 def test_two_cameras_keep_separate_states(two_cameras, sims, service):
     a, b = two_cameras["a"], two_cameras["b"]
     assert a.shape == (48, 64)

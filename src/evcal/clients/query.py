@@ -226,12 +226,42 @@ def save_npz_bytes(payload: bytes, out: Path) -> Calibration:
     return cal
 
 
+def format_instances(infos: list[dict[str, Any]]) -> str:
+    """The replies on ``<prefix>/cameras`` as a short table: a row per camera (an instance
+    without cameras, a supervisor of workers, gets one row of its own), with its sensor,
+    updates, events and the sensor time of its last calibration."""
+    head = ("instance", "pid", "camera", "sensor", "updates", "events", "last calibration t_us")
+    rows: list[tuple[str, ...]] = []
+    for info in sorted(infos, key=lambda d: (not d.get("supervisor"), str(d.get("instance")))):
+        name = str(info.get("instance", "?"))
+        if info.get("supervisor"):
+            name += " (supervisor)"
+        elif info.get("shard"):
+            name += f" (shard {info['shard']})"
+        pid = str(info.get("pid", "?"))
+        cams = info.get("cameras") or []
+        if not cams:
+            rows.append((name, pid, "-", "", "", "", ""))
+        for c in cams:
+            t = c.get("last_update_t_us")
+            rows.append((name, pid, str(c.get("id")), str(c.get("sensor") or "-"),
+                         str(c.get("updates", "")), f"{c.get('events', 0):,}",
+                         "-" if t is None else str(t)))
+    widths = [max(len(r[i]) for r in (head, *rows)) for i in range(len(head))]
+    lines = ["  ".join(v.ljust(w) for v, w in zip(r, widths, strict=True)).rstrip()
+             for r in (head, *rows)]
+    return "\n".join(lines)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = base_parser("evcal query", "Fetch a camera's current calibration from the service.")
     p.add_argument("--camera", type=camera_arg, help="camera id, e.g. lab/rig1/cam0")
     p.add_argument("--out", metavar="CALIB.npz", help="write the calibration here")
     p.add_argument("--status", action="store_true", help="print the camera's status (JSON)")
-    p.add_argument("--list", action="store_true", help="list the cameras of every instance")
+    p.add_argument("--list", action="store_true",
+                   help="a table of every instance and its cameras (--json: the whole replies)")
+    p.add_argument("--json", action="store_true",
+                   help="with --list: print every instance's reply as JSON (its counters too)")
     p.add_argument("--timeout", type=float, default=5.0, metavar="S",
                    help="seconds to wait for the answers")
     trust = p.add_mutually_exclusive_group()
@@ -266,8 +296,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         with Transport(zopts) as t:
             if args.list:
-                for info in fetch_json(t, keys.cameras_key(args.prefix), timeout_s=args.timeout):
-                    print(strict_dumps(info, indent=2))
+                infos = fetch_json(t, keys.cameras_key(args.prefix), timeout_s=args.timeout)
+                if args.json:
+                    for info in infos:
+                        print(strict_dumps(info, indent=2))
+                elif infos:
+                    print(format_instances(infos))
+                else:
+                    return fail(prog, f"no service answered on "
+                                      f"{keys.cameras_key(args.prefix)} within "
+                                      f"{args.timeout:g} s")
             if args.camera and args.status:
                 key = keys.camera_key(args.prefix, args.camera, "status")
                 found = fetch_json(t, key, timeout_s=args.timeout)
