@@ -53,10 +53,16 @@ def net_series(obs: Observation) -> tuple[int, np.ndarray]:
     return t0, np.bincount(k[keep], weights=sign, minlength=n)
 
 
+def _bin_times(t0_us: int, n: int) -> np.ndarray:
+    """The centres (seconds of the recording's time) of ``n`` bins from ``t0_us``."""
+    out: np.ndarray = (t0_us + (np.arange(n) + 0.5) * BIN_US) * 1e-6
+    return out
+
+
 def line_at(t0_us: int, x: np.ndarray, freq_hz: float) -> complex:
     """The complex amplitude of ``x`` (bins from ``t0_us``) at ``freq_hz``, against the
     recording's absolute time (so that phases of different observations compare)."""
-    t = (t0_us + (np.arange(x.size) + 0.5) * BIN_US) * 1e-6
+    t = _bin_times(t0_us, x.size)
     return complex(np.sum((x - x.mean()) * np.exp(-2j * np.pi * freq_hz * t)))
 
 
@@ -83,11 +89,10 @@ def find_line(t0_us: int, x: np.ndarray) -> tuple[float, float]:
     i = int(idx[np.argmax(power[idx])])
     ratio = float(power[i] / max(float(np.median(power[idx])), 1e-12))
     df = freqs[1] - freqs[0]
-    t = (t0_us + (np.arange(x.size) + 0.5) * BIN_US) * 1e-6
+    t = _bin_times(t0_us, x.size)
     xx = x - x.mean()
-    hann = xx * np.hanning(x.size)
     grid = freqs[i] + np.linspace(-3 * df, 3 * df, 121)
-    amp = [abs(np.sum(hann * np.exp(-2j * np.pi * f * t))) for f in grid]
+    amp = np.abs(np.exp(-2j * np.pi * grid[:, None] * t[None, :]) @ (xx * np.hanning(x.size)))
     f = float(grid[int(np.argmax(amp))])
     segments = np.array_split(np.arange(x.size), PHASE_SEGMENTS)
     centres = np.array([t[s].mean() for s in segments])

@@ -553,11 +553,11 @@ def anchor(model: Model, rec: Recording, meas: Observation, seed: int,
     each polarity's threshold ``c +- b`` of theirs is scaled
     by the ratio of the simulated to the measured count there (events go as one over the
     threshold): on a sparse recording (a few events per pixel, none fitted) the fit's
-    default of 0.15 against a sensor's 0.26 made the model fire 3.5x the measured events,
-    a gap no effect can close. Otherwise they take the population's correction (the median
-    over every pixel fitted in both), not that of the least active bin: that bin's fits are
-    the pixels that barely passed the fit's minimum of events, on a sparse recording a few
-    hundred of them against the whole sensor's unfitted pixels. Up to ``max_iter``
+    default threshold is no sensor's, and the events it makes the model fire too many or
+    too few leave a gap no effect can close. Otherwise they take the population's correction
+    (the median over every pixel fitted in both), not that of the least active bin: that
+    bin's fits are the pixels that barely passed the fit's minimum of events, on a sparse
+    recording a few hundred of them against the whole sensor's unfitted pixels. Up to ``max_iter``
     simulations (one more where counts are matched), until the population median agrees
     within ``tol`` after at least one correction and the counts within their own noise.
 

@@ -262,14 +262,13 @@ class Evaluator:
                           model_on_rows(model, w.fit_rows), self.rec, m, w.fit_rows,
                           self.cfg.seed)
 
-    def simulate_with(self, model: Model, eff: Effect, *, held_out: bool = True
-                      ) -> Observation:
+    def simulate_with(self, model: Model, eff: Effect) -> Observation:
         """``model`` with ``eff`` added, simulated on the first seed (not anchored: a
-        fitter's trial), its observation on the fit rows when ``held_out``."""
+        fitter's trial), its observation on the fit rows (as a held-out fit sees them)."""
         obs = observe(simulate_model(model.with_effect(eff), self.rec, self.seeds[0],
                                      self.settings, self.render), trusted=self.trusted)
         self._counted(1.0)
-        return self.whole.fit_of(obs) if held_out else obs
+        return self.whole.fit_of(obs)
 
     # -------------------------------------------------------------------- simulations
 
