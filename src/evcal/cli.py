@@ -393,6 +393,22 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_warmup(args: argparse.Namespace) -> int:
+    import os  # noqa: PLC0415
+
+    from .warmup import compile_kernels  # noqa: PLC0415
+
+    def say(stage: str) -> None:
+        _note(args, "warmup", f"{stage} ...")
+
+    report = compile_kernels(None if args.quiet else say)
+    where = os.environ.get("NUMBA_CACHE_DIR") or "__pycache__ beside the sources"
+    print(f"compiled or loaded evcal's kernels in {report.total_s:.1f} s (cache: {where})")
+    for stage, why in report.failed.items():
+        print(f"  {stage} failed: {why}", file=sys.stderr)
+    return 1 if report.failed else 0
+
+
 # -- delegated subcommands --------------------------------------------------------------------
 
 
@@ -559,6 +575,12 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--quick", action="store_true", help="smaller sizes (for CI smoke runs)")
     verbosity(sp)
     sp.set_defaults(func=cmd_bench)
+
+    sp = add_parser("warmup", help="compile the numba kernels into their disk cache now "
+                                   "(an editable install does it already; for images and "
+                                   "moved installs, with NUMBA_CACHE_DIR)")
+    verbosity(sp)
+    sp.set_defaults(func=cmd_warmup)
 
     for name, (_, helptext) in DELEGATED.items():
         add_parser(name, help=helptext, add_help=False)

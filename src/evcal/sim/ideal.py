@@ -35,7 +35,8 @@ class SimConfig:
     bias_mean: float = 0.02
     bias_std: float = 0.01
     log_offset: float = 30.0
-    scene: str = "astronaut"
+    # a bundled photo's name, an image file, or a gray/RGB array (load_scene)
+    scene: str | np.ndarray = "astronaut"
     trajectory: Trajectory = field(default_factory=Trajectory)
     quantise_frames: bool = True
     min_dn: float = 8.0
@@ -64,6 +65,8 @@ class SimConfig:
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
         d["trajectory"] = asdict(self.trajectory)
+        if isinstance(self.scene, np.ndarray):
+            d["scene"] = f"array {'x'.join(map(str, self.scene.shape))}"
         return d
 
 
