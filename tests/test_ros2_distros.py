@@ -293,6 +293,34 @@ def test_auto_serves_humble_and_jazzy_side_by_side() -> None:
     assert encode_attachment(7, T_NS, GID) == COMPACT
 
 
+def test_an_explicit_distro_that_the_domain_contradicts_is_warned_of(caplog) -> None:
+    """Issue 40: ``--ros-distro humble`` with Jazzy-style subscribers on the domain published
+    on keys nobody heard, silently. Once, and not while a node of its own style is there."""
+    from evcal.service.ros2 import DISTROS, DistroMismatch
+
+    jazzy_sub = (f"@ros2_lv/0/ffee/0/3/MS/%/%/rviz2/%lab%cam0%calibration%contrast/"
+                 f"{IMAGE_DDS}/{IMAGE_HASH}/::,10:,:,:,,")
+    humble_sub = (f"@ros2_lv/0/ffef/0/3/MS/%/%/rviz2/%a/{IMAGE_DDS}/TypeHashNotSupported/"
+                  "::,10:,:,:,,")
+    w = DistroMismatch(DISTROS["humble"], own_zid=ZID)
+    with caplog.at_level("WARNING", logger="evcal.service"):
+        # evcal's own token (its style) does not count either way
+        assert w.seen_token(humble_sub.replace("ffef", ZID)) is None
+        text = w.seen_token(jazzy_sub)
+        assert text is not None
+        assert "--ros-distro humble" in text
+        assert "RIHS01" in text
+        assert w.seen_token(jazzy_sub.replace("ffee", "ffe0")) is None  # once
+    assert sum("--ros-distro humble" in r.message for r in caplog.records) == 1
+    # a Humble node on the domain: evcal's choice fits someone, no warning
+    w2 = DistroMismatch(DISTROS["humble"], own_zid=ZID)
+    assert w2.seen_token(humble_sub) is None
+    assert w2.seen_token(jazzy_sub) is None
+    # and the other way round
+    w3 = DistroMismatch(DISTROS["jazzy"], own_zid=ZID)
+    assert "no type hashes (Humble)" in (w3.seen_token(humble_sub) or "")
+
+
 def test_serve_ros_distro_flag() -> None:
     from evcal.service.cli import build_parser, ros2_from_args
 

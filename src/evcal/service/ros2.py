@@ -458,6 +458,38 @@ class DistroDetector:
             return tuple(_PROFILE[(h, self._named.get(h, False))] for h in styles)
 
 
+class DistroMismatch:
+    """An explicit ``--ros-distro`` watched against the domain: warns once when other nodes'
+    tokens (publishers and subscriptions) show the other type-hash style only -- Humble's
+    keys and Jazzy's never meet, so those nodes would hear nothing of evcal and evcal
+    nothing of them, silently. ``warnings`` counts the styles warned of (for tests)."""
+
+    def __init__(self, distro: RosDistro, own_zid: str = "") -> None:
+        self.distro = distro
+        self.detector = DistroDetector(own_zid=own_zid)
+        self.warned: set[bool] = set()
+        self._matching_seen = False
+
+    def seen_token(self, token: str) -> str | None:
+        """Feed a token; the warning's text when this token makes one (None otherwise)."""
+        self.detector.seen_token(token)
+        with self.detector._lock:
+            styles = set(self.detector._hashed)
+        if self.distro.type_hash in styles:
+            self._matching_seen = True
+        other = not self.distro.type_hash
+        if self._matching_seen or other not in styles or other in self.warned:
+            return None
+        self.warned.add(other)
+        theirs = "RIHS01 type hashes (Jazzy or later)" if other else \
+            "no type hashes (Humble)"
+        text = (f"--ros-distro {self.distro.name}: the domain's other nodes use {theirs}; "
+                "their topics and evcal's are on different keys and never meet (no data "
+                "either way): use --ros-distro auto, or the distro they run")
+        log.warning(text)
+        return text
+
+
 _PROFILE = {(True, False): DISTROS["jazzy"], (True, True): DISTROS["jazzy-0.2.3"],
             (False, False): DISTROS["humble"], (False, True): DISTROS["humble-0.1.1"]}
 

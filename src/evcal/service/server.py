@@ -23,6 +23,7 @@ from .outputs import error_reply
 from .ros2 import (
     NODE_NAME,
     DistroDetector,
+    DistroMismatch,
     Ros2Options,
     RosNode,
     RosRouter,
@@ -185,14 +186,16 @@ def run(
                 for key in subscription_keys(ros2.domain):
                     t.subscribe(key, router.on_sample, attachment=True,
                                 accept=router.accepts if shard is not None else None)
-                if detector is not None:
-                    det = detector
+                # auto: the tokens choose the profiles; an explicit distro: a warning when
+                # the domain speaks the other style only
+                watcher = (detector if detector is not None
+                           else DistroMismatch(fixed[0], own_zid=t.zid))
 
-                    def on_token(key: str, alive: bool) -> None:
-                        if alive:
-                            det.seen_token(key)
+                def on_token(key: str, alive: bool) -> None:
+                    if alive:
+                        watcher.seen_token(key)
 
-                    t.watch_alive(f"@ros2_lv/{ros2.domain}/**", on_token)
+                t.watch_alive(f"@ros2_lv/{ros2.domain}/**", on_token)
                 t.token(node.node_token())
                 log.info("ROS 2 node /%s in domain %d: EventPacket and Image topics in, "
                          "calibration images out (rmw_zenoh of %s)", node.name, ros2.domain,
