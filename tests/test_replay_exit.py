@@ -240,3 +240,22 @@ def test_the_exit_code_table_is_written_where_users_read_it():
         assert f"{code}      {outcome}" in doc
         assert f"| {code} | {outcome} |" in service_md
         assert f"{code}  {outcome}" in help_text
+
+
+def test_the_account_counts_rolled_back_messages_and_says_so(capsys):
+    """Issue 40: messages a killed service process had processed after its last snapshot are
+    delivered, not missing, and the account says they were rolled back."""
+    from evcal.clients.delivery import ReplayStats, _account, print_account
+
+    before = {"event_messages": 100, "events": 10_000, "frames": 10,
+              "rolled_back_messages": {"events": 0, "frames": 0}}
+    after = {"event_messages": 150, "events": 15_000, "frames": 15,  # back from a snapshot
+             "rolled_back_messages": {"events": 40, "frames": 5}}
+    acc = _account(after, before)
+    assert acc["rolled_back_messages"] == 45
+    stats = ReplayStats(event_messages=90, frames=10, delivered=acc, confirmed=True)
+    assert stats.missing_messages == 0
+    print_account("evcal replay", stats)
+    err = capsys.readouterr().err
+    assert "45 messages were rolled back" in err
+    assert "never reached" not in err

@@ -896,3 +896,40 @@ def test_input_while_stopping_is_counted_not_queued():
     assert not svc.cameras["cam0"].in_flight
     svc.close()
     assert svc.cameras_info()["refused_while_closing"] == 6
+
+
+def test_a_restart_counts_what_it_rolled_back_not_as_lost(tmp_path):
+    """Issue 40: a worker killed 30 s after its snapshot came back with the camera's counts
+    70 M events lower and reported nothing; the sequence gap showed as thousands of lost
+    messages. The messages after the snapshot are counted as rolled back, the restore is
+    described in the status, and a gap after that first message is still loss."""
+    store = StateStore(tmp_path)
+    pub = Collector()
+    cfg = ServiceConfig(onei=OnEIConfig(n_small=50, n_large=10_000))
+    msgs = stream(n_frames=20)
+    svc = Service(cfg, pub, store=store)
+    feed(svc, "lab/cam0", msgs[:24])
+    settle(svc)
+    svc.close()  # its snapshot; then msgs[24:30] reach a process that dies before the next
+    skipped = [kind for kind, _ in msgs[24:30]]
+    svc2 = Service(cfg, pub, store=store, match=lambda e, k: True)
+    try:
+        assert svc2.restore() == ["lab/cam0"]
+        cam = svc2.camera("lab/cam0")
+        assert cam is not None
+        st0 = svc2.status(cam)
+        assert st0["rollbacks"] == 1
+        assert st0["restored"]["snapshot_age_s"] >= 0
+        assert st0["restored"]["rolled_back"] == {"events": None, "frames": None}
+        feed(svc2, "lab/cam0", msgs[30:34])
+        settle(svc2)
+        st1 = svc2.status(cam)
+        assert st1["rolled_back_messages"] == {"events": skipped.count("events"),
+                                               "frames": skipped.count("frames")}
+        assert st1["restored"]["rolled_back"] == st1["rolled_back_messages"]
+        assert sum(st1["lost_messages"].values()) == 0
+        feed(svc2, "lab/cam0", msgs[35:])  # a real gap later: loss
+        settle(svc2)
+        assert sum(svc2.status(cam)["lost_messages"].values()) == 1
+    finally:
+        svc2.close()

@@ -328,3 +328,40 @@ def test_a_restored_snapshot_with_a_wrong_dtype_message_is_not_served(tmp_path,
         assert svc.stop() == 0
     assert (state / "lab%2Fcam0.npz.bad").exists()
     assert "calibration_msg is uint16" in (tmp_path / "s.log").read_text()
+
+
+def test_a_dead_writers_temp_file_is_removed_at_the_next_snapshot(tmp_path):
+    """Issue 40: a killed worker's temp snapshot (223 MB at 346x260) stayed until the end,
+    its restart coming long before the age limit. A temp of a process of this host that no
+    longer runs goes at the next snapshot; a live writer's, another host's and a young one of
+    the older name stay (another host's once it is old)."""
+    import os
+
+    from evcal.service import state as st
+
+    store = st.StateStore(tmp_path)
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    live = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        names = {
+            "dead": f"cam0.npz.tmp-{st._HOST}-{dead.pid}-0",
+            "live": f"cam1.npz.tmp-{st._HOST}-{live.pid}-3",
+            "other_host": f"cam2.npz.tmp-elsewhere-{dead.pid}-0",
+            "old_format": f"cam3.npz.tmp-{dead.pid}-0",
+            "other_host_old": f"cam4.npz.tmp-elsewhere-{dead.pid}-1",
+        }
+        for n in names.values():
+            (tmp_path / n).write_bytes(b"partial")
+        old = time.time() - st.TMP_MAX_AGE_S - 5
+        os.utime(tmp_path / names["other_host_old"], (old, old))
+        store.save("lab/cam9", {"x": np.zeros(3)})
+        left = {p.name for p in tmp_path.iterdir()}
+        assert names["dead"] not in left
+        assert names["other_host_old"] not in left
+        assert {names["live"], names["other_host"], names["old_format"]} <= left
+        assert "lab%2Fcam9.npz" in left
+        assert not any(".tmp-" in n and "cam9" in n for n in left)  # its own was renamed
+    finally:
+        live.kill()
+        live.wait()

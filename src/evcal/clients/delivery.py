@@ -186,10 +186,13 @@ def _account(st: dict[str, Any], before: dict[str, Any]) -> dict[str, int]:
     out = {"event_messages": diff("event_messages"), "events": diff("events"),
            "frames": diff("frames"), "dropped_messages": diff("dropped_messages"),
            "rejected_messages": diff("errors"),
-           "refused_messages": refused_now - refused_before}
+           "refused_messages": refused_now - refused_before,
+           # reached a service process that died after its last snapshot: processed, then
+           # forgotten (the counters above went back with the snapshot)
+           "rolled_back_messages": diff("rolled_back_messages")}
     out["accounted_messages"] = (out["event_messages"] + out["frames"]
                                  + out["dropped_messages"] + out["rejected_messages"]
-                                 + out["refused_messages"])
+                                 + out["refused_messages"] + out["rolled_back_messages"])
     return out
 
 
@@ -321,6 +324,11 @@ def print_account(prog: str, acc: ReplayStats, *, target: str = "",
               f"{d['dropped_messages']}, rejected {d['rejected_messages']} and refused "
               f"{d['refused_messages']} "
               + ("messages" if camera is None else f"of {acc.messages}"), file=sys.stderr)
+        rolled = d.get("rolled_back_messages", 0)
+        if rolled > 0:
+            print(f"{prog}: {who}{rolled} messages were rolled back: the service restarted "
+                  "and resumed the camera from its last snapshot, so what they brought is "
+                  "not in its calibration (status: restored)", file=sys.stderr)
         missing = acc.missing_messages or 0
         if acc.confirmed and missing > 0:
             print(f"{prog}: {who}{missing} of {acc.messages} messages never reached the "

@@ -138,6 +138,11 @@ class Counters:
     lost: dict[str, int] = field(default_factory=_per_stream)
     seq_restarts: dict[str, int] = field(default_factory=_per_stream)
     restarts: dict[str, int] = field(default_factory=_per_stream)  # new sessions
+    # messages between the snapshot a restart resumed from and the first message after it:
+    # processed by the process that died after its last snapshot (their effect went with
+    # it) or sent while nobody served the camera; counted here, not as lost
+    rolled_back: dict[str, int] = field(default_factory=_per_stream)
+    rollbacks: int = 0  # restarts that resumed from a snapshot
     errors: dict[str, int] = field(default_factory=dict)
     errors_published: int = 0
     errors_suppressed: int = 0
@@ -189,6 +194,9 @@ class CameraState:
         # refused before reading their sequence number; a gap of that many is not upstream
         # loss
         self._not_lost = {"events": 0, "frames": 0}
+        # after a restore, the first message of each stream tells how many were rolled back
+        self._after_restore: set[str] = set()
+        self.restored: dict[str, Any] | None = None  # what the last restore resumed from
 
     @property
     def sensor(self) -> SensorSize | None:
@@ -252,9 +260,20 @@ class CameraState:
             c.restarts[kind] += 1
             log.info("camera %s: a new session of its %s stream (time base changed)", self.id,
                      kind)
-        if check.lost:
+        lost = check.lost
+        if kind in self._after_restore:
+            self._after_restore.discard(kind)
+            if self.restored is not None:
+                self.restored["rolled_back"][kind] = lost
+            if lost:  # the gap since the snapshot: rolled back, not lost (still a gap)
+                c.rolled_back[kind] += lost
+                log.warning("camera %s: %d %s message(s) rolled back: processed after the "
+                            "snapshot it resumed from, or sent while it was not served",
+                            self.id, lost, kind)
+                lost = 0
+        if lost:
             # the gap minus the messages this service dropped or refused unread: upstream loss
-            c.lost[kind] += max(0, check.lost - not_lost)
+            c.lost[kind] += max(0, lost - not_lost)
         if check.restart:
             c.seq_restarts[kind] += 1
         if (check.lost or check.restart) and kind == "events" and not check.new_session:
@@ -530,3 +549,16 @@ class CameraState:
         self.calibration_msg = msg or None
         self.calibration = None
         self.extra_maps = {}  # current_calibration() reads them from the message
+        now_wall = time.time()
+        saved = meta.get("saved_wall")
+        self.counters.rollbacks += 1
+        self._after_restore = {"events", "frames"}
+        self.restored = {
+            "snapshot_saved_wall": saved, "restored_wall": now_wall,
+            "snapshot_age_s": (round(now_wall - float(saved), 3)
+                               if isinstance(saved, int | float) else None),
+            "events": counters.events, "event_messages": counters.event_messages,
+            "frames": counters.frames, "calibration_t_us": calibration_t_us,
+            # filled by the first message of each stream after the restore
+            "rolled_back": {"events": None, "frames": None},
+        }

@@ -6,12 +6,15 @@ a quoted id longer than ``MAX_STEM`` characters is cut and given a hash suffix
 and distinct file name. The id itself is stored inside (``_camera_id``), an uncompressed
 ``.npz`` of plain arrays (``allow_pickle=False`` on load).
 
-Atomicity: a snapshot is written to ``<name>.tmp-<pid>-<n>`` in the same directory, flushed
+Atomicity: a snapshot is written to ``<name>.tmp-<host>-<pid>-<n>`` in the same directory, flushed
 and ``fsync``-ed, then renamed over the final name with :func:`os.replace` (atomic on POSIX),
 and the directory is ``fsync``-ed. A reader therefore sees the previous snapshot or the new
 one, never a half-written file, whatever moment the process dies at (``kill -9``, power
-loss). Temporary files left by a killed writer are ignored and, once older than
-``TMP_MAX_AGE_S``, removed by :meth:`StateStore.load_all`.
+loss). Temporary files left by a killed writer are ignored and removed
+(:meth:`StateStore.sweep_temps`, at start-up and after every snapshot written): at once when
+their writer was a process of this host that no longer runs (a killed worker's, which its
+restart follows within seconds), else once older than ``TMP_MAX_AGE_S`` (another host's
+writer, sharing the directory, may still be writing it).
 
 Validation (:func:`read_snapshot`): a snapshot is checked completely before anything of it is
 restored, and its sizes before its data is read. First the archive's directory and every
@@ -35,6 +38,7 @@ import json
 import logging
 import math
 import os
+import socket
 import time
 import zipfile
 from collections.abc import Callable
@@ -93,10 +97,34 @@ def _fsync_dir(path: Path) -> None:
         os.close(fd)
 
 
+_HOST = socket.gethostname().replace("/", "_") or "host"
+
+
+def temp_writer_gone(name: str) -> bool:
+    """Whether the temp file ``name`` (``<name>.tmp-<host>-<pid>-<n>``) was written by a
+    process of this host that no longer runs; False when that cannot be told (another host,
+    an older name without the host, a live or foreign process)."""
+    _, _, tail = name.rpartition(".tmp-")
+    host, _, rest = tail.rpartition("-")  # rest = n
+    host, _, pid_text = host.rpartition("-")
+    if host != _HOST or not pid_text.isdigit() or not rest.isdigit():
+        return False
+    pid = int(pid_text)
+    if pid == os.getpid():
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    except OSError:  # another user's process: alive
+        return False
+    return False
+
+
 def atomic_savez(path: Path, arrays: dict[str, np.ndarray]) -> Path:
     """Write ``arrays`` as an ``.npz`` at ``path`` atomically (temp file, fsync, rename)."""
     path = Path(path)
-    tmp = path.with_name(f"{path.name}.tmp-{os.getpid()}-{next(_counter)}")
+    tmp = path.with_name(f"{path.name}.tmp-{_HOST}-{os.getpid()}-{next(_counter)}")
     try:
         with open(tmp, "wb") as f:
             members: dict[str, Any] = dict(arrays)  # numpy's stubs: a key could be allow_pickle
@@ -375,7 +403,28 @@ class StateStore:
         return self.dir / snapshot_name(camera)
 
     def save(self, camera: str, arrays: dict[str, np.ndarray]) -> Path:
-        return atomic_savez(self.path(camera), {**arrays, ID_KEY: np.array(camera)})
+        out = atomic_savez(self.path(camera), {**arrays, ID_KEY: np.array(camera)})
+        self.sweep_temps()
+        return out
+
+    def sweep_temps(self) -> int:
+        """Remove the temp files of writers that died (see the module docstring); returns
+        how many were removed. Never raises: a file that vanished or resists is left."""
+        removed = 0
+        try:
+            names = [p for p in self.dir.iterdir() if ".tmp-" in p.name]
+        except OSError:
+            return 0
+        now = time.time()
+        for p in names:
+            try:
+                if temp_writer_gone(p.name) or now - p.stat().st_mtime > TMP_MAX_AGE_S:
+                    p.unlink(missing_ok=True)
+                    removed += 1
+                    log.info("removed %s, a snapshot its writer never finished", p.name)
+            except OSError:
+                pass
+        return removed
 
     def remove(self, camera: str) -> bool:
         """Delete ``camera``'s snapshot; True if there was one."""
@@ -426,15 +475,9 @@ class StateStore:
         temp files, moves unreadable ones aside. A file whose name gives its camera id and
         ``want`` refuses is not read at all (another shard's, sharing the directory)."""
         out: list[Snapshot] = []
+        self.sweep_temps()
         for p in sorted(self.dir.iterdir()):
-            if ".tmp-" in p.name:
-                # a writer died before the rename; a young one may belong to a live
-                # instance sharing the directory
-                try:
-                    if time.time() - p.stat().st_mtime > TMP_MAX_AGE_S:
-                        p.unlink(missing_ok=True)
-                except OSError:
-                    pass
+            if ".tmp-" in p.name:  # a live writer's (sweep_temps removed the dead ones')
                 continue
             if not p.name.endswith(SUFFIX):
                 continue
