@@ -82,3 +82,39 @@ def test_two_instances_behind_a_router_and_takeover(tmp_path):
             assert after[0].payload == before[0].payload
             assert three.stop() == 0
         assert two.stop() == 0
+
+
+def test_a_new_peer_behind_a_router_gets_its_answer_20_times_of_20(tmp_path):
+    """Issue 40: ``evcal query --camera`` as a peer behind a router (``serve`` and ``replay``
+    peers connected to it) got "none has camera" in 6 of 10 runs: a session that has just
+    opened queried before the service's queryable was known to it. It waits for the route
+    (a querier's matching status) now. Each repetition is a new peer session, as each
+    ``evcal query`` is, queried at once; and ``query --list`` the same way."""
+    from evcal.clients.query import fetch_calibration_npz, fetch_json
+
+    sim = simulate_ideal(SimConfig(height=36, width=48, duration_s=2.0, seed=6))
+    path = write_recording(sim.recording, tmp_path / "sim.npz")
+    router_ep = endpoint(free_port())
+    peer = ["--mode", "peer", "--connect", router_ep, "--no-multicast-scouting"]
+    cam = "lab/rig1/cam0"
+    with router_session([router_ep]) as router, \
+            ServiceProcess([*peer, "--n-small", "3000", "--n-large", "1000000",
+                            "--log-offset", "30"], log_path=tmp_path / "serve.log") as sp:
+        wait_for(lambda: router.alive("evcal/@service/*", timeout_s=1.0), timeout_s=60,
+                 what="the service")
+        res = run_client("replay", [str(path), "--camera", cam, *peer, "--max-rate"])
+        assert res.returncode == 0, res.stderr
+        wait_for(lambda: any(r.ok for r in router.get(f"evcal/{cam}/calibration",
+                                                       timeout_s=2.0)),
+                 timeout_s=60, what="a calibration")
+        opts = ZenohOptions(mode="peer", connect=(router_ep,), multicast_scouting=False)
+        answered = listed = 0
+        for _ in range(20):
+            with Transport(opts) as t:
+                payload, _ = fetch_calibration_npz(t, cam, timeout_s=5.0)
+                answered += len(payload) > 0
+            with Transport(opts) as t:
+                listed += any(c["id"] == cam for info in fetch_json(t, "evcal/cameras")
+                              for c in info.get("cameras", []))
+        assert (answered, listed) == (20, 20), sp.log_text()
+        assert sp.stop() == 0

@@ -56,7 +56,7 @@ def main_forget(argv: Sequence[str] | None = None) -> int:
     key = keys.camera_key(args.prefix, args.camera, "forget")
     try:
         with Transport(zopts) as t:
-            replies = t.get(key, timeout_s=args.timeout)
+            replies = t.get(key, timeout_s=args.timeout, wait_route=True)
     except TransportError as exc:
         return fail(prog, str(exc))
     answers = [json.loads(r.payload) for r in replies if r.ok]

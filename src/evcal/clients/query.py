@@ -99,7 +99,7 @@ def fetch_calibration_npz(t: Transport, camera: str, *, prefix: str = "evcal",
     import numpy as np
 
     key = keys.camera_key(prefix, camera, "calibration")
-    replies = t.get(f"{key}?format=npz", timeout_s=timeout_s)
+    replies = t.get(f"{key}?format=npz", timeout_s=timeout_s, wait_route=True)
     pinned = known.get(prefix) if known is not None and verifier is None else None
     check = verifier or pinned
     answers: list[_Answer] = []
@@ -206,8 +206,11 @@ def fetch_calibration(t: Transport, camera: str, *, prefix: str = "evcal",
         return load_calibration(p)
 
 
-def fetch_json(t: Transport, selector: str, *, timeout_s: float = 5.0) -> list[dict[str, Any]]:
-    replies = t.get(selector, timeout_s=timeout_s)
+def fetch_json(t: Transport, selector: str, *, timeout_s: float = 5.0,
+               wait_route: bool = True) -> list[dict[str, Any]]:
+    """The JSON replies on ``selector``; ``wait_route``: a session that has just connected
+    first waits until it knows a queryable there (:meth:`Transport.wait_route`)."""
+    replies = t.get(selector, timeout_s=timeout_s, wait_route=wait_route)
     return [json.loads(r.payload) for r in replies if r.ok]
 
 
