@@ -774,6 +774,30 @@ def test_a_refused_glitch_is_not_also_counted_lost():
         svc.close()
 
 
+def test_a_glitch_at_the_end_of_a_normal_message_costs_that_message_only():
+    # issue 40: a 2**62 timestamp after a message's normal events passed the check of its
+    # first event, became the stream's last time, and cost the next 2 messages (time_jump)
+    # and a new session; the message itself is refused now, and nothing after it
+    svc, _ = make_service()
+    try:
+        msgs = stream(n_frames=20)
+        k = next(i for i in range(21, len(msgs)) if msgs[i][0] == "events")
+        hd = msgpack.unpackb(msgs[k][1])
+        ev = decode_events(msgs[k][1])[0]
+        bad = np.concatenate([ev, make_events([2**62], [1], [1], [1])])
+        msgs[k] = ("events", encode_events(bad, height=6, width=8, seq=hd["seq"]))
+        feed(svc, "cam0", msgs)
+        settle(svc)
+        c = _counts(svc, "cam0")
+        assert c["errors"] == {"time_jump": 1}
+        assert c["restarts"] == {"events": 0, "frames": 0}
+        assert c["lost_messages"] == {"events": 0, "frames": 0}, c
+        assert c["event_messages"] == 19
+        assert c["frames"] == 20
+    finally:
+        svc.close()
+
+
 def test_refused_unreadable_messages_are_not_counted_lost():
     # a message refused before its sequence number could be read (not msgpack, too large)
     # arrived: it is an error of its reason, not a gap of upstream loss

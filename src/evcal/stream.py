@@ -267,10 +267,17 @@ class StreamGuard:
         Raises :class:`StreamError` for a refused message."""
         last = self._last(kind)
         strict = kind == "frames"  # frame times increase, event times may repeat
+        pol = self.policy
+        if t_last - t_first > pol.max_forward_us:
+            # one absurd timestamp inside a message (2**62 at its end): judged by its first
+            # event alone it would pass, become the stream's last time, and refuse the
+            # messages after it as a jump back until they confirmed a new session
+            raise StreamError(f"{what}: its times span t_us={t_first} to t_us={t_last}, "
+                              f"more than {pol.max_forward_us} us within one message: a "
+                              "timestamp glitch", ErrorReason.TIME_JUMP)
         if last is None:
             return False
         back = t_first < last or (strict and t_first == last)
-        pol = self.policy
         if not back and t_first - last <= pol.max_forward_us:
             self._candidate[kind] = None
             return False
