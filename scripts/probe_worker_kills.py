@@ -18,7 +18,10 @@ uniform), SIGKILL to a worker drawn at random, and after each kill:
   as an operator's ``evcal query`` would be) gets every camera's status -- within
   ``--answer-timeout-s`` (10 s) or the kill fails;
 - ``flow_s``: from the restart until every camera's event counter grew (the replays'
-  data flows through the router to both workers again) -- within the same bound.
+  data flows through the router to both workers again) -- within the same bound;
+- with ``--calibrations``: the new client also gets every camera's calibration (a
+  346x260 map set is 2.4 MB), and for ``--stay-s`` seconds after the flow every camera's
+  calibration is queried again every 0.5 s, each answered within 5 s (``stay``).
 
 At the end SIGTERM to the supervisor (with the replays still running, unless
 ``--stop-replays-first``), which must exit with code 0 within ``--stop-timeout-s`` (5 s).
@@ -66,29 +69,41 @@ class Kill:
     restart_s: float | None = None
     answer_s: float | None = None
     flow_s: float | None = None
+    stay_queries: int | None = None  # calibration queries answered while staying
     failure: str | None = None
 
 
 # ----------------------------------------------------------------------------- a new client
 
 
-def ask(connect: str, cameras: list[str], timeout_s: float) -> int:
+def ask(connect: str, cameras: list[str], timeout_s: float, calibrations: bool = False) -> int:
     """The child process of :func:`fresh_client_status`: open a session, ask every camera's
-    status, print ``{camera: events}`` as JSON; 0 when every camera answered."""
+    status (and calibration), print ``{camera: events}`` as JSON; 0 when every camera
+    answered (both)."""
     out: dict[str, int] = {}
     with Transport(ZenohOptions.loopback(connect=[connect])) as t:
         for cam in cameras:
             for r in t.get(keys.camera_key("evcal", cam, "status"), timeout_s=timeout_s):
                 if r.ok:
                     out[cam] = int(json.loads(r.payload)["events"])
+            if calibrations and not calibration_answered(t, cam, timeout_s):
+                out.pop(cam, None)
     print(json.dumps(out), flush=True)
     return 0 if len(out) == len(cameras) else 1
 
 
-def fresh_client_status(ep: str, cameras: list[str], timeout_s: float) -> dict[str, int] | None:
+def calibration_answered(t: Transport, cam: str, timeout_s: float) -> bool:
+    return any(r.ok and len(r.payload) > 0
+               for r in t.get(keys.camera_key("evcal", cam, "calibration"), timeout_s=timeout_s))
+
+
+def fresh_client_status(ep: str, cameras: list[str], timeout_s: float,
+                        calibrations: bool = False) -> dict[str, int] | None:
     """Every camera's event counter seen by a new client process within ``timeout_s``
-    (killed after that: a deadlocked router also blocks a session's opening), or None."""
-    cmd = [sys.executable, __file__, "ask", ep, *cameras, "--timeout", str(timeout_s / 2)]
+    (killed after that: a deadlocked router also blocks a session's opening), or None.
+    ``calibrations``: every camera's calibration must be answered too."""
+    cmd = [sys.executable, __file__, "ask", ep, *cameras, "--timeout", str(timeout_s / 2),
+           *(["--calibrations"] if calibrations else [])]
     try:
         res = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s,
                              env=python_env())
@@ -194,7 +209,8 @@ def probe(args: argparse.Namespace, log_dir: Path) -> tuple[list[Kill], dict[str
             raise RuntimeError("the replays' events did not reach every camera in 60 s")
         for i in range(args.kills):
             time.sleep(rng.uniform(*args.gap_s))
-            k = _kill_once(t, ep, cams, i, t0, rng, args.answer_timeout_s)
+            k = _kill_once(t, ep, cams, i, t0, rng, args.answer_timeout_s,
+                           calibrations=args.calibrations, stay_s=args.stay_s)
             kills.append(k)
             print(_row(k), flush=True)
             if k.failure is not None:
@@ -233,7 +249,8 @@ def probe(args: argparse.Namespace, log_dir: Path) -> tuple[list[Kill], dict[str
 
 
 def _kill_once(t: Transport, ep: str, cams: list[str], i: int, t0: float,
-               rng: random.Random, answer_timeout_s: float) -> Kill:
+               rng: random.Random, answer_timeout_s: float, *, calibrations: bool = False,
+               stay_s: float = 0.0) -> Kill:
     doc = supervisor_doc(t)
     if doc is None:
         return Kill(i, time.monotonic() - t0, "?", failure="the supervisor did not answer")
@@ -260,7 +277,7 @@ def _kill_once(t: Transport, ep: str, cams: list[str], i: int, t0: float,
     answered = None
     while answered is None and time.monotonic() - t_back < answer_timeout_s:
         answered = fresh_client_status(ep, cams, answer_timeout_s
-                                       - (time.monotonic() - t_back))
+                                       - (time.monotonic() - t_back), calibrations)
     if answered is None:
         k.failure = f"a new client got no status of every camera within {answer_timeout_s:g} s"
         return k
@@ -273,6 +290,17 @@ def _kill_once(t: Transport, ep: str, cams: list[str], i: int, t0: float,
         k.failure = f"the events did not flow to every camera within {answer_timeout_s:g} s"
         return k
     k.flow_s = time.monotonic() - t_back
+    if calibrations and stay_s > 0:
+        k.stay_queries = 0
+        t_stay = time.monotonic()
+        while time.monotonic() - t_stay < stay_s:
+            for cam in cams:
+                if not calibration_answered(t, cam, 5.0):
+                    k.failure = (f"{cam}'s calibration not answered within 5 s, "
+                                 f"{time.monotonic() - t_stay:.1f} s into the stay")
+                    return k
+                k.stay_queries += 1
+            time.sleep(0.5)
     return k
 
 
@@ -302,12 +330,13 @@ def _f(x: float | None) -> str:
 
 
 HEADER = f"{'kill':>4} {'at_s':>7} {'victim':>9} {'restart_s':>9} {'answer_s':>8} " \
-         f"{'flow_s':>6}  result"
+         f"{'flow_s':>6} {'stay':>5}  result"
 
 
 def _row(k: Kill) -> str:
     return (f"{k.index:>4} {k.at_s:>7.1f} {k.victim:>9} {_f(k.restart_s):>9} "
-            f"{_f(k.answer_s):>8} {_f(k.flow_s):>6}  {k.failure or 'ok'}")
+            f"{_f(k.answer_s):>8} {_f(k.flow_s):>6} "
+            f"{'-' if k.stay_queries is None else k.stay_queries:>5}  {k.failure or 'ok'}")
 
 
 def report(kills: list[Kill], end: dict[str, Any], n_wanted: int) -> int:
@@ -368,6 +397,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sim-seconds", type=float, default=3.0)
     p.add_argument("--serve-arg", action="append", default=[], metavar="OPTION",
                    help="an option for evcal serve, e.g. --serve-arg=--cfg=KEY:VALUE")
+    p.add_argument("--calibrations", action="store_true",
+                   help="the new client also fetches every camera's calibration")
+    p.add_argument("--stay-s", type=float, default=0.0,
+                   help="with --calibrations: query them this long after each recovery")
     p.add_argument("--log-dir", help="keep the logs here (default: a new temporary folder)")
     return p
 
@@ -379,8 +412,9 @@ def main(argv: list[str] | None = None) -> int:
         a.add_argument("connect")
         a.add_argument("cameras", nargs="+")
         a.add_argument("--timeout", type=float, default=5.0)
+        a.add_argument("--calibrations", action="store_true")
         ns = a.parse_args(argv[1:])
-        return ask(ns.connect, ns.cameras, ns.timeout)
+        return ask(ns.connect, ns.cameras, ns.timeout, ns.calibrations)
     args = build_parser().parse_args(argv)
     log_dir = Path(args.log_dir or tempfile.mkdtemp(prefix="evcal-probe-kills-"))
     log_dir.mkdir(parents=True, exist_ok=True)

@@ -241,3 +241,35 @@ def test_ros2_input_is_split_by_the_camera_its_topic_feeds(tmp_path):
                  for i in [json.loads(r.payload)] if not i.get("supervisor")}
         assert split == {f"ros-w{keys.shard_of(c, 2)}": [c] for c in cams}
         assert sp.stop() == 0, sp.log_text()
+
+
+def test_workers_answer_big_calibrations_under_load_and_after_a_kill(tmp_path):
+    """Issue 40: two 346x260 cameras at full rate, one on each worker; a new client gets
+    every camera's status and 2.4 MB calibration, before and after a worker's SIGKILL, and
+    the calibrations are queried every 0.5 s for 10 s after the recovery. It failed at the
+    first kill while the router had zenoh's two receive threads (both held by pushes to a
+    busy worker: nothing read the answering worker's link, whose lease then expired);
+    ``router_rx_threads`` gives it one per link."""
+    probe = _probe_module()
+    args = probe.build_parser().parse_args([
+        "--kills", "1", "--replays", "2", "--gap-s", "3,4", "--seed", "2",
+        "--sim-sensor", "346x260", "--sim-seconds", "2", "--watch-s", "20",
+        "--calibrations", "--stay-s", "10", "--stop-replays-first"])
+    kills, end = probe.probe(args, tmp_path)
+    table = "\n".join(probe._row(k) for k in kills)
+    log = (tmp_path / "serve.log").read_text(errors="replace")
+    assert [k.failure for k in kills] == [None], f"{table}\n{end}\n{log[-6000:]}"
+    assert kills[0].stay_queries >= 10, table
+    assert end["exit_code"] == 0, f"{table}\n{end}\n{log[-6000:]}"
+    # the answering worker's link never dropped: one down (the kill), never a down and up
+    # of a worker that was not killed
+    assert log.count("worker probe-w0 down") + log.count("worker probe-w1 down") <= 3, log
+
+
+def test_router_runtime_gives_a_receive_thread_per_link(monkeypatch):
+    from evcal.service.workers import router_runtime, router_rx_threads
+
+    assert router_rx_threads(2) > 2 * 2 + 4  # the workers' links, clients, spares
+    assert router_runtime(4, {}) == f"(rx: (worker_threads: {router_rx_threads(4)}))"
+    # the user's own setting is kept
+    assert router_runtime(4, {"ZENOH_RUNTIME": "(rx: (worker_threads: 3))"}) is None

@@ -94,6 +94,27 @@ ZENOH_ENV = ("EVCAL_CONNECT", "EVCAL_LISTEN", "EVCAL_ZENOH_CONFIG", "EVCAL_MODE"
 WORKER_ZENOH_CFG = ("transport/shared_memory/enabled:false",)
 ROUTER_CLOSE_S = 3.0  # the router session's close is bounded (Transport.close)
 
+# The router's receive threads. zenoh runs every link's receive loop on one pool (2 threads
+# by default on 2 cores), and a loop that routes a sample to a worker whose queue is full
+# waits there (the replays' congestion control is BLOCK) holding its thread. Two such waits
+# -- one busy worker is enough -- left no thread to read any other link: not the answering
+# worker's reply, not its keep-alives, so after the 10 s lease the router closed that link
+# (a 346x260 calibration query timed out, the worker went "down" and its camera lost
+# thousands of messages). With a thread for each link the router may have, and spares, a
+# busy worker slows its own links only.
+def router_runtime(count: int, environ: Mapping[str, str] | None = None) -> str | None:
+    """The ``ZENOH_RUNTIME`` the supervisor's router runs with (``count`` workers): more
+    receive threads than links (see above), or None when the user set ``ZENOH_RUNTIME``."""
+    if (os.environ if environ is None else environ).get("ZENOH_RUNTIME"):
+        return None
+    return f"(rx: (worker_threads: {router_rx_threads(count)}))"
+
+
+def router_rx_threads(count: int) -> int:
+    """Receive threads of the router: one per worker link, one per client link among the
+    first few dozen (replays, queries, recorders, the user's routers), and spares."""
+    return 2 * count + 32
+
 # options the supervisor sets for each worker instead of passing the user's through
 OWN_OPTIONS = frozenset({"help", "mode", "connect", "listen", "config",
                          "no_multicast_scouting", "cfg", "workers", "shard", "instance", "rrd",
@@ -162,7 +183,9 @@ def worker_command(parser: argparse.ArgumentParser, args: argparse.Namespace, *,
 
 
 def worker_env(environ: Mapping[str, str] | None = None) -> dict[str, str]:
-    """A worker's environment: this one without the zenoh variables (:data:`ZENOH_ENV`)."""
+    """A worker's environment: this one without the zenoh variables (:data:`ZENOH_ENV`).
+    Call it before the router's runtime is set (:func:`router_runtime`): a worker has one
+    link and keeps the user's ``ZENOH_RUNTIME``, if any."""
     env = {k: v for k, v in (os.environ if environ is None else environ).items()
            if k not in ZENOH_ENV}
     env["PYTHONUNBUFFERED"] = "1"
@@ -416,6 +439,10 @@ def serve_workers(parser: argparse.ArgumentParser, args: argparse.Namespace, *,
     except SignatureError as exc:
         print(f"evcal serve: {exc}", file=sys.stderr)
         return 1
+    env = worker_env()
+    runtime = router_runtime(count)
+    if runtime is not None:  # read by zenoh when its runtime starts: at the session's open
+        os.environ["ZENOH_RUNTIME"] = runtime
     with tempfile.TemporaryDirectory(prefix=LOCAL_DIR_PREFIX) as tmp:
         endpoint = local_endpoint(tmp)
         t = Transport(as_router(zenoh, endpoint))
@@ -430,7 +457,7 @@ def serve_workers(parser: argparse.ArgumentParser, args: argparse.Namespace, *,
             sup = Supervisor(
                 [worker_command(parser, args, index=i, count=count, endpoint=endpoint,
                                 instance=n) for i, n in enumerate(names)],
-                names, env=worker_env())
+                names, env=env)
             _declare(t, sup, prefix=prefix, name=name, claims=claims, names=names)
             log.info("supervisor %s: %d workers, local endpoint %s", name, count, endpoint)
             try:
