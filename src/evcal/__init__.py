@@ -53,6 +53,7 @@ from .io import (
 from .offe import OffEConfig, offe
 from .offline import OffEIConfig, estimate_log_offset, offei
 from .onei import OnEIConfig, OnEIExecutor, OnlineCalibrator
+from .posterior import posterior_maps
 
 if TYPE_CHECKING:  # the function; at run time the package itself, callable as the function
     from .onei import onei
@@ -114,6 +115,7 @@ __all__ = [
     "offei",
     "onei",
     "open_recording",
+    "posterior_maps",
     "run_gap",
     "save_calibration",
     "simulate",

@@ -172,6 +172,13 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         cal = calibrate(rec, args.method, log_offset=args.log_offset,
                         window_frames=args.window_frames, n_small=args.n_small,
                         n_large=args.n_large, smoothing=args.smoothing)
+    if args.posterior:
+        from .posterior import POSTERIOR_METHODS, posterior_maps  # noqa: PLC0415
+
+        if cal.method not in POSTERIOR_METHODS:
+            raise CliError(f"--posterior needs calibrated standard errors: "
+                           f"--method {' or '.join(POSTERIOR_METHODS)}")
+        cal = posterior_maps(cal)
     for warning in cal.warnings:
         _note(args, "calibrate", f"warning: {warning}")
     save_calibration(cal, args.out)
@@ -188,7 +195,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
             "diagnostics": cal.diagnostics.to_dict()})
         if args.json == "-":
             return 0
-    print(f"method        {cal.method}")
+    print(f"method        {cal.method}"
+          + (" (posterior maps)" if args.posterior else ""))
     print(f"sensor        {rec.sensor}")
     print(f"log_offset    {cal.log_offset:.3f}"
           + (" (estimated)" if args.log_offset == "auto" and args.method != "offe" else ""))
@@ -236,6 +244,10 @@ def _calibrate_stream(args: argparse.Namespace) -> int:
 
         cal = offei_file(args.recording, OffEIConfig(**okw), prefix_frames=args.prefix_frames,
                          progress=tick)
+    if args.posterior:
+        from .posterior import posterior_maps  # noqa: PLC0415
+
+        cal = posterior_maps(cal)
     save_calibration(cal, args.out)
     if args.csv:
         write_csv(cal, args.csv)
@@ -513,6 +525,11 @@ def build_parser() -> argparse.ArgumentParser:
                          "(its report.json): the recording is simulated under that model and "
                          "the fit's gain and offset removed (docs/GAP.md)")
     sp.add_argument("--seed", type=int, default=0, help="seed of --model's simulations")
+    sp.add_argument("--posterior", action="store_true",
+                    help="OffEI: write posterior maps, each pixel pulled toward the "
+                         "sensor's population by how little its own events say (special "
+                         "pixels keep their own values; the file says it holds them; default: "
+                         "the raw per-pixel estimate)")
     sp.add_argument("--stream", action="store_true",
                     help="OffEI of an evcal .mcap read message by message, for recordings "
                          "larger than memory (a progress bar on stderr; with --log-offset "
