@@ -942,7 +942,7 @@ def test_a_restart_counts_what_it_rolled_back_not_as_lost(tmp_path):
         cam = svc2.camera("lab/cam0")
         assert cam is not None
         st0 = svc2.status(cam)
-        assert st0["rollbacks"] == 1
+        assert st0["restores"] == 1
         assert st0["restored"]["snapshot_age_s"] >= 0
         assert st0["restored"]["rolled_back"] == {"events": None, "frames": None}
         feed(svc2, "lab/cam0", msgs[30:34])

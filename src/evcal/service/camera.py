@@ -142,7 +142,7 @@ class Counters:
     # processed by the process that died after its last snapshot (their effect went with
     # it) or sent while nobody served the camera; counted here, not as lost
     rolled_back: dict[str, int] = field(default_factory=_per_stream)
-    rollbacks: int = 0  # restarts that resumed from a snapshot
+    restores: int = 0  # restarts that resumed from a snapshot (with or without a rollback)
     errors: dict[str, int] = field(default_factory=dict)
     errors_published: int = 0
     errors_suppressed: int = 0
@@ -551,7 +551,7 @@ class CameraState:
         self.extra_maps = {}  # current_calibration() reads them from the message
         now_wall = time.time()
         saved = meta.get("saved_wall")
-        self.counters.rollbacks += 1
+        self.counters.restores += 1
         self._after_restore = {"events", "frames"}
         self.restored = {
             "snapshot_saved_wall": saved, "restored_wall": now_wall,

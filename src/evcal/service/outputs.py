@@ -62,7 +62,7 @@ def camera_status(cam: CameraWorker, *, now_s: float | None = None) -> dict[str,
         "restarts": dict(c.restarts),  # new sessions: time base (or sensor) changed
         # a restart of the service resumed this camera from its snapshot: how many times,
         # the messages processed after the snapshot and so forgotten, and the last restore
-        "rollbacks": c.rollbacks,
+        "restores": c.restores,
         "rolled_back_messages": dict(c.rolled_back),
         "restored": cam.state.restored,
         "errors": dict(c.errors),
