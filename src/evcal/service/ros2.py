@@ -452,6 +452,11 @@ class DistroDetector:
             if before != (self._hashed, self._named):
                 self.version += 1
 
+    def styles(self) -> set[bool]:
+        """The type-hash styles seen so far (True: RIHS01, False: none)."""
+        with self._lock:
+            return set(self._hashed)
+
     def active(self) -> tuple[RosDistro, ...]:
         with self._lock:
             styles = sorted(self._hashed or {True}, reverse=True)
@@ -462,7 +467,7 @@ class DistroMismatch:
     """An explicit ``--ros-distro`` watched against the domain: warns once when other nodes'
     tokens (publishers and subscriptions) show the other type-hash style only -- Humble's
     keys and Jazzy's never meet, so those nodes would hear nothing of evcal and evcal
-    nothing of them, silently. ``warnings`` counts the styles warned of (for tests)."""
+    nothing of them, silently. ``warned``: the styles warned of."""
 
     def __init__(self, distro: RosDistro, own_zid: str = "") -> None:
         self.distro = distro
@@ -473,8 +478,7 @@ class DistroMismatch:
     def seen_token(self, token: str) -> str | None:
         """Feed a token; the warning's text when this token makes one (None otherwise)."""
         self.detector.seen_token(token)
-        with self.detector._lock:
-            styles = set(self.detector._hashed)
+        styles = self.detector.styles()
         if self.distro.type_hash in styles:
             self._matching_seen = True
         other = not self.distro.type_hash

@@ -569,8 +569,8 @@ class Transport:
         (a querier's matching status); True when it does.
 
         A session that has just opened learns the queryables of the network as their
-        declarations reach it: a peer behind a router got its query's "no reply" at once in
-        8 of 10 runs, a service being there all along. Queried after this, it is answered.
+        declarations reach it: a peer behind a router that queries at once can get "no
+        reply" from a service that was there all along. Queried after this, it is answered.
         """
         deadline = time.monotonic() + max(0.0, timeout_s)
         try:

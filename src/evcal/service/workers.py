@@ -99,9 +99,8 @@ ROUTER_CLOSE_S = 3.0  # the router session's close is bounded (Transport.close)
 # waits there (the replays' congestion control is BLOCK) holding its thread. Two such waits
 # -- one busy worker is enough -- left no thread to read any other link: not the answering
 # worker's reply, not its keep-alives, so after the 10 s lease the router closed that link
-# (a 346x260 calibration query timed out, the worker went "down" and its camera lost
-# thousands of messages). With a thread for each link the router may have, and spares, a
-# busy worker slows its own links only.
+# (docs/SERVICE.md, "The router's receive threads"). With a thread for each link the router
+# may have, and spares, a busy worker slows its own links only.
 def router_runtime(count: int, environ: Mapping[str, str] | None = None) -> str | None:
     """The ``ZENOH_RUNTIME`` the supervisor's router runs with (``count`` workers): more
     receive threads than links (see above), or None when the user set ``ZENOH_RUNTIME``."""
