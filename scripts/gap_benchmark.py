@@ -837,10 +837,18 @@ def cmd_run(args: argparse.Namespace) -> int:
                            "held_out_gap_after": s.get("held_out_gap_after"),
                            "why": s.get("why"),
                            "candidates": {k: {q: v.get(q) for q in
-                                              ("status", "reason", "held_out_gap", "parameters")
+                                              ("status", "reason", "held_out_gap", "parameters",
+                                               "held_out_statistics")
                                               if q in v}
-                                          for k, v in res.steps[i].candidates.items()}}
+                                          for k, v in res.steps[i].candidates.items()},
+                           "held_out_statistics_before": dict(
+                               res.steps[i].before.held.per_stat)}
                           for i, s in enumerate(js["steps"])],
+                "rejected": {k: {q: v.get(q) for q in
+                                 ("status", "reason", "held_out_gap", "parameters",
+                                  "held_out_statistics") if q in v}
+                             for k, v in res.rejected.items()},
+                "final_held_out_statistics": dict(res.final.held.per_stat),
                 "not_named": js.get("not_named"),
                 "gap_initial": js["gap_initial"], "gap_final": js["gap_final"],
                 "simulations": res.recording_info.get("simulations"),

@@ -406,3 +406,31 @@ def test_report_lists_the_candidates_judged_alike_together_best_first() -> None:
     assert "one seed" in lines[2]
     assert "one seed" not in lines[0]
     assert lines[3].endswith("still pixels make no excess")
+
+
+def test_a_bin_a_few_pixels_reach_is_left_out_of_the_comparison() -> None:
+    """Which pixels' fits are valid depends on their events: a residual bin that a handful
+    of measured pixel-windows reach and no simulation does is NaN, not a mean of a few
+    against zero, and the comparison leaves it out instead of counting z of 30 there."""
+    from evcal.gap.compare import discrepancy  # noqa: PLC0415
+    from evcal.gap.stats import MIN_BIN_SAMPLES, StatValue, _binned  # noqa: PLC0415
+
+    rng = np.random.default_rng(4)
+    idx = np.r_[np.zeros(5, np.int64), np.ones(MIN_BIN_SAMPLES, np.int64)]
+    vals = rng.normal(0.1, 0.01, idx.size)
+    v = _binned(vals, idx, 3, how="mean")
+    assert np.isnan(v[0])  # 5 values: too few
+    assert v[1] == pytest.approx(vals[5:].mean())
+    assert np.isnan(v[2])  # none
+    measured = {"r": StatValue("r", v, ["a", "b", "c"], 0.003)}
+    sims = [{"r": StatValue("r", np.array([np.nan, x, np.nan]), ["a", "b", "c"], 0.003)}
+            for x in vals[5:].mean() + np.array([-0.002, 0.0, 0.002])]
+    d = discrepancy(measured, sims)
+    assert d.z["r"][0] == 0.0
+    assert d.per_stat["r"] < 1.0  # the one bin with data agrees
+    # the same bin at 0 in the simulations, as an empty bin used to read: a huge misfit
+    zeros = [{"r": StatValue("r", np.nan_to_num(s["r"].values), ["a", "b", "c"], 0.003)}
+             for s in sims]
+    measured_few = {"r": StatValue("r", np.r_[vals[:5].mean(), v[1], 0.0], ["a", "b", "c"],
+                                   0.003)}
+    assert discrepancy(measured_few, zeros).per_stat["r"] > 100

@@ -161,3 +161,43 @@ def test_nothing_is_named_on_a_recording_of_the_model_itself() -> None:
     own = simulate_model(base, rec, 777, Evaluator(rec, GapConfig(), lambda _w: None).settings)
     res = run_gap(own, GapConfig(seed=3, max_effects=2))
     assert [n for n in res.named_effects if n != "timestamp_quantisation"] == []
+
+
+def _held(per_stat: dict[str, float]) -> Evaluation:
+    from evcal.gap.compare import Discrepancy  # noqa: PLC0415
+
+    d = Discrepancy({}, {}, {}, {}, dict(per_stat), {}, 3)
+    return Evaluation(None, [], d, d)  # type: ignore[arg-type]  # judged by statistics only
+
+
+def test_a_candidate_whose_gain_lies_outside_its_statistics_is_passed_over() -> None:
+    """The best-scoring confirmed candidate gains only where its effect has no signature
+    (a jitter of timestamps lowering the still pixels' rate misfit); a leak gains less but
+    on its own statistics: the leak is chosen, and with the check off the jitter."""
+    from evcal.gap.search import Candidate, Round, signature_ok  # noqa: PLC0415
+    from evcal.sim.effects import TimestampJitter  # noqa: PLC0415
+
+    base = {k: 1.0 for k in _evaluated("none", 31)[1].meas_stats}
+    base.update(static_rate_vs_intensity=40.0, static_balance_vs_intensity=30.0,
+                on_fraction_over_time=12.0, fit_population=30.0)
+    # the jitter's gain all outside the statistics a jitter moves (intervals, stamps)
+    jitter_after = dict(base, static_rate_vs_intensity=1.0, fit_population=1.0)
+    leak_after = dict(base, static_balance_vs_intensity=1.5, on_fraction_over_time=1.2,
+                      static_rate_vs_intensity=20.0)
+    on = _held(base)
+    jitter = Candidate("timestamp_jitter", "confirmed", effect=TimestampJitter(sigma_us=300.0),
+                       evaluation=_held(jitter_after))
+    leak = Candidate("leak", "confirmed", effect=Leak(rate_hz=0.5),
+                     evaluation=_held(leak_after))
+    rnd = Round({"timestamp_jitter": jitter, "leak": leak}, on.held_gap, on.held_gap)
+    assert jitter.score(0.1) < leak.score(0.1)
+    assert jitter.signature_share(on) == 0.0
+    assert leak.signature_share(on) == pytest.approx(1.0)
+    assert not signature_ok(jitter, on, 0.5)
+    assert signature_ok(leak, on, 0.5)
+    assert rnd.best(0.1, on, 0.5) is leak
+    assert rnd.best(0.1) is jitter
+    assert rnd.best(0.1, on, 0.0) is jitter
+    # nothing on its own statistics anywhere: nothing is chosen
+    rnd = Round({"timestamp_jitter": jitter}, on.held_gap, on.held_gap)
+    assert rnd.best(0.1, on, 0.5) is None

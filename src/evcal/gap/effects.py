@@ -276,7 +276,10 @@ def _register_all() -> None:
         value=_shot_rate))
     register(EffectSpec(
         "bandwidth", Bandwidth, fx.fit_bandwidth, _bandwidth_delay_us,
-        ("speed_response", "lag_vs_intensity", "sensitivity_vs_intensity"),
+        # a low-pass lags a window's events into the next in proportion to its change: the
+        # per-pixel fit's residual grows with |dL|
+        ("speed_response", "lag_vs_intensity", "sensitivity_vs_intensity",
+         "offei_residual_vs_dl"),
         _words_bandwidth))
     register(EffectSpec(
         "threshold_noise", ThresholdNoise, fx.fit_threshold_noise, plain("sigma"),

@@ -29,9 +29,10 @@ def write_rrd(result: GapResult, path: str | Path) -> Path:
         rec.log("model", rr.TextLog(f"step {i}: {label}, gap {ev.gap:.2f}"))
         for name, m in measured.items():
             if i == 0:
-                rec.log(f"stats/{name}/measured", rr.BarChart(np.asarray(m, np.float64)))
-            rec.log(f"stats/{name}/simulated", rr.BarChart(np.asarray(ev.disc.sim_mean[name],
-                                                                      np.float64)))
+                rec.log(f"stats/{name}/measured",
+                        rr.BarChart(np.nan_to_num(np.asarray(m, np.float64))))
+            rec.log(f"stats/{name}/simulated", rr.BarChart(np.nan_to_num(
+                np.asarray(ev.disc.sim_mean[name], np.float64))))
             rec.log(f"discrepancy/{name}", rr.Scalars(float(ev.disc.per_stat[name])))
     named = ", ".join(result.named_effects) or "none"
     rec.log("report", rr.TextDocument(

@@ -60,6 +60,10 @@ class GapConfig:
     penalty_per_parameter: float = 0.1
     min_improvement: float = 0.3
     min_relative_improvement: float = 0.25
+    # a candidate is named only when at least this share of what an even spread over every
+    # statistic would put there of its held-out gain falls on the statistics its effect
+    # moves (evcal.gap.search.signature_ok); 0 turns the check off
+    min_signature_share: float = 0.5
     refine: bool = True
     # once nothing more is named, each sensor effect named before the last is refined
     # again (the three-point search) in the final model: its value was settled in a model
@@ -102,6 +106,8 @@ class GapConfig:
                               "the null calibration one more)")
         if self.confirm_top < 1:
             raise ConfigError(f"confirm_top={self.confirm_top} must be >= 1")
+        if not self.min_signature_share >= 0.0:
+            raise ConfigError(f"min_signature_share={self.min_signature_share} must be >= 0")
         if not self.null_factor >= 1.0:
             raise ConfigError(f"null_factor={self.null_factor} must be >= 1")
         if self.max_pixel_steps < 1_000_000:

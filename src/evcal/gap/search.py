@@ -44,6 +44,20 @@ class Candidate:
             return math.inf
         return self.evaluation.held_gap + pen * self.effect.n_fitted
 
+    def signature_share(self, base: Evaluation) -> float:
+        """The share of this candidate's held-out gain over ``base`` that falls on the
+        statistics its effect moves (:attr:`.effects.EffectSpec.moves`), each statistic's
+        gain counted down to a discrepancy of 1 (NaN without an evaluation or a gain)."""
+        if self.evaluation is None:
+            return math.nan
+        before, after = base.held.per_stat, self.evaluation.held.per_stat
+        gains = {k: max(before[k], 1.0) - max(after.get(k, 1.0), 1.0) for k in before}
+        total = sum(gains.values())
+        if not total > 0:
+            return math.nan
+        moves = registry.spec(self.name).moves
+        return sum(gains[k] for k in moves if k in gains) / total
+
     def to_json(self, pen: float) -> dict[str, Any]:
         d: dict[str, Any] = {"status": self.status}
         if self.reason:
@@ -57,6 +71,9 @@ class Candidate:
             d["held_out_gap"] = float(self.evaluation.held_gap)
             d["score"] = float(self.score(pen))
             d["seeds"] = int(self.evaluation.disc.n_sims)
+            # each statistic's discrepancy on the held-out rows: where the gain came from
+            d["held_out_statistics"] = {k: float(v) for k, v in
+                                        self.evaluation.held.per_stat.items()}
         if self.others:
             d["variants"] = [{"parameters": to_jsonable(e.parameters()),
                               "held_out_gap": float(v.held_gap)} for e, v in self.others]
@@ -80,9 +97,15 @@ class Round:
         out = [c for c in self.candidates.values() if c.evaluation is not None]
         return sorted(out, key=lambda c: c.score(pen))
 
-    def best(self, pen: float) -> Candidate | None:
-        """The confirmed candidate of the lowest held-out score."""
+    def best(self, pen: float, base: Evaluation | None = None,
+             min_share: float = 0.0) -> Candidate | None:
+        """The confirmed candidate of the lowest held-out score; with ``base``, the best
+        of those whose gain over it falls on their own statistics by at least
+        ``min_share`` of what an even spread over every statistic puts there
+        (:func:`signature_ok`)."""
         conf = [c for c in self.ranked(pen) if c.status == "confirmed"]
+        if base is not None:
+            conf = [c for c in conf if signature_ok(c, base, min_share)]
         return conf[0] if conf else None
 
     def to_json(self, pen: float) -> dict[str, Any]:
@@ -95,6 +118,26 @@ class Round:
             for ev in [c.evaluation, *(v for _, v in c.others)]:
                 if ev is not None and id(ev) not in kept:
                     ev.sims.clear()
+
+
+def even_share(name: str, base: Evaluation) -> float:
+    """The share of a gain the statistics effect ``name`` moves would take were it spread
+    evenly over every statistic compared."""
+    stats = base.held.per_stat
+    moves = [k for k in registry.spec(name).moves if k in stats]
+    return len(moves) / max(len(stats), 1)
+
+
+def signature_ok(c: Candidate, base: Evaluation, min_share: float) -> bool:
+    """Whether candidate ``c``'s gain over ``base`` shows in the statistics its effect
+    moves: at least ``min_share`` times the even share (:func:`even_share`). An effect
+    whose gain lies elsewhere does not explain the data by its own signature: it absorbs,
+    through side effects of its parameters, a misfit of the model that it does not
+    describe (a timestamp jitter smoothing a misfit of the event counts)."""
+    if min_share <= 0.0:
+        return True
+    share = c.signature_share(base)
+    return not math.isfinite(share) or share >= min_share * even_share(c.name, base)
 
 
 def search(ev: Evaluator, null: NullCalibration, on: Evaluation, names: list[str],

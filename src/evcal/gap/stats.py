@@ -345,18 +345,27 @@ def _bin_of(key: np.ndarray, edges: np.ndarray) -> np.ndarray:
                    edges.size - 2).astype(np.int8)
 
 
+# a bin of a mean over pixel-windows holds at least this many of them, else it is NaN (left
+# out of the comparison): which pixels' fits are valid depends on their events, so a bin a
+# few measured pixels reach may be empty in every simulation, and the mean of a handful
+# against none, standardised by the statistic's small floor, would outweigh every other
+# statistic (a z of 30 from one bin of a few pixels)
+MIN_BIN_SAMPLES = 50
+
+
 def _binned(values: np.ndarray, idx: np.ndarray, nb: int, *, how: str,
             weights: np.ndarray | None = None) -> np.ndarray:
     """The mean (``how="mean"``) or RMS (``"rms"``) of ``values`` in each of ``nb`` bins,
-    ``idx`` each value's bin."""
+    ``idx`` each value's bin; NaN in a bin of fewer than :data:`MIN_BIN_SAMPLES` values."""
     wts = np.ones_like(values) if weights is None else weights
     sw = np.bincount(idx, weights=wts, minlength=nb)
+    enough = np.bincount(idx, minlength=nb) >= MIN_BIN_SAMPLES
     if how == "mean":
         s = np.bincount(idx, weights=wts * values, minlength=nb)
-        return np.where(sw > 0, s / np.maximum(sw, 1e-30), 0.0)
+        return np.where(enough & (sw > 0), s / np.maximum(sw, 1e-30), np.nan)
     if how == "rms":
         s = np.bincount(idx, weights=wts * values * values, minlength=nb)
-        return np.sqrt(np.where(sw > 0, s / np.maximum(sw, 1e-30), 0.0))
+        return np.sqrt(np.where(enough & (sw > 0), s / np.maximum(sw, 1e-30), np.nan))
     raise EvcalError(how)
 
 
@@ -592,7 +601,7 @@ def stat_residual_vs_time(obs: Observation, n_bins: int = 5) -> StatValue:
                   n_bins - 1)
     num = np.bincount(idx, weights=sq, minlength=n_bins)
     den = np.bincount(idx, weights=m.sum(1), minlength=n_bins)
-    v = np.sqrt(np.where(den > 0, num / np.maximum(den, 1e-30), 0.0))
+    v = np.sqrt(np.where(den >= MIN_BIN_SAMPLES, num / np.maximum(den, 1e-30), np.nan))
     dur = (obs.frame_t_us[-1] - obs.frame_t_us[0]) * 1e-6
     labels = [f"t {dur * k / n_bins:.2f}..{dur * (k + 1) / n_bins:.2f} s" for k in range(n_bins)]
     return StatValue("offei_residual_vs_time", v, labels, 0.003)
@@ -710,11 +719,12 @@ def stat_lag(obs: Observation) -> StatValue:
     for j in range(nb):
         a = np.array([[s11[j], s12[j]], [s12[j], s22[j]]])
         r = np.array([s1y[j], s2y[j]])
-        if n[j] < 10 or np.linalg.det(a) <= 1e-12 * max(a[0, 0] * a[1, 1], 1e-30):
-            vals.append(0.0)
+        if n[j] < MIN_BIN_SAMPLES or \
+                np.linalg.det(a) <= 1e-12 * max(a[0, 0] * a[1, 1], 1e-30):
+            vals.append(np.nan)  # too few windows for the regression: left out
             continue
         b1, b2 = np.linalg.solve(a, r)
-        vals.append(float(b2 / (b1 + b2)) if abs(b1 + b2) > 1e-9 else 0.0)
+        vals.append(float(b2 / (b1 + b2)) if abs(b1 + b2) > 1e-9 else np.nan)
     return StatValue("lag_vs_intensity", np.asarray(vals),
                      _edge_labels(edges, "pixel mean I (DN)"), 0.01)
 
@@ -840,10 +850,13 @@ STATISTICS = (
 
 
 def summarise(obs: Observation) -> dict[str, StatValue]:
-    """Every statistic of :data:`STATISTICS` for one observation, by name."""
+    """Every statistic of :data:`STATISTICS` for one observation, by name. A component
+    without the data for a value is NaN (an infinite one too): the comparison leaves it
+    out (:func:`.compare.discrepancy`), where a zero in its place would be compared."""
     out = {}
     for fn in STATISTICS:
         s = fn(obs)
-        out[s.name] = StatValue(s.name, np.nan_to_num(np.asarray(s.values, np.float64)),
-                                s.labels, s.floor)
+        v = np.asarray(s.values, np.float64)
+        out[s.name] = StatValue(s.name, np.where(np.isfinite(v), v, np.nan), s.labels,
+                                s.floor)
     return out
