@@ -263,8 +263,12 @@ def _register_all() -> None:
         return lambda e, _light: abs(_p(e, key))
 
     register(EffectSpec(
+        # timestamp_quantum: where stamps lie on a grid (a frame-driven simulator's steps),
+        # a dead time that delays crossings to its end moves them between the grid's slots,
+        # and there it shows in nothing else (v2e's refractory period)
         "refractory", Refractory, fx.fit_refractory, plain("period_us"),
-        ("iei_distribution", "iei_lower_edge", "polarity_alternation"), _words_refractory,
+        ("iei_distribution", "iei_lower_edge", "polarity_alternation", "timestamp_quantum"),
+        _words_refractory,
         alternatives=_refractory_modes))
     register(EffectSpec(
         "leak", Leak, fe.fit_leak, _leak_rate,
