@@ -844,12 +844,13 @@ def cmd_run(args: argparse.Namespace) -> int:
                            "held_out_statistics_before": dict(
                                res.steps[i].before.held.per_stat)}
                           for i, s in enumerate(js["steps"])],
-                "rejected": {k: {q: v.get(q) for q in
-                                 ("status", "reason", "held_out_gap", "parameters",
-                                  "held_out_statistics") if q in v}
-                             for k, v in res.rejected.items()},
+                # the last round's candidates (report.json's not_named, with what they
+                # were fitted to and their statistics)
+                "not_named": {k: {q: v.get(q) for q in
+                                  ("status", "reason", "held_out_gap", "parameters",
+                                   "held_out_statistics") if q in v}
+                              for k, v in res.rejected.items()},
                 "final_held_out_statistics": dict(res.final.held.per_stat),
-                "not_named": js.get("not_named"),
                 "gap_initial": js["gap_initial"], "gap_final": js["gap_final"],
                 "simulations": res.recording_info.get("simulations"),
                 "recording_info": {k: v for k, v in res.recording_info.items()

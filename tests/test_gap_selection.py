@@ -189,15 +189,23 @@ def test_a_candidate_whose_gain_lies_outside_its_statistics_is_passed_over() -> 
                        evaluation=_held(jitter_after))
     leak = Candidate("leak", "confirmed", effect=Leak(rate_hz=0.5),
                      evaluation=_held(leak_after))
-    rnd = Round({"timestamp_jitter": jitter, "leak": leak}, on.held_gap, on.held_gap)
+    def judged(cands: list[Candidate], min_share: float) -> Round:
+        for c in cands:
+            c.passed_over, c.reason = False, ""
+        rnd = Round({c.name: c for c in cands}, on.held_gap, on.held_gap)
+        rnd.judge_signatures(on, min_share)
+        return rnd
+
     assert jitter.score(0.1) < leak.score(0.1)
     assert jitter.signature_share(on) == 0.0
     assert leak.signature_share(on) == pytest.approx(1.0)
     assert not signature_ok(jitter, on, 0.5)
     assert signature_ok(leak, on, 0.5)
-    assert rnd.best(0.1, on, 0.5) is leak
-    assert rnd.best(0.1) is jitter
-    assert rnd.best(0.1, on, 0.0) is jitter
+    rnd = judged([jitter, leak], 0.5)
+    assert rnd.best(0.1) is leak
+    assert jitter.passed_over
+    assert "falls on the statistics" in rnd.to_json(0.1)["timestamp_jitter"]["reason"]
+    assert not leak.passed_over
+    assert judged([jitter, leak], 0.0).best(0.1) is jitter
     # nothing on its own statistics anywhere: nothing is chosen
-    rnd = Round({"timestamp_jitter": jitter}, on.held_gap, on.held_gap)
-    assert rnd.best(0.1, on, 0.5) is None
+    assert judged([jitter], 0.5).best(0.1) is None

@@ -37,6 +37,10 @@ class Candidate:
     evaluation: Evaluation | None = None
     # the alternatives of a discrete parameter, screened beside it: (effect, evaluation)
     others: list[tuple[Effect, Evaluation]] = field(default_factory=list)
+    # a confirmed candidate's share of its held-out gain on its own statistics, and whether
+    # it was passed over for gaining elsewhere (Round.judge_signatures)
+    signature: float | None = None
+    passed_over: bool = False
 
     def score(self, pen: float) -> float:
         """Held-out gap plus the complexity penalty (inf without an evaluation)."""
@@ -74,6 +78,8 @@ class Candidate:
             # each statistic's discrepancy on the held-out rows: where the gain came from
             d["held_out_statistics"] = {k: float(v) for k, v in
                                         self.evaluation.held.per_stat.items()}
+        if self.signature is not None:
+            d["signature_share"] = self.signature
         if self.others:
             d["variants"] = [{"parameters": to_jsonable(e.parameters()),
                               "held_out_gap": float(v.held_gap)} for e, v in self.others]
@@ -97,16 +103,27 @@ class Round:
         out = [c for c in self.candidates.values() if c.evaluation is not None]
         return sorted(out, key=lambda c: c.score(pen))
 
-    def best(self, pen: float, base: Evaluation | None = None,
-             min_share: float = 0.0) -> Candidate | None:
-        """The confirmed candidate of the lowest held-out score; with ``base``, the best
-        of those whose gain over it falls on their own statistics by at least
-        ``min_share`` of what an even spread over every statistic puts there
-        (:func:`signature_ok`)."""
-        conf = [c for c in self.ranked(pen) if c.status == "confirmed"]
-        if base is not None:
-            conf = [c for c in conf if signature_ok(c, base, min_share)]
+    def best(self, pen: float) -> Candidate | None:
+        """The confirmed candidate of the lowest held-out score that was not passed over
+        (:meth:`judge_signatures`)."""
+        conf = [c for c in self.ranked(pen) if c.status == "confirmed" and not c.passed_over]
         return conf[0] if conf else None
+
+    def judge_signatures(self, base: Evaluation, min_share: float) -> None:
+        """Each confirmed candidate's share of its gain over ``base`` on its own statistics;
+        one below ``min_share`` times the even share (:func:`signature_ok`) is passed over,
+        with the reason."""
+        for c in self.candidates.values():
+            if c.status != "confirmed":
+                continue
+            c.signature = c.signature_share(base)
+            if not signature_ok(c, base, min_share):
+                c.passed_over = True
+                c.reason = (
+                    f"{100 * c.signature:.0f} % of its held-out gain falls on the statistics "
+                    f"its effect moves, where an even spread over all would put "
+                    f"{100 * even_share(c.name, base):.0f} %: it absorbs a misfit its effect "
+                    "does not describe")
 
     def to_json(self, pen: float) -> dict[str, Any]:
         return {name: c.to_json(pen) for name, c in self.candidates.items()}

@@ -349,23 +349,21 @@ def _bin_of(key: np.ndarray, edges: np.ndarray) -> np.ndarray:
 # out of the comparison): which pixels' fits are valid depends on their events, so a bin a
 # few measured pixels reach may be empty in every simulation, and the mean of a handful
 # against none, standardised by the statistic's small floor, would outweigh every other
-# statistic (a z of 30 from one bin of a few pixels)
+# statistic
 MIN_BIN_SAMPLES = 50
 
 
-def _binned(values: np.ndarray, idx: np.ndarray, nb: int, *, how: str,
-            weights: np.ndarray | None = None) -> np.ndarray:
+def _binned(values: np.ndarray, idx: np.ndarray, nb: int, *, how: str) -> np.ndarray:
     """The mean (``how="mean"``) or RMS (``"rms"``) of ``values`` in each of ``nb`` bins,
     ``idx`` each value's bin; NaN in a bin of fewer than :data:`MIN_BIN_SAMPLES` values."""
-    wts = np.ones_like(values) if weights is None else weights
-    sw = np.bincount(idx, weights=wts, minlength=nb)
-    enough = np.bincount(idx, minlength=nb) >= MIN_BIN_SAMPLES
+    n = np.bincount(idx, minlength=nb)
+    enough = n >= MIN_BIN_SAMPLES
     if how == "mean":
-        s = np.bincount(idx, weights=wts * values, minlength=nb)
-        return np.where(enough & (sw > 0), s / np.maximum(sw, 1e-30), np.nan)
+        s = np.bincount(idx, weights=values, minlength=nb)
+        return np.where(enough, s / np.maximum(n, 1), np.nan)
     if how == "rms":
-        s = np.bincount(idx, weights=wts * values * values, minlength=nb)
-        return np.sqrt(np.where(enough & (sw > 0), s / np.maximum(sw, 1e-30), np.nan))
+        s = np.bincount(idx, weights=values * values, minlength=nb)
+        return np.sqrt(np.where(enough, s / np.maximum(n, 1), np.nan))
     raise EvcalError(how)
 
 

@@ -54,7 +54,7 @@ from .runner import (
     need,
     screening_band,
 )
-from .search import Candidate, Round, even_share, search, signature_ok
+from .search import Candidate, Round, search
 from .stats import GapError
 
 __all__ = ["SCHEME_EFFECT", "Evaluation", "GapConfig", "GapResult", "GapRun", "Step",
@@ -330,9 +330,9 @@ class GapRun:
             rnd = search(ev, self.null, on, names, self.seconds)
             screened = max(sum(c.evaluation is not None for c in rnd.candidates.values()) - 1,
                            1)
+            rnd.judge_signatures(on, cfg.min_signature_share)
             tried = rnd.to_json(pen)
-            self._signatures(rnd, on, tried)
-            best = rnd.best(pen, on, cfg.min_signature_share)
+            best = rnd.best(pen)
             if scheme is not None:
                 eff_q, ev_q, entry = scheme
                 tried = {SCHEME_EFFECT: entry, **tried}
@@ -500,23 +500,6 @@ class GapRun:
             return None
         return ev.evaluate(ev.candidate_model(current.model, res.effect), f"{name} alone")
 
-    def _signatures(self, rnd: Round, on: Evaluation, tried: dict[str, dict[str, Any]]
-                    ) -> None:
-        """Each confirmed candidate's share of its gain on its own statistics in ``tried``,
-        and why one whose gain lies elsewhere is passed over."""
-        for c in rnd.candidates.values():
-            if c.status != "confirmed":
-                continue
-            share = c.signature_share(on)
-            even = even_share(c.name, on)
-            entry = tried[c.name]
-            entry["signature_share"] = float(share)
-            if not signature_ok(c, on, self.cfg.min_signature_share):
-                entry["reason"] = (
-                    f"{100 * share:.0f} % of its held-out gain falls on the statistics its "
-                    f"effect moves, where an even spread over all would put "
-                    f"{100 * even:.0f} %: it absorbs a misfit its effect does not describe")
-
     def _why(self, rnd: Round, on: Evaluation, best: Candidate | None) -> dict[str, Any]:
         """Whether ``best`` is named, and why: its held-out gain, what naming needs (the
         configured least gain, and the gain its effect shows with nothing missing), and
@@ -525,7 +508,7 @@ class GapRun:
         pen = cfg.penalty_per_parameter
         needed = need(cfg, on.held_gap)
         if best is None:
-            passed_over = [c.name for c in rnd.ranked(pen) if c.status == "confirmed"]
+            passed_over = [c.name for c in rnd.ranked(pen) if c.passed_over]
             reason = ("no candidate stood above the null and gained enough on one seed to be "
                       "confirmed") if not passed_over else (
                 f"the gain of the confirmed {', '.join(passed_over)} lay outside the "
