@@ -75,6 +75,9 @@ V2E_EFFECTS = ("refractory", "leak", "shot_noise", "bandwidth")
 MIX_CORE = ("bandwidth", "leak", "shot_noise", "refractory")
 SCHEME_EFFECT = "timestamp_quantisation"  # a frame-driven simulator's stamps, not a sensor's
 SCENE_EFFECTS = ("flicker",)  # the scene's light: scored against the case's illumination
+# how the recording began (every reference set at the first frame, as v2e starts): not a
+# sensor effect, counted per backend like the scheme
+START_EFFECT = "start_reset"
 V2E_SHARE = 0.4
 CATEGORY_SHARES = {"none": 0.20, "single": 0.45, "pair": 0.20, "mix": 0.15}
 SIM_LOG_OFFSET = 1.0          # SimConfig.log_offset: the base model's nominal offset
@@ -918,13 +921,15 @@ def score_case(r: dict[str, Any]) -> dict[str, Any]:
         "activity": (r["n_events"] / (h * w * r["duration_s"])
                      if r.get("n_events") and h and r.get("duration_s") else None)}
     if out["error"]:
-        out.update(named=[], scheme=False, flicker_named=False, false=[], gap_final=None,
+        out.update(named=[], scheme=False, start_reset=False, flicker_named=False, false=[],
+                   gap_final=None,
                    param_err={})
         return out
     named = [n for n in r.get("named_effects", [])
-             if n != SCHEME_EFFECT and n not in SCENE_EFFECTS]
+             if n not in (SCHEME_EFFECT, START_EFFECT) and n not in SCENE_EFFECTS]
     out["named"] = named
     out["scheme"] = SCHEME_EFFECT in r.get("named_effects", [])
+    out["start_reset"] = START_EFFECT in r.get("named_effects", [])
     out["flicker_named"] = "flicker" in r.get("named_effects", [])
     out["false"] = [n for n in named if n not in hidden]
     out["gap_final"] = r.get("gap_final")
@@ -993,7 +998,8 @@ def split_metrics(scored: list[dict[str, Any]]) -> dict[str, Any]:
     by_backend = {}
     for b in ("sim", "v2e"):
         bs = [s for s in scored if s["backend"] == b and not s["error"]]
-        by_backend[b] = {"n": len(bs), "scheme_named": sum(s["scheme"] for s in bs)}
+        by_backend[b] = {"n": len(bs), "scheme_named": sum(s["scheme"] for s in bs),
+                         "start_reset_named": sum(s.get("start_reset", False) for s in bs)}
     m["scheme"] = by_backend
     m["speed"] = {"all": _spread([s["wall_s"] for s in scored if not s["error"]]),
                   "240x180_2.5-3s": _spread([
@@ -1113,6 +1119,10 @@ def report_text(scored: list[dict[str, Any]], markdown: bool = False
         out.append(confusion(ss, markdown))
         out.append(f"\n   {SCHEME_EFFECT} named (not a sensor effect): " + ", ".join(
             f"{b} {v['scheme_named']}/{v['n']}" for b, v in ms["all"]["scheme"].items()))
+        out.append(f"   {START_EFFECT} named (how the recording began; v2e resets, evcal's "
+                   "simulator does not): " + ", ".join(
+                       f"{b} {v.get('start_reset_named', 0)}/{v['n']}"
+                       for b, v in ms["all"]["scheme"].items()))
         fl = ms["all"]["flicker"]
         out.append(f"   flicker (the scene's light) named: in {fl['named']}/{fl['n']} cases "
                    f"under a flickering light, {fl['named_without']}/{fl['n_without']} "

@@ -69,7 +69,7 @@ def test_every_effect_of_the_simulator_has_one_spec() -> None:
         assert spec.alternatives(eff)[0] is eff
         assert spec.moves, name
         assert set(spec.moves) <= stats, (name, set(spec.moves) - stats)
-    assert kinds == {"sensor", "frames", "scheme", "scene"}
+    assert kinds == {"sensor", "frames", "scheme", "scene", "start"}
     with pytest.raises(ConfigError, match="registered already"):
         registry.register(registry.spec("leak"))
     with pytest.raises(ConfigError, match="known"):

@@ -21,6 +21,7 @@ from evcal.sim.effects import (
     LogOffset,
     Refractory,
     ShotNoise,
+    StartReset,
     ThresholdLight,
     ThresholdNoise,
     TimestampJitter,
@@ -168,6 +169,30 @@ def test_leak_adds_on_events_at_the_rate_in_a_still_scene() -> None:
     # the reference starts half a cell (on average) below the ON level: half an event less
     assert rate == pytest.approx(2.0 - 0.5 / still.duration_s, rel=0.1)
     assert (res.truth["labels"] == LABEL_LEAK).mean() > 0.9
+
+
+def test_a_reset_at_the_start_makes_every_pixel_wait_a_whole_threshold() -> None:
+    """A still scene under leak (2 Hz: the reference falls by a threshold each 0.5 s): a
+    running sensor's references start anywhere within a threshold of the light (with the
+    OFF one below), so the first events come at any time up to about two periods; a sensor
+    reset at the start sets each at its light, and every pixel's first event comes after
+    exactly one period."""
+    still = SimConfig(**{**CFG.to_dict(), "duration_s": 2.0,
+                         "trajectory": Trajectory(pan_px=0, rotation_rad=0, zoom=0, seed=1)})
+    leak = Leak(rate_hz=2.0, spread_log=0.0)
+
+    def first_s(events: np.ndarray) -> np.ndarray:
+        pix = events["y"].astype(np.int64) * still.width + events["x"]
+        first = np.full(still.height * still.width, np.inf)
+        np.minimum.at(first, pix, events["t_us"] * 1e-6)
+        return first
+
+    running = first_s(simulate(still, [leak]).recording.events)
+    reset = first_s(simulate(still, [leak, StartReset()]).recording.events)
+    assert np.isfinite(reset).all()
+    np.testing.assert_allclose(reset, 0.5, atol=0.01)
+    assert running.min() < 0.1
+    assert np.std(running) > 0.15
 
 
 def test_shot_noise_rate_rises_in_the_dark_and_is_labelled() -> None:

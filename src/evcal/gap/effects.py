@@ -13,8 +13,10 @@ enters the gap workflow through its spec here, which says
 - ``says``: the sentence the report uses for a fitted value;
 - ``kind``: ``"sensor"`` (the DVS pixel), ``"frames"`` (the APS readout: the frames that
   drive the simulation), ``"scheme"`` (how a frame-driven simulator stamps its events:
-  not a property of a sensor, reported apart) or ``"scene"`` (the light itself, a lamp's
-  flicker: read before the sensor's effects, reported apart).
+  not a property of a sensor, reported apart), ``"scene"`` (the light itself, a lamp's
+  flicker: read before the sensor's effects, reported apart) or ``"start"`` (how the
+  recording began: every reference reset at its first instant, as a frame-driven simulator
+  starts; read before the sensor's effects, reported apart).
 
 To add an effect: write its parameter object and simulation hook in
 :mod:`evcal.sim.effects`, its fitter (a function of a :class:`FitContext`) beside the others
@@ -44,6 +46,7 @@ from ..sim.effects import (
     Refractory,
     RowNoise,
     ShotNoise,
+    StartReset,
     ThresholdLight,
     ThresholdNoise,
     TimestampJitter,
@@ -140,7 +143,11 @@ class FitContext:
         return out
 
 
-KINDS = ("sensor", "frames", "scheme", "scene")
+KINDS = ("sensor", "frames", "scheme", "scene", "start")
+# the kinds tried before the sensor's effects, on the base model and again after each named
+# effect, and named by their held-out gain alone (no null calibration: the model's own
+# simulations have neither a lamp nor a reset)
+BEFORE_SENSOR_KINDS = ("scene", "start")
 # the kinds that count as the sensor's (``max_effects``, the benchmark's confusion table)
 SENSOR_KINDS = ("sensor", "frames")
 
@@ -258,6 +265,7 @@ def _register_all() -> None:
     from . import fitters_events as fe  # noqa: PLC0415
     from . import flicker as fl  # noqa: PLC0415
     from . import frames as fr  # noqa: PLC0415
+    from . import start as st  # noqa: PLC0415
 
     def plain(key: str) -> Callable[[Effect, float], float]:
         return lambda e, _light: abs(_p(e, key))
@@ -332,6 +340,13 @@ def _register_all() -> None:
         ("lag_vs_intensity", "speed_response", "offei_residual_vs_dl"),
         lambda e: f"the frames' exposure centred {_fmt(_p(e, 'lag_us'))} us after their "
                   "stamps (every pixel alike)", kind="frames"))
+    register(EffectSpec(
+        "start_reset", StartReset, st.fit_start_reset, lambda _e, _l: 1.0,
+        ("first_event_change", "static_rate_vs_intensity", "static_balance_vs_intensity",
+         "on_fraction_over_time", "sensitivity_vs_intensity", "speed_response"),
+        lambda _e: "every pixel's reference set to its light at the recording's first "
+                   "instant (a simulator that starts from its first frame, not a sensor "
+                   "that ran before)", kind="start", value=lambda _e, _l: 1.0))
     register(EffectSpec(
         "flicker", Flicker, fl.fit_flicker, plain("depth"),
         ("polarity_alternation", "iei_distribution", "static_rate_vs_intensity"),

@@ -328,8 +328,12 @@ def latent_frames(frames: Frames, read_noise_dn: float) -> np.ndarray:
     """The frames as float32 latent intensity, their read noise taken out where a pixel is
     still: each pixel's frames, divided by the light common to the scene
     (:func:`light_gain`), are cut into runs within which every frame lies within the noise
-    (``3 read_noise_dn + 1`` DN) of the run's mean so far; a run is replaced by its mean
-    (the scene is still there; the noise is in the frames, not in the light the events saw),
+    (``3 read_noise_dn + 1`` DN) of the run's least-squares line so far; a run is replaced by
+    its line (the scene is still there; the noise is in the frames, not in the light the
+    events saw). The line's slope is kept only where it stands out of the noise and stays
+    below half the tolerance a frame: a drift the frames cannot tell from their noise frame
+    to frame (part of the scene dimming or brightening apart from the common light, a
+    smooth patch that moves slowly) still makes a sensor fire.
     and the common light is put back, smoothed (:func:`smooth_gain`: a flicker the frames
     alias is not the light between them). A pixel that changes makes runs of one frame: its
     frames are kept as they are.
@@ -339,7 +343,10 @@ def latent_frames(frames: Frames, read_noise_dn: float) -> np.ndarray:
     scene (1 DN read noise) the simulated still pixels fired 5x the measured rate, the dark
     ones most. Without the common light taken out first, a slow change of the light (a ramp
     of a few DN a frame) made runs too, and the simulated still pixels never fired where a
-    sensor fires all the time the light changes."""
+    sensor fires all the time the light changes. With a run's mean in place of its line,
+    a drift below the tolerance became steps: under a breathing light, a model with the
+    sensor's true maps fired fewer events than the sensor in its still pixels, and those in
+    bursts at the steps."""
     imgs = frames.images.astype(np.float32)
     if read_noise_dn <= 0.5 or imgs.shape[0] < 3:
         return imgs
@@ -349,29 +356,64 @@ def latent_frames(frames: Frames, read_noise_dn: float) -> np.ndarray:
     gain = raw_gain.astype(np.float32)
     back = smooth_gain(raw_gain).astype(np.float32)
     f = imgs.reshape(k, -1) / gain[:, None]
-    # a pass forward over the frames (vectorised over pixels) keeps each run's mean so far,
-    # one backward gives every frame its run's final mean
-    mean_so_far = np.empty(f.shape, np.float64)
+    # a pass forward over the frames (vectorised over pixels) keeps each run's least-squares
+    # line so far (its sums over the run, frame index j from the run's start), one backward
+    # gives every frame its run's final line
+    npix = f.shape[1]
+    a_so_far = np.empty(f.shape, np.float32)  # the line's value at the run's start
+    s_so_far = np.zeros(f.shape, np.float32)  # its slope, DN a frame
+    start = np.zeros(f.shape, np.int32)
     joins = np.zeros(f.shape, bool)  # frame i continues the run of frame i - 1
-    total = f[0].astype(np.float64)
-    n = np.ones(f.shape[1])
-    mean_so_far[0] = total
+    n = np.ones(npix)
+    sj = np.zeros(npix)
+    sf = f[0].astype(np.float64)
+    sjf = np.zeros(npix)
+    sjj = np.zeros(npix)
+    sff = sf * sf
+    st = np.zeros(npix, np.int32)
+    a, slope = sf.copy(), np.zeros(npix)
+    a_so_far[0] = a
     for i in range(1, k):
-        inside = np.abs(f[i] - total / n) < tol
+        j = i - st
+        fi = f[i].astype(np.float64)
+        inside = np.abs(fi - (a + slope * j)) < tol
         joins[i] = inside
-        total = np.where(inside, total + f[i], f[i])
         n = np.where(inside, n + 1, 1.0)
-        mean_so_far[i] = total / n
+        sj = np.where(inside, sj + j, 0.0)
+        sf = np.where(inside, sf + fi, fi)
+        sjf = np.where(inside, sjf + j * fi, 0.0)
+        sjj = np.where(inside, sjj + j * j, 0.0)
+        sff = np.where(inside, sff + fi * fi, fi * fi)
+        st = np.where(inside, st, i).astype(np.int32)
+        det = n * sjj - sj * sj
+        with np.errstate(divide="ignore", invalid="ignore"):
+            slope = np.where(det > 0, (n * sjf - sj * sf) / np.where(det > 0, det, 1.0), 0.0)
+        # a run follows a drift the frames cannot tell from their noise frame to frame (a
+        # still pixel under a slow light, a smooth patch of a scene that moves slowly:
+        # a sensor fires all the while); a faster change is motion, kept frame by frame
+        slope = np.clip(slope, -0.5 * tol, 0.5 * tol)
+        # ... and only where the drift stands out of the noise (three standard errors, the
+        # noise the larger of the read noise and the run's own scatter about its line): a
+        # slope read off noisy frames would break a still pixel's run or make it fire
+        spread = np.maximum(sjj - sj * sj / n, 0.0)
+        rss = np.maximum(sff - sf * sf / n - slope * (sjf - sj * sf / n), 0.0)
+        var = np.maximum(read_noise_dn ** 2, np.where(n > 3, rss / np.maximum(n - 2, 1), 0.0))
+        slope = np.where(slope * slope * spread > 9.0 * var, slope, 0.0)
+        a = (sf - slope * sj) / n
+        a_so_far[i], s_so_far[i], start[i] = a, slope, st
     out = np.empty(f.shape, np.float32)
-    last = mean_so_far[k - 1]
     # a pixel that changed (a run of one frame) keeps its frame as it is
     single = np.ones(f.shape, bool)
     single[1:] &= ~joins[1:]
     single[:-1] &= ~joins[1:]
-    out[k - 1] = last * back[k - 1]
+    la, ls, lst = a_so_far[k - 1].copy(), s_so_far[k - 1].copy(), start[k - 1].copy()
+    out[k - 1] = (la + ls * (k - 1 - lst)) * back[k - 1]
     for i in range(k - 2, -1, -1):
-        last = np.where(joins[i + 1], last, mean_so_far[i])
-        out[i] = last * back[i]
+        keep = joins[i + 1]
+        la = np.where(keep, la, a_so_far[i])
+        ls = np.where(keep, ls, s_so_far[i])
+        lst = np.where(keep, lst, start[i])
+        out[i] = (la + ls * (i - lst)) * back[i]
     out = np.where(single, imgs.reshape(k, -1), out)
     return out.reshape(imgs.shape)
 

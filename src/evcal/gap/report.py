@@ -172,6 +172,9 @@ def _why_lines(name: str, why: dict[str, Any]) -> list[str]:
     if why.get("scene"):
         text += (" (the scene's light, not the sensor: tried before the sensor's effects, "
                  "and again after each one named)")
+    if why.get("start"):
+        text += (" (how the recording began, not the sensor: tried before the sensor's "
+                 "effects, and again after each one named)")
     below = [f"{o['effect']} ({o['score']:.2f})" for o in why.get("ranked_below", [])]
     if below:
         text += "; it ranked above " + ", ".join(below)

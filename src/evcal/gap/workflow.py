@@ -39,7 +39,7 @@ from ..jsonable import to_jsonable
 from ..recording import Recording
 from ..sim.effects import Effect
 from . import effects as registry
-from .effects import SENSOR_KINDS, FitResult, Fitted
+from .effects import BEFORE_SENSOR_KINDS, SENSOR_KINDS, FitResult, Fitted
 from .explain import unexplained
 from .finish import DEBIAS_STEPS, finish, refine
 from .model import fit_base
@@ -380,10 +380,12 @@ class GapRun:
         return self._result(initial, current)
 
     def _scenes(self, current: Evaluation) -> Evaluation:
-        """``current`` with the scene effects it lacks that :meth:`_scene` names, each
-        tried once on a given model."""
+        """``current`` with the effects tried before the sensor's (the scene's light, how
+        the recording began: ``BEFORE_SENSOR_KINDS``) it lacks that :meth:`_scene` names,
+        each tried once on a given model."""
         for name in self.cfg.candidates:
-            if registry.spec(name).kind != "scene" or name in current.model.effects or \
+            if registry.spec(name).kind not in BEFORE_SENSOR_KINDS or \
+                    name in current.model.effects or \
                     self._scene_tried.get(name) is current:
                 continue
             self._scene_tried[name] = current
@@ -391,8 +393,8 @@ class GapRun:
         return current
 
     def _scene(self, current: Evaluation, name: str) -> Evaluation:
-        """Scene effect ``name`` (a flicker of the light) fitted on the fit rows (by
-        simulations of the model with it), evaluated on every seed and named when it gains on
+        """Effect ``name`` of a kind tried before the sensor's (a flicker of the light, a
+        reset at the start) fitted on the fit rows (by simulations of the model with it), evaluated on every seed and named when it gains on
         the held-out rows what naming needs; ``current`` unchanged otherwise (the reason in
         the report's candidates of the last round)."""
         ev = self.ev
@@ -417,7 +419,8 @@ class GapRun:
         needed = need(cfg, current.held_gap)
         entry = {"status": "confirmed", "parameters": to_jsonable(eff.parameters()),
                  "gap": float(out.gap), "held_out_gap": float(out.held_gap), "score": score,
-                 "seeds": out.disc.n_sims, "fit": to_jsonable(res.detail)}
+                 "seeds": out.disc.n_sims, "fit": to_jsonable(res.detail),
+                 "held_out_statistics": {k: float(v) for k, v in out.held.per_stat.items()}}
         if g <= needed:
             entry["status"] = "not named"
             entry["reason"] = (f"its held-out gain {g:.3g} is below the {needed:.3g} naming "
@@ -429,7 +432,8 @@ class GapRun:
         self.scene_rejected.pop(name, None)
         why = {"named": True, "effect": name, "held_out_gap": float(current.held_gap),
                "score": score, "held_out_gain": float(g), "needed_gain": float(needed),
-               "null_gain": 0.0, "ranked_below": [], "equivalent": [], "scene": True}
+               "null_gain": 0.0, "ranked_below": [], "equivalent": [],
+               registry.spec(name).kind: True}
         self.steps.append(Step(eff, current, out, {name: entry}, why))
         return moved_on(current, out)
 

@@ -48,6 +48,9 @@ name                      what the sensor does                                  
                           ``1 + depth sin(2 pi freq_hz t + phase_rad)`` (``t`` in
                           seconds of the recording's time: mains lighting flickers at
                           twice the mains frequency); events and frames both see it
+``start_reset``           every pixel's reference set to its log intensity at the       (none)
+                          recording's first instant (a simulator that starts from its
+                          first frame, v2e), not anywhere within a threshold of it
 ``exposure``              APS frames only: a frame averages the intensity over           lag_us
                           ``exposure_us``, its exposure's centre ``lag_us`` after the
                           frame's timestamp (``exposure_us / 2``: stamped at the start
@@ -110,6 +113,7 @@ name                       order  hooks (what the fixed order keeps)
 ``aps_fpn``                120    ``on_aps``
 ``exposure``               130    ``on_aps``
 ``flicker``                140    ``on_light``
+``start_reset``            150    ``kernel_setup`` (a flag: the initial references)
 =========================  =====  ===========================================================
 
 To add an effect: subclass :class:`Effect` as a frozen, keyword-only dataclass with a unique
@@ -275,6 +279,9 @@ class KernelParams:
     bw_min_cutoff_hz: float = 0.5
     response_exp: float = 0.0  # the comparator's response (0: log(I + dark); ThresholdLight)
     response_ref_dn: np.ndarray
+    # every reference set to the comparator's input at the first sample (StartReset), in
+    # place of a running sensor's anywhere within a threshold of it
+    start_reset: bool = False
 
     @classmethod
     def ideal(cls, th_on_nom: np.ndarray, th_off_nom: np.ndarray) -> KernelParams:
@@ -568,6 +575,24 @@ class TimestampJitter(Effect):
         if q > 1:
             t = (t // q) * q
         return events._replace(t_us=t).sorted_by_time()
+
+
+@dataclass(frozen=True, kw_only=True)
+class StartReset(Effect):
+    """Every pixel's reference set to the log intensity it sees at the recording's first
+    instant, where a sensor that ran before the recording started holds it anywhere within
+    a threshold of it: a pixel's first event then needs a whole threshold of change. A
+    property of simulators that start from their first input frame (v2e,
+    v2ecore/emulator.py: ``base_log_frame`` set from the first frame), or of a sensor whose
+    pixels are reset as it starts; no parameter."""
+
+    name: ClassVar[str] = "start_reset"
+    primary: ClassVar[str] = ""
+    n_fitted: ClassVar[int] = 0
+    order: ClassVar[int] = 150
+
+    def kernel_setup(self, kp: KernelParams, ctx: SimContext) -> None:
+        kp.start_reset = True
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -994,7 +1019,7 @@ EFFECTS: dict[str, type[Effect]] = {
     cls.name: cls
     for cls in (Refractory, Leak, ShotNoise, Bandwidth, ThresholdNoise, HotPixels, LogOffset,
                 TimestampJitter, TimestampQuantisation, ThresholdLight, RowNoise, ApsFpn,
-                Exposure, Flicker)
+                Exposure, Flicker, StartReset)
 }
 EFFECT_NAMES: tuple[str, ...] = tuple(EFFECTS)
 

@@ -232,6 +232,8 @@ def simulate(
         e.kernel_setup(kp, ctx)
     l0 = kp.comparator_input(i0, offset)
     ref = l0 - (u * (th_on_nom + th_off_nom) - th_off_nom)
+    if kp.start_reset:
+        ref = l0.copy()
     refr_us, refr_delay = kp.refr_us, kp.refr_delay
 
     lf = l0.copy()
