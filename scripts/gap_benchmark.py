@@ -869,11 +869,25 @@ def cmd_run(args: argparse.Namespace) -> int:
             rec_out["error"] = traceback.format_exc()
             line = "ERROR " + rec_out["error"].strip().splitlines()[-1]
         with open(results_path, "a") as f:
-            f.write(json.dumps(rec_out, allow_nan=False, default=_json_default) + "\n")
+            f.write(json.dumps(_finite(rec_out), allow_nan=False, default=_json_default)
+                    + "\n")
         print(f"[{k}/{len(todo)}] {c['id']:9s} {c['backend']:3s} {w}x{h} {c['duration_s']:.2f}s "
               f"{c['category']:6s} {line}  (elapsed {(time.time() - t_all) / 60:.1f} min)",
               flush=True)
     return 0
+
+
+def _finite(obj: Any, path: str = "") -> Any:
+    """``obj`` with every non-finite float as ``None`` (JSON has none), each one reported
+    on stderr with its path (a NaN in a result is a finding, not a reason to lose it)."""
+    if isinstance(obj, dict):
+        return {k: _finite(v, f"{path}/{k}") for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite(v, f"{path}[{i}]") for i, v in enumerate(obj)]
+    if isinstance(obj, (float, np.floating)) and not math.isfinite(float(obj)):
+        print(f"non-finite {float(obj)} at {path}", file=sys.stderr)
+        return None
+    return obj
 
 
 def _json_default(obj: Any) -> Any:

@@ -209,3 +209,20 @@ def test_a_candidate_whose_gain_lies_outside_its_statistics_is_passed_over() -> 
     assert judged([jitter, leak], 0.0).best(0.1) is jitter
     # nothing on its own statistics anywhere: nothing is chosen
     assert judged([jitter], 0.5).best(0.1) is None
+
+
+def test_a_screening_leaves_out_a_component_whose_spread_is_unknown() -> None:
+    """A candidate screened on one seed takes its spread from a neighbouring model; where
+    one of that model's simulations had too little data (NaN), the component is left out
+    of the candidate's discrepancy, not turned into a NaN gap."""
+    from evcal.gap.compare import discrepancy  # noqa: PLC0415
+    from evcal.gap.stats import StatValue  # noqa: PLC0415
+
+    def sv(v: list[float]) -> dict[str, StatValue]:
+        return {"s": StatValue("s", np.asarray(v, np.float64), ["a", "b"], 0.01)}
+
+    spread = discrepancy(sv([0.5, 0.5]), [sv([0.5, np.nan]), sv([0.52, 0.4])])
+    assert np.isnan(spread.sim_std["s"][1])
+    one = discrepancy(sv([0.5, 0.5]), [sv([0.6, 0.45])], spread=spread)
+    assert np.isfinite(one.per_stat["s"])
+    assert one.z["s"][1] == 0.0 and one.z["s"][0] != 0.0

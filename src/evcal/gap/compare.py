@@ -55,7 +55,7 @@ def discrepancy(measured: dict[str, StatValue], sims: list[dict[str, StatValue]]
     no spread (its floors only).
 
     A component that is NaN (too little data for it) in the measurement or in any simulation
-    is left out (z = 0); a statistic with none left counts D = 1, what a model that explains
+    (or in the spread's) is left out (z = 0); a statistic with none left counts D = 1, what a model that explains
     the data gives, so it neither raises nor dilutes the gap."""
     n = len(sims)
     meas, mean, std, z, per, labels = {}, {}, {}, {}, {}, {}
@@ -71,6 +71,9 @@ def discrepancy(measured: dict[str, StatValue], sims: list[dict[str, StatValue]]
             else:
                 var = np.zeros_like(mu)
             sd = np.sqrt(var * (1 + 1 / n) + (REL_FLOOR * np.abs(mu)) ** 2 + mv.floor ** 2)
+            # a screening's component whose spread the neighbouring model could not say
+            # (NaN in one of its simulations) is left out too
+            ok &= np.isfinite(sd)
             zz = np.where(ok, (mv.values - mu) / np.where(ok, sd, 1.0), 0.0)
         meas[name], mean[name], std[name], z[name] = mv.values, mu, np.sqrt(var), zz
         per[name] = float(np.mean(zz[ok] ** 2)) if ok.any() else 1.0
