@@ -55,8 +55,8 @@ def discrepancy(measured: dict[str, StatValue], sims: list[dict[str, StatValue]]
     no spread (its floors only).
 
     A component that is NaN (too little data for it) in the measurement or in any simulation
-    (or in the spread's) is left out (z = 0); a statistic with none left counts D = 1, what a model that explains
-    the data gives, so it neither raises nor dilutes the gap."""
+    (or in the spread's) is left out (z = 0); a statistic with none left counts D = 1, what
+    a model that explains the data gives, so it neither raises nor dilutes the gap."""
     n = len(sims)
     meas, mean, std, z, per, labels = {}, {}, {}, {}, {}, {}
     for name, mv in measured.items():

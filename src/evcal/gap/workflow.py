@@ -394,9 +394,10 @@ class GapRun:
 
     def _scene(self, current: Evaluation, name: str) -> Evaluation:
         """Effect ``name`` of a kind tried before the sensor's (a flicker of the light, a
-        reset at the start) fitted on the fit rows (by simulations of the model with it), evaluated on every seed and named when it gains on
-        the held-out rows what naming needs; ``current`` unchanged otherwise (the reason in
-        the report's candidates of the last round)."""
+        reset at the start) fitted on the fit rows (by simulations of the model with it),
+        evaluated on every seed and named when it gains on the held-out rows what naming
+        needs; ``current`` unchanged otherwise (the reason in the report's candidates of the
+        last round)."""
         ev = self.ev
         assert ev is not None
         cfg = self.cfg
