@@ -330,13 +330,12 @@ def latent_frames(frames: Frames, read_noise_dn: float) -> np.ndarray:
     (:func:`light_gain`), are cut into runs within which every frame lies within the noise
     (``3 read_noise_dn + 1`` DN) of the run's least-squares line so far; a run is replaced by
     its line (the scene is still there; the noise is in the frames, not in the light the
-    events saw). The line's slope is kept only where it stands out of the noise and stays
-    below half the tolerance a frame: a drift the frames cannot tell from their noise frame
-    to frame (part of the scene dimming or brightening apart from the common light, a
-    smooth patch that moves slowly) still makes a sensor fire.
-    and the common light is put back, smoothed (:func:`smooth_gain`: a flicker the frames
-    alias is not the light between them). A pixel that changes makes runs of one frame: its
-    frames are kept as they are.
+    events saw), and the common light is put back, smoothed (:func:`smooth_gain`: a flicker
+    the frames alias is not the light between them). A pixel that changes makes runs of one
+    frame: its frames are kept as they are. The line's slope is kept only where it stands
+    out of the noise and stays below half the tolerance a frame: a drift the frames cannot
+    tell from their noise frame to frame (part of the scene dimming or brightening apart
+    from the common light, a smooth patch that moves slowly) still makes a sensor fire.
 
     Without the runs a still pixel's frames (or a short moving mean of them) carry the noise
     into the simulation, whose events then follow it: on a DAVIS346 recording of a still
