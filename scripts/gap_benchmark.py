@@ -8,6 +8,7 @@ Run with evcal's venv (``. .venv/bin/activate``)::
     python scripts/gap_benchmark.py generate --out DIR [--split dev|test|all] [--jobs 2]
     python scripts/gap_benchmark.py run --data DIR --split dev --results dev.jsonl
     python scripts/gap_benchmark.py report --results dev.jsonl [--markdown OUT.md]
+    python scripts/gap_benchmark.py oracle --data DIR --only dev1002   # true maps' own gap
 
 **Cases.** ``--n-dev`` cases with seeds ``--dev-seed-base`` (1000).. form the ``dev`` split
 (for tuning), ``--n-test`` with seeds ``--test-seed-base`` (2000).. the ``test`` split (run
@@ -1206,6 +1207,74 @@ def cmd_report(args: argparse.Namespace) -> int:
     return 0
 
 
+def truth_model(npz: Path, truth: dict[str, Any], *, effects: bool = True,
+                add: tuple[str, ...] = ()) -> Any:
+    """The gap model a case was made with: its true maps, log offset and (``effects``) its
+    hidden effects in evcal's terms (a v2e case's are evcal's nearest), plus the effects
+    named in ``add`` at their defaults (``start_reset``: how v2e begins)."""
+    from evcal.gap.model import Model
+    from evcal.sim.effects import EFFECTS
+
+    kinds = dict(EFFECTS)
+    with np.load(npz) as z:
+        c = z["truth_contrast"].astype(np.float64)
+        b = z["truth_bias"].astype(np.float64)
+        offset = float(np.median(z["truth_log_offset"]))
+    chosen = {}
+    if effects:
+        for e in truth["effects"]:
+            try:
+                chosen[e["name"]] = kinds[e["name"]](**e["parameters"])
+            except TypeError:
+                # a v2e law with no evcal equivalent (v2e's shot noise): left out, said so
+                print(f"   ({e['name']} of {npz.stem} has no evcal equivalent: left out)")
+    for name in add:
+        chosen[name] = kinds[name]()
+    return Model(c, b, offset, chosen)
+
+
+def cmd_oracle(args: argparse.Namespace) -> int:
+    """Each case simulated from its own frames with its true maps and hidden effects (no
+    anchor, no fit), compared with its recording as the workflow compares a model: the gap
+    that remains is the frame-driven base model's own misfit, which no effect can close.
+    Dev cases only: reading the test split this way would tune on it."""
+    from evcal.gap.runner import Evaluation, Evaluator, GapConfig, _empty
+    from evcal.io import open_recording
+
+    data = Path(args.data)
+    manifest = json.loads((data / "manifest.json").read_text())
+    cases = [c for c in select(manifest["cases"], "dev", args.only, args.limit, None)
+             if c["truth"] is not None]
+    add = tuple(a for a in (args.add or "").split(",") if a)
+    for c in cases:
+        npz, _ = case_paths(data, c)
+        rec = open_recording(npz)
+        ev = Evaluator(rec, GapConfig(n_seeds=args.seeds), tick=lambda _share: None)
+        rows = []
+        for label, eff in (("true maps + effects", True), ("true maps only", False)):
+            extra = add + (("start_reset",) if c["backend"] == "v2e" and
+                           args.v2e_reset and "start_reset" not in add else ())
+            model = truth_model(npz, c["truth"], effects=eff, add=extra)
+            out = ev.extend(Evaluation(model, [], _empty(), _empty()), args.seeds, label)
+            rows.append((label, out))
+            if not c["truth"]["effects"]:
+                break
+        hidden = ",".join(c["truth"]["hidden"]) or "-"
+        print(f"{c['id']}  {c['backend']}  {c['category']}  hidden {hidden}  "
+              f"{c['illumination']['kind']}  {fmt_scene(c['scene'])}")
+        for label, out in rows:
+            per = dict(out.disc.per_stat)
+            if c["backend"] == "v2e":
+                # v2e's frame-driven stamps (the scheme, which the workflow fits apart) are
+                # not among the truth's effects: their statistic is left out of the gap
+                per.pop("timestamp_quantum", None)
+            worst = sorted(per.items(), key=lambda kv: -kv[1])[:args.top]
+            print(f"   {label:22s} gap {float(np.mean(list(per.values()))):8.2f}  " + "  ".join(
+                f"{k} {v:.1f} [{out.disc.where(k)}]" for k, v in worst))
+        sys.stdout.flush()
+    return 0
+
+
 # Command line ----------------------------------------------------------------------------
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -1260,6 +1329,20 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--retry-errors", action="store_true",
                    help="run again the cases whose result is an error")
     p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser("oracle", help="dev cases simulated with their true maps and "
+                       "effects: the base model's own misfit")
+    p.add_argument("--data", default=str(DEFAULT_DATA))
+    p.add_argument("--only", default=None, help="comma-separated case ids")
+    p.add_argument("--limit", type=int, default=None)
+    p.add_argument("--seeds", type=int, default=3, help="simulation seeds (default 3)")
+    p.add_argument("--add", default=None,
+                   help="comma-separated effects added at their defaults (e.g. start_reset)")
+    p.add_argument("--no-v2e-reset", dest="v2e_reset", action="store_false",
+                   help="do not add start_reset to v2e cases (v2e starts every pixel's "
+                        "reference at its first frame; added by default)")
+    p.add_argument("--top", type=int, default=3, help="statistics shown per model (3)")
+    p.set_defaults(func=cmd_oracle)
 
     p = sub.add_parser("report", help="score a results file")
     p.add_argument("--results", required=True)
