@@ -326,7 +326,10 @@ def _register_all() -> None:
         lambda e: f"thresholds that grow in the dark as I^-{_fmt(_p(e, 'exponent'))}"))
     register(EffectSpec(
         "row_noise", RowNoise, fe.fit_row_noise,
-        lambda e, _l: _p(e, "rate_hz") * _p(e, "fraction"), ("line_coincidence",),
+        lambda e, _l: _p(e, "rate_hz") * _p(e, "fraction"),
+        # the bursts' events are noise, of either polarity, in still pixels too: they add
+        # short pairs of opposite polarity and still pixels' events as shot noise does
+        ("line_coincidence", "polarity_alternation", "static_rate_vs_intensity", "rate_tail"),
         lambda e: f"bursts along a readout {e.parameters()['axis']}, "
                   f"{_fmt(_p(e, 'rate_hz'))} Hz per line, "
                   f"{_fmt(100 * _p(e, 'fraction'))} % of its pixels each"))

@@ -37,7 +37,7 @@ from ..sim.nonideal import simulate
 from ..sim.sources import FrameInterpolator
 from .pixelfit import MIN_FIT_EVENTS
 from .render import RenderCache, frames_key
-from .stats import NOMINAL_LOG_OFFSET_DN, Observation, _fit, observe
+from .stats import NOMINAL_LOG_OFFSET_DN, Observation, _fit, block_fit, observe
 
 _log = logging.getLogger("evcal.gap")
 
@@ -257,6 +257,46 @@ def _shrink(cal: Calibration, offset: float, scale: NoiseScale | None = None
     return c, b
 
 
+# the seed of the draw that spreads the base model's maps (:func:`_spread`): one fixed draw,
+# so a recording's base model is the same on every run
+SPREAD_SEED = 20261129
+
+
+def _spread(c: np.ndarray, b: np.ndarray, cal: Calibration, scale: NoiseScale
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """``c``, ``b`` (shrunk, :func:`_shrink`) plus one draw of what the shrinkage does not
+    know of each pixel: a normal deviate of the posterior's variance ``tau^2 v / (tau^2 + v)``
+    (``v`` the pixel's scaled error variance; ``tau^2`` the population's spread, the valid
+    estimates' robust variance less their median error variance), ``tau^2`` for a pixel
+    without a valid fit.
+
+    Shrunk maps are narrower than the sensor's: every pixel without a fit holds the same
+    threshold. A sensor's pixels of different thresholds fire at different times and rates
+    (a still pixel's rate goes as one over its threshold, so a spread raises the mean rate),
+    and the fits of its simulation scatter as the measured fits do; pixels of one threshold
+    fire together wherever the light changes alike."""
+    v = cal.valid
+    if v.sum() < 10:
+        return c, b
+    rng = np.random.default_rng(SPREAD_SEED)
+    out = []
+    for x, est, se, f in ((c, cal.contrast, cal.stderr_contrast, scale.contrast),
+                          (b, cal.bias, cal.stderr_bias, scale.bias)):
+        e = est[v].astype(np.float64)
+        robust = (1.4826 * np.median(np.abs(e - np.median(e)))) ** 2
+        var = f * np.where(np.isfinite(se), se, np.inf).astype(np.float64) ** 2
+        noise = float(np.median(var[v][np.isfinite(var[v])])) if np.isfinite(var[v]).any() \
+            else 0.0
+        tau2 = max(robust - noise, 0.05 * robust)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            post = np.where(v & np.isfinite(var), tau2 * var / (tau2 + var), tau2)
+        out.append(x + np.sqrt(post) * rng.standard_normal(x.shape))
+    cm = float(np.median(c[v]))
+    c2 = np.maximum(out[0], 0.3 * cm)
+    b2 = np.clip(out[1], -MAX_BIAS_RATIO * c2, MAX_BIAS_RATIO * c2)
+    return c2, b2
+
+
 def fit_base(rec: Recording, log_offset: float = NOMINAL_LOG_OFFSET_DN, *,
              settings: SimSettings | None = None, render: RenderCache | None = None) -> Model:
     """``c``, ``b`` by OffEI at ``log_offset``, each pixel shrunk towards the population by its
@@ -271,7 +311,7 @@ def fit_base(rec: Recording, log_offset: float = NOMINAL_LOG_OFFSET_DN, *,
         c, b = _shrink(cal, log_offset)
         scale = noise_scale(rec, cfg, cal, Model(c, b, float(log_offset)), settings=settings,
                             render=render)
-        c, b = _shrink(cal, log_offset, scale)
+        c, b = _spread(*_shrink(cal, log_offset, scale), cal, scale)
     except CalibrationError:
         c = np.full(rec.sensor.shape, 0.15)
         b = np.zeros(rec.sensor.shape)
@@ -560,7 +600,7 @@ def _quiet(meas: Observation) -> np.ndarray:
     """The pixels without a fit for want of events (flat): those the count match is for. A
     pixel that fires plenty but fits badly (one polarity only, say) is not among them: its
     count would pull the quiet pixels' thresholds."""
-    out: np.ndarray = ~_fit(meas)["ok"] & ((meas.on + meas.off).sum(0) < MIN_FIT_EVENTS)
+    out: np.ndarray = ~block_fit(meas)["ok"] & ((meas.on + meas.off).sum(0) < MIN_FIT_EVENTS)
     return out
 
 
@@ -578,6 +618,8 @@ def anchor(model: Model, rec: Recording, meas: Observation, seed: int,
            ) -> tuple[Model, Observation | None]:
     """Correct ``c`` and ``b`` so a simulation of the model, fitted like the measurement, gives
     the measured fits, and fires as many events as the measurement where the fit cannot say.
+    The fit is over windows of several frames (:func:`.stats.block_fit`): over single frame
+    intervals a slow change makes the fit blind to the thresholds.
 
     Effects bias the per-pixel fit by an amount that depends on how busy the pixel is
     (refractory loses more events of busy pixels, leak adds relatively more to quiet ones), so
@@ -613,7 +655,7 @@ def anchor(model: Model, rec: Recording, meas: Observation, seed: int,
     (it agreed), that simulation's observation (with ``trusted``): the workflow counts it as
     the seed's simulation instead of running it again.
     """
-    fm = _fit(meas)
+    fm = block_fit(meas)
     fitted = fm["ok"].sum() >= 20
     unfit = _quiet(meas)
     counted = _counted(meas)
@@ -640,7 +682,7 @@ def anchor(model: Model, rec: Recording, meas: Observation, seed: int,
         counts_agree = max(abs(np.log(r)) for r in ratio) < np.log1p(count_tol)
         _log.debug("anchor, simulation %d: unfitted pixels' ON, OFF events %.3g, %.3g of the "
                    "measured", it + 1, *ratio)
-        fs = _fit(obs)
+        fs = block_fit(obs)
         both = fm["ok"] & fs["ok"]
         fit_agree = True
         if fitted and both.sum() >= 20:

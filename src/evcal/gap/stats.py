@@ -294,6 +294,44 @@ def _fit(obs: Observation) -> dict[str, Any]:
     return out
 
 
+# frames per window of the fit the base model's maps are anchored by (:func:`block_fit`)
+BLOCK_FIT_FRAMES = 5
+
+
+def block_fit(obs: Observation) -> dict[str, Any]:
+    """Per pixel ``c``, ``b`` (NaN where not fitted) and ``ok`` of the fit of :func:`_fit`
+    over windows of :data:`BLOCK_FIT_FRAMES` frame intervals (at most a quarter of them),
+    not one: a block counts where every interval of it is usable.
+
+    One interval's change is a part of a threshold where the light changes slowly: a pixel
+    fires in one interval of several, and the fit over intervals then says how fast the
+    light changes, not what the threshold is (on a slow sine the same whether the
+    thresholds are 0.1 or 0.3). Over a few intervals the change holds whole thresholds and
+    the fit follows them, as OffEI's windows of several frames do."""
+    if "block_fit" in obs.extra:
+        cached: dict[str, Any] = obs.extra["block_fit"]
+        return cached
+    k = max(1, min(BLOCK_FIT_FRAMES, obs.n_windows // 4))
+    n = (obs.n_windows // k) * k
+
+    def blocks(a: np.ndarray) -> np.ndarray:
+        out: np.ndarray = a[:n].reshape(n // k, k, -1).sum(1)
+        return out
+
+    def make_frames() -> np.ndarray:
+        dl = blocks(_dl(obs))
+        w = obs.usable[:n].reshape(n // k, k, -1).all(1).astype(np.float64)
+        return np.stack([np.where(w > 0, dl, 0.0), w])
+
+    dl, wgt = _shared(obs, f"block_fit_{k}", make_frames)
+    s = window_sums(blocks(obs.on - obs.off).astype(np.int32),
+                    blocks(obs.on + obs.off).astype(np.int32), dl, wgt)
+    c, b, ok = fit_from_sums(*s[:6])
+    out = {"c": c, "b": b, "ok": ok, "frames": k}
+    obs.extra["block_fit"] = out
+    return out
+
+
 def _shared(obs: Observation, key: str, make: Any) -> np.ndarray:
     """``obs.shared[key]``, made (read-only) by ``make()`` on first use."""
     if key not in obs.shared:
