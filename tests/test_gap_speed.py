@@ -338,6 +338,51 @@ def test_progress_without_a_terminal_prints_lines_with_the_time_left(capsys,
     assert capsys.readouterr().err.strip().startswith("evcal calibrate: 4096 messages read, 0:00")
 
 
+def test_with_forecasts_the_time_left_is_the_callers_never_negative(capsys,
+                                                                     monkeypatch) -> None:
+    """`evcal gap`'s progress: "?" until the workflow's first forecast (not a rate from
+    the base model's simulations), then the time to the forecast end, 0:00 once past it."""
+    import time
+
+    from evcal.progress import Progress
+
+    monkeypatch.setattr(Progress, "EVERY_S", 0.0)
+    p = Progress(10.0, "gap", unit="simulations planned", tty=False, decimals=1,
+                 skip_first=True, forecasts=True, opening="fitting the base model")
+    p.update(1.0)
+    p.update(1.0)  # a rate exists, yet no forecast: unknown
+    p.forecast(time.monotonic() + 125.0)
+    p.update(1.0)
+    p.forecast(time.monotonic() - 5.0)  # the run overran its forecast
+    p.update(1.0)
+    p.close()
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert lines[0].endswith("about ? left; fitting the base model")
+    assert lines[1].endswith("about ? left")
+    assert lines[2].endswith("about ? left")
+    assert lines[3].endswith("about 2:05 left") or lines[3].endswith("about 2:04 left")
+    assert lines[4].endswith("about 0:00 left")
+
+
+def test_the_workflow_forecasts_its_end_at_every_round() -> None:
+    """run_gap says when it expects to end at the start of each round, after the base
+    model (the time it took sets the scale), and always later than the moment it says so
+    (how close it comes is measured on the benchmark's recordings, not here: a timed test
+    flakes on a busy machine)."""
+    import time
+
+    from evcal.gap.workflow import GapConfig, run_gap
+    from evcal.sim.effects import Leak
+
+    rec = small_recording(5, [Leak(rate_hz=0.3)])
+    t0 = time.monotonic()
+    said: list[tuple[float, float]] = []
+    run_gap(rec, GapConfig(max_effects=1, candidates=("leak", "shot_noise")),
+            forecast=lambda end: said.append((time.monotonic(), end)))
+    assert said
+    assert all(end > now > t0 for now, end in said)
+
+
 def test_a_drift_below_the_noise_is_kept_and_its_noise_taken_out() -> None:
     """Pixels that brighten by 0.4 DN a frame apart from the rest of the scene (below the
     1 DN noise frame to frame, 12 DN over the run): the latent frames keep the drift (a

@@ -109,15 +109,17 @@ def run(args: argparse.Namespace) -> int:
         return 1
     from ..progress import Progress  # noqa: PLC0415
 
-    # the first simulation also renders the latent intensity and follows the measurement's
-    # analysis: the rate is taken from the ones after it
+    # the time left is the workflow's forecast, made at each round from the time the base
+    # model took (the simulations' rate says little: fitters and statistics take much of a
+    # round's time), unknown until the first round
     progress = Progress(n_simulations(cfg), "gap", unit="simulations planned",
-                        quiet=args.quiet, decimals=1, skip_first=True,
-                        opening="fitting the base model; the first simulation also renders "
-                                "the light between the frames")
+                        quiet=args.quiet, decimals=1, skip_first=True, forecasts=True,
+                        opening="fitting the base model (the time left is known once it is "
+                                "fitted); the first simulation also renders the light "
+                                "between the frames")
     try:
         result = run_gap(rec, cfg, progress=progress.update, plan=progress.plan, window=window,
-                         released=trim_freed_memory)
+                         released=trim_freed_memory, forecast=progress.forecast)
     except GapError as exc:
         print(f"evcal gap: {args.recording}: {exc}", file=sys.stderr)
         return 1

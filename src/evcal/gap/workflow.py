@@ -27,6 +27,7 @@ them.
 from __future__ import annotations
 
 import logging
+import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
@@ -163,6 +164,16 @@ EQUIVALENT_MARGIN = 0.3
 EQUIVALENT_RELATIVE = 0.1
 ANCHOR_SIMS = 2  # simulations an anchor takes, typically (one of them counted as a seed's)
 NULL_SIMS = 3  # simulations of the null calibration's gains, typically
+# the time a round takes in units of the time before the first round (the base fit, its
+# simulations, the measurement's statistics, the null calibration: the same recording's
+# work, on the same machine and load): a round that names nothing runs the fitters and
+# screens a few candidates; one that names an effect also confirms, corrects and refines it
+# (medians over dev recordings of scripts/gap_benchmark.py, 240x180 and 346x260)
+ROUND_TIME_LAST = 0.6
+ROUND_TIME_NAMING = 1.2
+# a model whose gap, left aside what a simulator's timestamp scheme explains, is below this
+# is expected to name nothing more (most candidates cannot gain what naming needs there)
+GAP_EXPECTED_DONE = 3.0
 
 
 def round_work(cfg: GapConfig, band_share: float, candidates: int, *, names: bool) -> float:
@@ -257,13 +268,16 @@ class GapRun:
     the whole sensor (a screening on a band of rows is less); ``plan(total)`` with the work
     the run plans (in the same unit), at the start and whenever it changes. A caller that cut
     ``rec`` to its working window (:func:`working_window`) gives ``window`` (the description
-    that returned). ``released()`` is called whenever the run has let go of simulations."""
+    that returned). ``released()`` is called whenever the run has let go of simulations.
+    ``forecast(t_end)`` with the ``time.monotonic()`` the run is expected to end at, at the
+    start of every round (:meth:`_forecast`)."""
 
     def __init__(self, rec: Recording, config: GapConfig | None = None, *,
                  progress: Callable[[float], None] | None = None,
                  plan: Callable[[float], None] | None = None,
                  window: dict[str, Any] | None = None,
-                 released: Callable[[], object] | None = None):
+                 released: Callable[[], object] | None = None,
+                 forecast: Callable[[float], None] | None = None):
         self.cfg = config or GapConfig()
         if rec.frames is None or len(rec.frames) < 4:
             raise GapError("the gap workflow needs a recording with at least 4 frames (APS "
@@ -275,6 +289,9 @@ class GapRun:
         self.window = window
         self.tick = progress or (lambda _work: None)
         self.plan_to = plan
+        self.forecast_to = forecast
+        self._t0 = time.monotonic()
+        self._base_s: float | None = None  # the time before the first round
         self.released = released
         self.steps: list[Step] = []
         self.rejected: dict[str, dict[str, Any]] = {}
@@ -292,6 +309,28 @@ class GapRun:
     def _plan(self, total: float) -> None:
         if self.plan_to is not None:
             self.plan_to(total)
+
+    def _forecast(self, current: Evaluation) -> None:
+        """Say when the run is expected to end (a ``time.monotonic()``) at the start of a
+        round: the rounds it expects (one naming an effect where ``current``'s gap, left
+        aside the statistics a timestamp scheme moves while none is named, is at least
+        :data:`GAP_EXPECTED_DONE` and ``max_effects`` allows one, then one naming nothing),
+        each taking a share (:data:`ROUND_TIME_NAMING`, :data:`ROUND_TIME_LAST`) of the time
+        before the first round. Time, not simulations: a round's fitters and statistics
+        take much of it, and a simulation's share of it differs from phase to phase."""
+        now = time.monotonic() - self._t0
+        if self._base_s is None:
+            self._base_s = now
+        if self.forecast_to is None:
+            return
+        per = dict(current.held.per_stat or current.disc.per_stat)
+        if SCHEME_EFFECT not in current.model.effects:
+            for name in registry.spec(SCHEME_EFFECT).moves:
+                per.pop(name, None)
+        gap = float(np.mean(list(per.values()))) if per else 0.0
+        naming = int(gap >= GAP_EXPECTED_DONE and self.n_sensor() < self.cfg.max_effects)
+        self.forecast_to(time.monotonic()
+                         + self._base_s * (naming * ROUND_TIME_NAMING + ROUND_TIME_LAST))
 
     def n_sensor(self) -> int:
         """Effects named that count against ``max_effects``: the sensor's (not the timestamp
@@ -321,6 +360,7 @@ class GapRun:
         while self.n_sensor() < cfg.max_effects:
             self._plan(ev.work + n_simulations(cfg, 1, share, candidates=screened,
                                                named=self.n_sensor(), base=False))
+            self._forecast(current)
             # tried again on what the last round named (a flicker's gain is small beside
             # the gap of a simulator's scheme, and shows once that is named)
             current = self._scenes(current)
@@ -611,7 +651,8 @@ def run_gap(rec: Recording, config: GapConfig | None = None, *,
             progress: Callable[[float], None] | None = None,
             plan: Callable[[float], None] | None = None,
             window: dict[str, Any] | None = None,
-            released: Callable[[], object] | None = None) -> GapResult:
+            released: Callable[[], object] | None = None,
+            forecast: Callable[[float], None] | None = None) -> GapResult:
     """Run the gap workflow on ``rec`` (measured or simulated; it needs frames): see
     :class:`GapRun` for the arguments.
 
@@ -621,4 +662,4 @@ def run_gap(rec: Recording, config: GapConfig | None = None, *,
         When the recording lacks frames or events between them.
     """
     return GapRun(rec, config, progress=progress, plan=plan, window=window,
-                  released=released).run()
+                  released=released, forecast=forecast).run()
