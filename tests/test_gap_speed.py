@@ -364,6 +364,26 @@ def test_with_forecasts_the_time_left_is_the_callers_never_negative(capsys,
     assert lines[4].endswith("about 0:00 left")
 
 
+def test_a_terminal_bar_shows_the_forecast_as_its_time_left(capsys) -> None:
+    """On a terminal the bar's bracket says "about ? left" until the first forecast, then
+    the time to it (tqdm's own estimate from the rate is not shown)."""
+    import time
+
+    from evcal.progress import Progress
+
+    p = Progress(10.0, "gap", unit="simulations planned", tty=True, decimals=1,
+                 skip_first=True, forecasts=True)
+    p.update(1.0)
+    before = capsys.readouterr().err
+    p.forecast(time.monotonic() + 65.4)
+    p.update(1.0)
+    p.close()
+    after = capsys.readouterr().err
+    assert "about ? left]" in before
+    assert "about 1:05 left]" in after
+    assert ", ," not in after
+
+
 def test_the_workflow_forecasts_its_end_at_every_round() -> None:
     """run_gap says when it expects to end at the start of each round, after the base
     model (the time it took sets the scale), and always later than the moment it says so

@@ -42,6 +42,8 @@ class Progress:
             self._bar = tqdm(total=self._bar_total(), desc=f"{desc} ({unit})", file=sys.stderr,
                              leave=False, bar_format="{l_bar}{bar}| " + n + "/{total} "
                              "[{elapsed}" + left + "]")
+            if forecasts:
+                self._bar.set_postfix_str("about ? left")
         elif not quiet and opening is not None:
             # a line at once: the first update may be a minute away (``opening`` says why)
             print(f"evcal {desc}: {self.line()}; {opening}", file=sys.stderr, flush=True)
@@ -63,7 +65,7 @@ class Progress:
         self.done = float(done)
         if self._bar is not None:
             if self._forecasts:
-                self._bar.set_postfix_str(f", about {_clock(self.left())} left", refresh=False)
+                self._bar.set_postfix_str(f"about {_clock(self.left())} left", refresh=False)
             self._bar.update(step)
         elif not self._quiet and time.monotonic() - self._last >= self.EVERY_S:
             self._last = time.monotonic()
@@ -80,7 +82,7 @@ class Progress:
         """The caller expects to end at ``end`` (a ``time.monotonic()``)."""
         self._end = float(end)
         if self._bar is not None:
-            self._bar.set_postfix_str(f", about {_clock(self.left())} left")
+            self._bar.set_postfix_str(f"about {_clock(self.left())} left")
 
     def left(self) -> float:
         """Seconds left (NaN while unknown), never negative: with forecasts the time to the
