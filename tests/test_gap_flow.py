@@ -103,6 +103,49 @@ def test_quantise_events_follows_the_spread_and_end_schemes() -> None:
         TimestampQuantisation(step_us=0.0)
 
 
+def _scheme_fit(t_us: np.ndarray, sim_t_us: np.ndarray):  # noqa: ANN202 - a fit result
+    from evcal.gap.effects import FitContext  # noqa: PLC0415
+    from evcal.gap.fitters import fit_timestamp_quantisation  # noqa: PLC0415
+
+    meas, sim = SimpleNamespace(t_us=t_us), SimpleNamespace(t_us=sim_t_us)
+    rec = SimpleNamespace(frames=SimpleNamespace(t_us=np.array([0], np.int64)))
+    return fit_timestamp_quantisation(FitContext(meas, [sim], None, rec, meas))  # type: ignore[arg-type]
+
+
+def test_the_scheme_is_seen_when_busy_steps_put_most_events_short_of_their_end() -> None:
+    """v2e in a busy scene: a step's N is the most any pixel has pending (here 3-5), so most
+    events take the first slot, step / N from its start, and only the busiest pixel's last
+    one the step's end: few events lie on the grid of step ends, all on the slots."""
+    from evcal.gap.effects import Fitted, NoEvidence  # noqa: PLC0415
+
+    rng = np.random.default_rng(3)
+    n_pix, steps, step = 400, 600, 500
+    t, pix = [], []
+    for k in range(steps):
+        n_max = int(rng.integers(3, 6))
+        busy = int(rng.integers(n_pix))
+        t += list(rng.uniform(k * step, (k + 1) * step, n_max))
+        pix += [busy] * n_max
+        others = rng.choice(n_pix, 60, replace=False)
+        t += list(rng.uniform(k * step, (k + 1) * step, others.size))
+        pix += others.tolist()
+    order = np.argsort(t, kind="stable")
+    t_cont = np.round(np.array(t)[order]).astype(np.int64)
+    p_cont = np.array(pix, np.int32)[order]
+    out = quantise_events(t_cont, p_cont, np.ones(t_cont.size, np.int8),
+                          np.zeros(t_cont.size, np.uint8),
+                          TimestampQuantisation(step_us=float(step)), 0, n_pix=n_pix)
+    t_q = np.sort(out[0])
+    assert np.mean(t_q % step == 0) < 0.05  # the step ends: what the grid test counted
+    res = _scheme_fit(t_q, t_cont)
+    assert isinstance(res, Fitted), res
+    assert res.effect.step_us == step
+    assert res.effect.scheme == "spread"
+    assert res.detail["on_slots"] > 0.95
+    # continuous times (a sensor, evcal's simulator) show no scheme
+    assert isinstance(_scheme_fit(t_cont, t_cont), NoEvidence)
+
+
 def test_a_stepped_dead_time_counts_blocked_crossings_in_the_slots() -> None:
     """v2e's refractory period (v2ecore/emulator.py, generate_events): the slots of a step
     come from the counts *before* the dead time is applied, an event passes at the first slot

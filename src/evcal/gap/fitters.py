@@ -13,6 +13,7 @@ and the interpolation do to it alike in both cancels.
 
 from __future__ import annotations
 
+import math
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -676,7 +677,9 @@ def fit_timestamp_quantisation(ctx: FitContext) -> FitResult:
     last event, and with ``scheme="end"`` every event, the step's end), so the most crowded
     timestamps lie on a grid. The step is the most common spacing of the crowded timestamps,
     the phase the residue of the most distinct timestamps (each step's end); the effect is
-    proposed only if many more measured events than simulated ones lie on that grid."""
+    proposed only if many more measured events than simulated ones lie on that grid, or on
+    its slots (:func:`scheme_slots`: v2e stamps most events of a busy step on a slot short
+    of its end)."""
     meas, sims, rec = ctx.meas, ctx.sims, ctx.rec
     t = meas.t_us
     u, cnt = np.unique(t, return_counts=True)
@@ -696,10 +699,36 @@ def fit_timestamp_quantisation(ctx: FitContext) -> FitResult:
     on_grid = float(np.mean(t % step == phase))
     sim_on_grid = float(np.mean([np.mean(s.t_us % step == phase) for s in sims])) \
         if sims else 1.0 / step
-    if on_grid < 5 * sim_on_grid + 0.02:
-        return NoEvidence(f"{100 * on_grid:.2g} % of the events lie on a {step} us grid, "
-                          f"the model's {100 * sim_on_grid:.2g} %")
+    # v2e's scheme puts a step's events at the slots i / N of it, N the most any pixel has
+    # pending: in a busy scene most events fall on the first slot of a step, few on its end
+    offsets = scheme_slots(step)
+    on_slots = float(np.mean(np.isin((t - phase) % step, offsets)))
+    sim_on_slots = float(np.mean([np.mean(np.isin((s.t_us - phase) % step, offsets))
+                                  for s in sims])) if sims else offsets.size / step
+    if on_grid < 5 * sim_on_grid + 0.02 and \
+            on_slots < max(SCHEME_MIN_ON_SLOTS, sim_on_slots + SCHEME_MIN_SLOT_EXCESS):
+        return NoEvidence(f"{100 * on_grid:.2g} % of the events lie on a {step} us grid "
+                          f"(the model's {100 * sim_on_grid:.2g} %), {100 * on_slots:.2g} % "
+                          f"on its slots of up to {SCHEME_MAX_SLOTS} per step (the model's "
+                          f"{100 * sim_on_slots:.2g} %)")
     t0 = int(rec.frames.t_us[0])
     return Fitted(TimestampQuantisation(step_us=float(step), scheme="end" if on_grid > 0.9
                                         else "spread", phase_us=float((phase - t0) % step)),
-                  {"on_grid": on_grid})
+                  {"on_grid": on_grid, "on_slots": on_slots})
+
+
+SCHEME_MAX_SLOTS = 12  # slots per step the evidence counts (a step of N has N slots)
+SCHEME_MIN_ON_SLOTS = 0.8  # events on the slots that show the scheme ...
+SCHEME_MIN_SLOT_EXCESS = 0.3  # ... and by how much more than the model's
+
+
+def scheme_slots(step: int, max_slots: int = SCHEME_MAX_SLOTS) -> np.ndarray:
+    """The offsets from a step's start (us, in ``[0, step)``; its end is offset 0) where
+    a frame-driven simulator stamps events: ``step i / N`` for ``N`` up to ``max_slots``
+    slots, ``i < N``, rounded either way (whole microseconds)."""
+    out = {0}
+    for n in range(2, max_slots + 1):
+        for i in range(1, n):
+            v = step * i / n
+            out.update((math.floor(v), math.ceil(v)))
+    return np.array(sorted(o % step for o in out), np.int64)
