@@ -270,6 +270,8 @@ def test_reports_follow_the_schema(tmp_path) -> None:
     # why it was named: its held-out gain beat what naming needed
     assert step["why"]["named"] is True
     assert step["why"]["held_out_gain"] > step["why"]["needed_gain"] + step["why"]["null_gain"]
+    # the timestamp scheme's fitter sees no grid in a simulated recording: it says so
+    assert doc["not_named"]["timestamp_quantisation"]["status"] == "no evidence"
     for name, c in doc["not_named"].items():  # the last round: each with its status
         assert name in EFFECT_NAMES
         assert c["status"] in {"no evidence", "within the null", "screened", "confirmed",

@@ -390,7 +390,11 @@ class GapRun:
                 current = moved_on(current, ev_q)
             why = self._why(rnd, on, best)
             if best is None or not why["named"]:
-                self.rejected = tried
+                # the scheme's own entry (no evidence, or refused in an earlier round) stays
+                # in the report unless the scheme is in the model
+                kept = {k: v for k, v in self.rejected.items()
+                        if k == SCHEME_EFFECT and k not in tried and k not in on.model.effects}
+                self.rejected = {**kept, **tried}
                 rnd.let_go()
                 break
             assert best.evaluation is not None
@@ -642,9 +646,12 @@ class GapRun:
 
         steps = [Step(s.effect, lighten(s.before), lighten(s.after), s.candidates, s.why,
                       s.refit) for s in self.steps]
+        # what the last round tried and the model does not hold (the scheme named in that
+        # round is in its candidates, and in the model)
+        not_named = {k: v for k, v in {**self.scene_rejected, **self.rejected}.items()
+                     if k not in current.model.effects}
         return GapResult(info, ev.meas_stats, lighten(initial), lighten(current), steps,
-                         settings, {**self.scene_rejected, **self.rejected},
-                         self.null.to_json())
+                         settings, not_named, self.null.to_json())
 
 
 def run_gap(rec: Recording, config: GapConfig | None = None, *,
