@@ -34,8 +34,8 @@ import evcal
 from evcal.calibration import Calibration, Special
 from evcal.errors import CalibrationError
 from evcal.posterior import posterior_maps
-from evcal.recording import Frames, Recording
-from evcal.sim.ideal import SimConfig, draw_maps, iter_ideal
+from evcal.recording import Recording
+from evcal.sim.ideal import SimConfig, draw_maps, simulate_ideal
 from evcal.special import classify
 
 SCENES = ("astronaut", "coffee", "chelsea", "camera")
@@ -66,21 +66,11 @@ Case = tuple[str, Recording, np.ndarray, np.ndarray, float]  # name, recording, 
 
 def simulated(scene: str, seed: int, planted: bool, duration_s: float) -> Case:
     cfg = SimConfig(height=120, width=160, duration_s=duration_s, seed=seed, scene=scene)
-    rng = np.random.default_rng(seed)
-    c, b = planted_maps(cfg, rng) if planted else draw_maps(cfg, rng)
-    chunks, f_t, f_img = [], [], []
-    for t, ev, frame in iter_ideal(cfg, c, b, rng):
-        if ev.size:
-            chunks.append(ev)
-        if frame is not None:
-            f_t.append(t)
-            f_img.append(frame)
-    frames = Frames(t_us=np.asarray(f_t, np.int64), images=np.stack(f_img),
-                    exposure_us=np.zeros(len(f_t), np.int64))
-    events = np.concatenate(chunks) if chunks else evcal.empty_events()
-    rec = Recording(cfg.sensor, events, frames)
+    maps = planted_maps(cfg, np.random.default_rng(seed)) if planted else None
+    sim = simulate_ideal(cfg, maps=maps)
+    c, b = (sim.truth[k].astype(np.float64) for k in ("contrast", "bias"))
     name = f"sim {scene} s{seed}" + (" planted" if planted else "")
-    return name, rec, c, b, float(cfg.log_offset)
+    return name, sim.recording, c, b, float(sim.truth["log_offset"])
 
 
 def from_benchmark(data: Path, case_id: str) -> Case:

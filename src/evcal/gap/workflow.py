@@ -391,9 +391,8 @@ class GapRun:
             why = self._why(rnd, on, best)
             if best is None or not why["named"]:
                 # the scheme's own entry (no evidence, or refused in an earlier round) stays
-                # in the report unless the scheme is in the model
-                kept = {k: v for k, v in self.rejected.items()
-                        if k == SCHEME_EFFECT and k not in tried and k not in on.model.effects}
+                # in the report (_result leaves out what the model holds)
+                kept = {k: v for k, v in self.rejected.items() if k == SCHEME_EFFECT}
                 self.rejected = {**kept, **tried}
                 rnd.let_go()
                 break

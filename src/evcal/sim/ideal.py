@@ -148,11 +148,20 @@ def iter_ideal(
 def simulate_ideal(
     cfg: SimConfig,
     *,
+    maps: tuple[np.ndarray, np.ndarray] | None = None,
     progress: Callable[[int], None] | None = None,
 ) -> SimResult:
-    """Simulate a whole recording in memory; ``truth`` holds the maps, offset and seed."""
+    """Simulate a whole recording in memory; ``truth`` holds the maps, offset and seed.
+
+    ``maps``: the true ``(contrast, bias)`` ([H, W] each) in place of those ``cfg`` draws
+    (drawn all the same, so that the rest of the run sees the same random stream)."""
     rng = np.random.default_rng(cfg.seed)
     c, b = draw_maps(cfg, rng)
+    if maps is not None:
+        c, b = (np.asarray(m, np.float64) for m in maps)
+        if c.shape != cfg.sensor.shape or b.shape != cfg.sensor.shape:
+            raise ConfigError(f"maps of shapes {c.shape} and {b.shape}; the sensor is "
+                              f"{cfg.sensor.shape}")
     chunks: list[np.ndarray] = []
     f_t: list[int] = []
     f_img: list[np.ndarray] = []
