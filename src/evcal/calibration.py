@@ -254,6 +254,9 @@ class OnEIDiagnostics(Diagnostics):
     log_offset_state: str = ""  # where the online estimate stands (waiting, running, ...)
     config: Mapping[str, Any] = field(default_factory=dict)
     log_offset_estimation: Mapping[str, Any] = field(default_factory=dict)
+    # how the stated standard errors were calibrated (evcal.onei.stderr: the sandwich's
+    # factors and what they were measured on, or why they were not)
+    stderr_calibration: Mapping[str, Any] = field(default_factory=dict)
     # (t_us, contrast, bias, valid) after every n-th update (onei(history_every=n)); in memory
     history: tuple[tuple[int, np.ndarray, np.ndarray, np.ndarray], ...] = ()
 

@@ -23,6 +23,7 @@ from .estimate import LowPassEstimate
 from .executor import OnEIExecutor
 from .offset import OnlineOffset
 from .solve import resolve
+from .stderr import ErrorScale, error_scales, identity
 
 
 class OnlineCalibrator:
@@ -36,6 +37,8 @@ class OnlineCalibrator:
     # events are counted ahead of their frame up to this fraction of the shortest recent
     # frame interval after the latest frame (EventIntake.fold_ahead)
     AHEAD_FRACTION = 0.75
+    # the standard errors' calibration is measured again after this many updates
+    SCALE_EVERY = 8
 
     def __init__(self, sensor: SensorSize, config: OnEIConfig | None = None, *,
                  executor: OnEIExecutor | None = None) -> None:
@@ -71,6 +74,8 @@ class OnlineCalibrator:
         self._last_event_t_us: int | None = None
         self._last_frame_t_us: int | None = None
         self._guard: StreamGuard | None = None
+        # the last error_scale(): ((sessions, log offset), n_updates, scale)
+        self._scale: tuple[tuple[int, float], int, ErrorScale] | None = None
 
     # -- lifecycle ----------------------------------------------------------------------------
 
@@ -290,16 +295,46 @@ class OnlineCalibrator:
     def _resolve(self) -> None:
         """Re-solve every pixel and fold the solution into the estimate (:func:`resolve`)."""
         buffer = self.buffer
-        # consecutive small buffers share their events: divide the degrees of freedom by
-        # the number of small buffers each event lies in
-        overlap = max(1.0, self.n_equations * buffer.n_small / max(self.buffer_events, 1))
+        overlap = self._overlap()
         # while the buffer holds the whole stream, every solution so far came from a subset
         # of the buffer this one is solved from: it replaces them (averaging in the early,
         # short-buffer solutions with equal weights would only add their noise)
+        # an update every n_small events, a buffer of n_large: solves k updates apart share
+        # 1 - k / K of their equations (K = n_large / n_small), and their errors correlate
+        # about as much; the low-pass follows a geometric decay corr^k, the one with the
+        # same sum over k (what the variance of an average of solves depends on)
+        k_buf = max(buffer.n_large / max(buffer.n_small, 1), 1.0)
+        corr = (k_buf - 1.0) / (k_buf + 1.0)
         self.lam = resolve(buffer.sums, self.estimate, self.config, left=buffer.left,
-                           overlap=float(overlap), replace=buffer.holds_all)
+                           overlap=overlap, replace=buffer.holds_all, corr=corr)
         self.n_updates += 1
         buffer.since_resolve = 0
+
+    def _overlap(self) -> float:
+        """The small buffers each event lies in (consecutive small buffers share their
+        events: a solve divides its degrees of freedom by this)."""
+        return max(1.0, self.n_equations * self.buffer.n_small / max(self.buffer_events, 1))
+
+    def error_scale(self) -> ErrorScale:
+        """The factors that calibrate the solves' own standard errors
+        (:func:`~evcal.onei.stderr.error_scales`), measured on the buffer at most every
+        :attr:`SCALE_EVERY` updates: they are ratios of two formulas on the same equations,
+        which move with the scene's statistics, not from one update to the next, and a
+        measurement costs a service's update frame as much as its solve."""
+        if self.config.history > 0:
+            return identity("the solves include a forgotten history the buffer no longer "
+                            "holds")
+        key = (self.n_sessions, self.log_offset)
+        cached = self._scale
+        if (cached is not None and cached[0] == key
+                and self.n_updates - cached[1] < self.SCALE_EVERY):
+            return cached[2]
+        buffer, est = self.buffer, self.estimate
+        scale = error_scales(buffer.frames, buffer.base, est.se_c, est.se_b, est.seen,
+                             self.lam, self.log_offset, self.config.saturation_dn,
+                             self._overlap())
+        self._scale = (key, self.n_updates, scale)
+        return scale
 
     # -- output -------------------------------------------------------------------------------
 
@@ -309,12 +344,14 @@ class OnlineCalibrator:
         The maps are copies: the result does not change when the calibrator goes on.
         """
         shape = self.sensor.shape
+        scale = self.error_scale() if self.n_updates else identity("no update yet")
+        diagnostics = replace(self.diagnostics(), stderr_calibration=scale.info)
         return Calibration(
-            **self.estimate.maps(shape, self.executor.on_pixels),
+            **self.estimate.maps(shape, self.executor.on_pixels, scale=(scale.c, scale.b)),
             log_offset=self.log_offset,
             method="onei",
             n_events=self.buffer.sums.counts.reshape(shape).copy(),
-            diagnostics=self.diagnostics(),
+            diagnostics=diagnostics,
         )
 
     def diagnostics(self) -> OnEIDiagnostics:
@@ -414,7 +451,8 @@ def onei(rec: Recording, config: OnEIConfig | None = None, *,
                 cur = state.calibration()
                 history.append((t, cur.contrast.copy(), cur.bias.copy(), cur.valid.copy()))
         cal = state.calibration()
-        diagnostics: Diagnostics = replace(state.diagnostics(), history=tuple(history))
+        assert isinstance(cal.diagnostics, OnEIDiagnostics)
+        diagnostics: Diagnostics = replace(cal.diagnostics, history=tuple(history))
     target = config.sizes(rec.sensor)[0]
     if fitted.n_small is not None and fitted.n_small < target:
         diagnostics = diagnostics.with_warning(

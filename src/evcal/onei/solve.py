@@ -87,7 +87,8 @@ def resolve_blocks(b_start: int, b_stop: int, n: int, m: np.ndarray, counts_pad:
                     max_contrast: float, max_bias_ratio: float, no_reason: np.ndarray,
                     smoothing: float, c: np.ndarray, b: np.ndarray, se_c: np.ndarray,
                     se_b: np.ndarray, seen: np.ndarray, n_solved: np.ndarray,
-                    reason: np.ndarray) -> None:  # pragma: no cover - compiled
+                    reason: np.ndarray, track: np.ndarray,
+                    corr: float) -> None:  # pragma: no cover - compiled
     """Blocks ``b_start .. b_stop`` of OnEI's re-solve, one call without the GIL (threads
     take disjoint ranges; ``buf``, ``m_tmp`` and ``c_tmp`` are the caller's scratch): each
     block prepared (:func:`prepared_block`; its queue added unless ``applied``), solved
@@ -104,7 +105,8 @@ def resolve_blocks(b_start: int, b_stop: int, n: int, m: np.ndarray, counts_pad:
             min_decorrelation, min_contrast, max_contrast, max_bias_ratio, no_reason)
         r = r_new[: e - s]
         low_pass(c_new, b_new, se_c_new, se_b_new, r == VALID, r, smoothing, c[s:e],
-                  b[s:e], se_c[s:e], se_b[s:e], seen[s:e], n_solved[s:e], reason[s:e])
+                  b[s:e], se_c[s:e], se_b[s:e], seen[s:e], n_solved[s:e], reason[s:e],
+                  track[:, s:e], corr)
 
 
 def lambda_block_list(n_blocks: int) -> np.ndarray:
@@ -115,13 +117,15 @@ def lambda_block_list(n_blocks: int) -> np.ndarray:
 
 
 def resolve(sums: NormalSums, est: LowPassEstimate, config: OnEIConfig, *, left: int | None,
-            overlap: float, replace: bool) -> float:
+            overlap: float, replace: bool, corr: float = 0.0) -> float:
     """Solve every pixel and fold the solution into ``est``: block by block, each block
     updated with the queued equations and solved while in cache. The same kernels and sums as
     ``correction_lambda`` and ``solve_pixels`` on the whole sensor, but for ``lam`` estimated
     on :func:`lambda_block_list` (every pixel up to 131 k pixels). ``left``: the events that
     have left the buffer (the history's weights); ``overlap``: the small buffers each event
-    lies in; ``replace``: the solution replaces the estimate's earlier ones. Returns ``lam``."""
+    lies in; ``replace``: the solution replaces the estimate's earlier ones; ``corr``: the
+    correlation of two consecutive solves' errors (:func:`~evcal.onei.estimate.low_pass`).
+    Returns ``lam``."""
     queued = as_arrays(sums.queued)
     hqueued = as_arrays(sums.hqueued)
     scale = sums.hist_scale(left) if sums.hist is not None else 0.0
@@ -140,7 +144,7 @@ def resolve(sums: NormalSums, est: LowPassEstimate, config: OnEIConfig, *, left:
         lam = 0.0 if setting == "off" else float(setting)
     if replace:
         est.n_solved[:] = 0
-    _solve_blocks(sums, est, config, applied, queued, hqueued, scale, lam, overlap)
+    _solve_blocks(sums, est, config, applied, queued, hqueued, scale, lam, overlap, corr)
     sums.queued.clear()
     sums.hqueued.clear()
     return lam
@@ -176,7 +180,7 @@ def _terms_of(sums: NormalSums, config: OnEIConfig, blocks: np.ndarray, queued: 
 
 def _solve_blocks(sums: NormalSums, est: LowPassEstimate, config: OnEIConfig,
                   applied: np.ndarray, queued: Queue | None, hqueued: Queue | None,
-                  scale: float, lam: float, overlap: float) -> None:
+                  scale: float, lam: float, overlap: float, corr: float) -> None:
     """The re-solve's pass over every block (:func:`resolve_blocks`) on the executor's
     threads (the blocks are independent: the same result with any number)."""
     lim = config.limits
@@ -191,6 +195,6 @@ def _solve_blocks(sums: NormalSums, est: LowPassEstimate, config: OnEIConfig,
             float(lim.min_equations), float(lim.min_decorrelation), float(lim.min_contrast),
             float(lim.max_contrast), float(lim.max_bias_ratio), sums.no_reason,
             float(config.smoothing), est.c, est.b, est.se_c, est.se_b, est.seen,
-            est.n_solved, est.reason)
+            est.n_solved, est.reason, est.track, corr)
 
     sums.executor.on_threads(sums.n_blocks, work)
