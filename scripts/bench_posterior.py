@@ -4,8 +4,8 @@ On recordings whose true per-pixel maps are known: evcal's ideal simulator over 
 scenes and seeds (some with planted hot, cold, warm and cool pixels), and, with ``--data``,
 the benchmark's dev recordings (``scripts/gap_benchmark.py``; v2e's own thresholds and
 evcal's simulator; test-split recordings are refused: they are for reporting the gap
-workflow, not for tuning anything). Per recording and method (OffEI raw and posterior, OnEI,
-OffE): the share of valid pixels, the RMSE of ``c`` and ``b`` over the valid pixels the
+workflow, not for tuning anything). Per recording and method (OffEI and OnEI raw and
+posterior, OffE): the share of valid pixels, the RMSE of ``c`` and ``b`` over the valid pixels the
 truth calls normal, the spread of the z-scores ``(estimate - truth) / stderr`` (1 when the
 stated errors are calibrated; OffE states none for ``c``), the special pixels' precision and
 recall against the truth's own classes, and the reconstruction PSNR (``evcal.evaluate``,
@@ -33,7 +33,7 @@ import numpy as np
 import evcal
 from evcal.calibration import Calibration, Special
 from evcal.errors import CalibrationError
-from evcal.posterior import posterior_maps
+from evcal.posterior import POSTERIOR_METHODS, posterior_maps
 from evcal.recording import Recording
 from evcal.sim.ideal import SimConfig, draw_maps, simulate_ideal
 from evcal.special import classify
@@ -133,18 +133,18 @@ def score(name: str, rec: Recording, c: np.ndarray, b: np.ndarray, offset: float
             cal = evcal.calibrate(rec, method)
         except CalibrationError as e:  # too few events for this method: said, not fatal
             row[method] = {"error": str(e)}
-            if method == "offei":
-                row["offei_posterior"] = {"error": str(e)}
+            if method in POSTERIOR_METHODS:
+                row[f"{method}_posterior"] = {"error": str(e)}
             continue
         row[method] = {**map_scores(cal, c, b, normal), **special_scores(cal, truth_cls),
                        "seconds": time.perf_counter() - t0}
         if method != "offe":  # OffE's c has no absolute scale: its PSNR says little
             row[method]["psnr"] = psnr(rec, cal)
-        if method == "offei":
+        if method in POSTERIOR_METHODS:
             post = posterior_maps(cal)
-            row["offei_posterior"] = {**map_scores(post, c, b, normal),
-                                      **special_scores(post, truth_cls),
-                                      "psnr": psnr(rec, post)}
+            row[f"{method}_posterior"] = {**map_scores(post, c, b, normal),
+                                          **special_scores(post, truth_cls),
+                                          "psnr": psnr(rec, post)}
     return row
 
 
@@ -154,7 +154,9 @@ def print_row(row: dict[str, Any]) -> None:
           f"{row['psnr_truth']:.2f} dB)")
     print(f"  {'method':16s} {'valid':>6s} {'c RMSE':>8s} {'std z':>6s} {'b RMSE':>8s} "
           f"{'std z':>6s} {'PSNR dB':>8s} {'special P':>9s} {'R':>5s}")
-    for key in ("offei", "offei_posterior", "onei", "offe"):
+    for key in ("offei", "offei_posterior", "onei", "onei_posterior", "offe"):
+        if key not in row:
+            continue
         r = row[key]
         if "error" in r:
             print(f"  {key:16s} {r['error']}")
@@ -195,12 +197,15 @@ def main(argv: list[str] | None = None) -> int:
             with args.json.open("a") as f:
                 f.write(json.dumps(row) + "\n")
         sys.stdout.flush()
-    rows = [r for r in rows if "error" not in r["offei"]]
-    if rows:
-        ratio_c = [r["offei_posterior"]["c_rmse"] / r["offei"]["c_rmse"] for r in rows]
-        ratio_b = [r["offei_posterior"]["b_rmse"] / r["offei"]["b_rmse"] for r in rows]
-        d_psnr = [r["offei_posterior"]["psnr"] - r["offei"]["psnr"] for r in rows]
-        print(f"\n{len(rows)} recordings: posterior / raw OffEI RMSE, median (range): c "
+    for method in POSTERIOR_METHODS:
+        done = [r for r in rows if "error" not in r[method]]
+        if not done:
+            continue
+        post = f"{method}_posterior"
+        ratio_c = [r[post]["c_rmse"] / r[method]["c_rmse"] for r in done]
+        ratio_b = [r[post]["b_rmse"] / r[method]["b_rmse"] for r in done]
+        d_psnr = [r[post]["psnr"] - r[method]["psnr"] for r in done]
+        print(f"\n{len(done)} recordings: posterior / raw {method} RMSE, median (range): c "
               f"{np.median(ratio_c):.2f} ({min(ratio_c):.2f}-{max(ratio_c):.2f}), b "
               f"{np.median(ratio_b):.2f} ({min(ratio_b):.2f}-{max(ratio_b):.2f}); PSNR "
               f"posterior - raw {np.median(d_psnr):+.3f} dB ({min(d_psnr):+.3f} to "

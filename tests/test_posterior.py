@@ -88,9 +88,11 @@ def test_the_file_says_it_holds_the_posterior(fitted, tmp_path):
 
 def test_only_calibrated_errors_are_used():
     sim = simulate_ideal(SimConfig(height=24, width=32, duration_s=1.0, seed=1))
-    cal = evcal.calibrate(sim.recording, "onei")
-    with pytest.raises(ConfigError, match="onei does not"):
+    cal = evcal.calibrate(sim.recording, "offe")  # no stated error of c
+    with pytest.raises(ConfigError, match="offe does not"):
         posterior_maps(cal)
+    onei = evcal.calibrate(sim.recording, "onei")  # calibrated (evcal.onei.stderr)
+    assert estimate_of(posterior_maps(onei)) == "posterior"
 
 
 def test_a_calibration_with_few_or_no_valid_pixels_is_left_alone():
@@ -112,5 +114,5 @@ def test_calibrate_posterior_on_the_command_line(tmp_path):
     out = tmp_path / "cal.npz"
     assert cli.main(["calibrate", str(path), "--out", str(out), "--posterior", "-q"]) == 0
     assert estimate_of(evcal.load_calibration(out)) == "posterior"
-    assert cli.main(["calibrate", str(path), "--out", str(out), "--method", "onei",
+    assert cli.main(["calibrate", str(path), "--out", str(out), "--method", "offe",
                      "--posterior", "-q"]) == 2

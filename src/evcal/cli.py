@@ -526,12 +526,14 @@ def build_parser() -> argparse.ArgumentParser:
                          "the fit's gain and offset removed (docs/GAP.md)")
     sp.add_argument("--seed", type=int, default=0, help="seed of --model's simulations")
     sp.add_argument("--posterior", action="store_true",
-                    help="OffEI: write posterior maps, each pixel pulled toward the "
-                         "sensor's population by how little its own events say (special "
+                    help="OffEI and OnEI: write posterior maps, each pixel pulled toward "
+                         "the sensor's population by how little its own events say (special "
                          "pixels keep their own values; the file says it holds them; default: "
                          "the raw per-pixel estimate). Not always a gain: on simulated scenes "
-                         "it lowers the error by 10-18 %%, on some v2e recordings it raises "
-                         "it and its stated errors are too small; compare with 'evaluate'")
+                         "OffEI's error falls by 10-18 %%, OnEI's by 1-21 %% but its "
+                         "reconstruction PSNR by up to 1 dB; on some v2e recordings OffEI's "
+                         "error rises and its stated errors are too small; compare with "
+                         "'evaluate'")
     sp.add_argument("--stream", action="store_true",
                     help="OffEI of an evcal .mcap read message by message, for recordings "
                          "larger than memory (a progress bar on stderr; with --log-offset "

@@ -1,11 +1,11 @@
 """Posterior maps: each pixel's estimate pulled toward the sensor's population by how little
 its own evidence says (empirical Bayes).
 
-A pixel's OffEI estimate ``x`` has a stated standard error ``s`` (calibrated: the spread of
-``(x - truth) / s`` is about 1 on simulated data). With the pixels' true values spread about
-a centre ``mu`` by ``tau``, the posterior mean is ``mu + w (x - mu)``, ``w = tau^2 / (tau^2 +
-s^2)``, and its standard error ``sqrt(w) s``: a pixel of many events keeps its own value, one
-of few moves toward the population.
+A pixel's OffEI or OnEI estimate ``x`` has a stated standard error ``s`` (calibrated: the
+spread of ``(x - truth) / s`` is about 1 on simulated data). With the pixels' true values
+spread about a centre ``mu`` by ``tau``, the posterior mean is ``mu + w (x - mu)``, ``w =
+tau^2 / (tau^2 + s^2)``, and its standard error ``sqrt(w) s``: a pixel of many events keeps
+its own value, one of few moves toward the population.
 
 The prior is taken per bin of the stated error, not once for the sensor: a pixel's true
 threshold and its error go together (a high threshold fires fewer events, so its error is
@@ -16,11 +16,11 @@ in each, ``mu`` is the median estimate and ``tau^2`` the robust variance of the 
 
 Special pixels (hot, cold, warm, cool: :mod:`evcal.special`) are judged on their own
 evidence and keep their raw estimates; they and the invalid pixels are not in the
-population. Only estimators whose errors are calibrated get posterior maps: OffEI's
-(OnEI's errors are too pessimistic and OffE states none; shrinking by them would pull too
-hard or not at all). The raw estimate is always there: it is what the estimator returns,
-and :func:`posterior_maps` returns a new calibration saying it holds the posterior
-(``diagnostics.extra["estimate"]``).
+population. Only estimators whose errors are calibrated get posterior maps: OffEI's and
+OnEI's (:mod:`evcal.onei.stderr`); OffE states none for ``c``, and shrinking by errors that
+are not calibrated would pull too hard or not at all. The raw estimate is always there: it
+is what the estimator returns, and :func:`posterior_maps` returns a new calibration saying it
+holds the posterior (``diagnostics.extra["estimate"]``).
 
 There is no pull toward a pixel's neighbours: the estimates' errors are themselves
 correlated between neighbouring pixels (they share the scene's edges), so a neighbourhood
@@ -43,7 +43,7 @@ BINS = 8  # equal-count bins of the stated error, each with its own prior
 MIN_BIN_PIXELS = 50  # fewer pixels than this per bin: fewer bins
 TAU2_FLOOR_SHARE = 0.02  # tau^2 is at least this share of the estimates' robust variance
 MAD_TO_SD = 1.4826
-POSTERIOR_METHODS = ("offei",)  # estimators whose stated errors are calibrated
+POSTERIOR_METHODS = ("offei", "onei")  # estimators whose stated errors are calibrated
 
 
 def estimate_of(cal: Calibration) -> str:
