@@ -227,3 +227,43 @@ def test_a_screening_leaves_out_a_component_whose_spread_is_unknown() -> None:
     assert np.isfinite(one.per_stat["s"])
     assert one.z["s"][1] == 0.0
     assert one.z["s"][0] != 0.0
+
+
+def _pairs_recording(iei_us: int) -> Recording:
+    """8x8 pixels, each firing alternating polarities every ``iei_us`` for 1 s, under four
+    still frames."""
+    from evcal.events import SensorSize, make_events
+    from evcal.recording import Frames
+
+    sensor = SensorSize(8, 8)
+    n = sensor.n_pixels
+    t0 = np.arange(1000, 990_000, 20_000)  # a pair of events every 20 ms at each pixel
+    t = np.concatenate([t0, t0 + iei_us])
+    p = np.concatenate([np.ones(t0.size), -np.ones(t0.size)])
+    tt = np.tile(t, n)
+    pix = np.repeat(np.arange(n), t.size)
+    pp = np.tile(p, n)
+    order = np.argsort(tt, kind="stable")
+    ev = make_events(tt[order], pix[order] % 8, pix[order] // 8, pp[order])
+    images = np.full((4, 8, 8), 100, np.uint8)
+    frames = Frames(np.array([0, 330_000, 660_000, 1_000_000]), images, np.zeros(4, np.int64))
+    return Recording(sensor, ev, frames)
+
+
+def test_a_share_of_too_few_pairs_is_left_out_of_the_comparison() -> None:
+    """The polarity alternation of pairs under 2 ms apart is a share of those pairs: with
+    fewer than stats.MIN_BIN_SAMPLES of them (a model whose dead time lies a little above 2 ms has
+    none) it is NaN and left out, not a share of 0 with no spread against the measured one
+    (a discrepancy of thousands in a bin the interval statistics judge already)."""
+    from evcal.gap.compare import discrepancy
+    from evcal.gap.stats import observe, stat_polarity_alternation
+
+    measured = stat_polarity_alternation(observe(_pairs_recording(1900)))
+    model = stat_polarity_alternation(observe(_pairs_recording(2200)))
+    assert measured.values[1] == pytest.approx(1.0)  # every pair under 2 ms alternates
+    assert np.isnan(model.values[1])  # no pair under 2 ms: nothing to share
+    assert model.values[0] == pytest.approx(measured.values[0])
+    d = discrepancy({"polarity_alternation": measured},
+                    [{"polarity_alternation": model}] * 3)
+    assert d.z["polarity_alternation"][1] == 0.0
+    assert d.per_stat["polarity_alternation"] < 2.0
