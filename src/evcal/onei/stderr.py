@@ -113,7 +113,7 @@ def error_scales(frames: Sequence[Any], base: int, se_c: np.ndarray, se_b: np.nd
     if not eqs:
         return identity("no equations")
     data = (on, off, lastp, lg, ok)
-    full = _sandwich(_sweep(eqs, data, lam, n_f), lam)
+    full = _sandwich(_sweep(eqs, data, lam, n_f))
     use = full["use"]
     if not use.any():
         return identity("no sampled pixel has equations enough")
@@ -206,7 +206,7 @@ def _sweep_kernel(pairs: np.ndarray, on: np.ndarray, off: np.ndarray, lastp: np.
             h[j, 1, p] -= x2
 
 
-def _sandwich(t: dict[str, np.ndarray], lam: float) -> dict[str, np.ndarray]:
+def _sandwich(t: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """The least-squares solution of :func:`_sweep`'s sums and its sandwich variances
     (without ``kappa``): ``c``, ``b``, ``v_c``, ``v_b``, ``rss``, ``i11``, ``i22`` (the
     normal matrix's inverse) and ``use`` (pixels where all are finite and positive)."""
