@@ -531,7 +531,9 @@ def test_the_live_maps_are_the_estimate_classified():
     est.POPULATION_SAMPLE = 1000  # below the valid pixels: the lattice is used
     assert 1000 < est.seen.sum() < n
     got = cal.calibration()
-    se_c, se_b = cal.error_scale().apply(*est.smoothed_errors())
+    scale = cal.error_scale()
+    se_c, se_b = (se * f for se, f in zip(est.smoothed_errors(), (scale.c, scale.b),
+                                          strict=True))
     np.testing.assert_array_equal(got.stderr_contrast.ravel(),
                                   np.where(est.seen, se_c, np.inf).astype(np.float32))
     want = classify(est.c, est.b, se_c, se_b, est.seen.copy(), population_sample=1000)

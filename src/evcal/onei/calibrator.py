@@ -296,15 +296,15 @@ class OnlineCalibrator:
         """Re-solve every pixel and fold the solution into the estimate (:func:`resolve`)."""
         buffer = self.buffer
         overlap = self._overlap()
-        # while the buffer holds the whole stream, every solution so far came from a subset
-        # of the buffer this one is solved from: it replaces them (averaging in the early,
-        # short-buffer solutions with equal weights would only add their noise)
         # an update every n_small events, a buffer of n_large: solves k updates apart share
         # 1 - k / K of their equations (K = n_large / n_small), and their errors correlate
         # about as much; the low-pass follows a geometric decay corr^k, the one with the
         # same sum over k (what the variance of an average of solves depends on)
         k_buf = max(buffer.n_large / max(buffer.n_small, 1), 1.0)
         corr = (k_buf - 1.0) / (k_buf + 1.0)
+        # while the buffer holds the whole stream, every solution so far came from a subset
+        # of the buffer this one is solved from: it replaces them (averaging in the early,
+        # short-buffer solutions with equal weights would only add their noise)
         self.lam = resolve(buffer.sums, self.estimate, self.config, left=buffer.left,
                            overlap=overlap, replace=buffer.holds_all, corr=corr)
         self.n_updates += 1

@@ -10,7 +10,6 @@ import numpy as np
 
 from ..calibration import CALIBRATION_MAPS, DEFAULT_BIAS, DEFAULT_CONTRAST, Reason, Special
 from ..errors import StateError
-from ..solver import PixelSolution
 from ..special import K_POPULATION, Z_MEASUREMENT, label_one, population_limits
 from .kernels import jit
 
@@ -121,11 +120,6 @@ class LowPassEstimate:
         self.reason = np.full(n_pixels, Reason.NO_EVENTS, np.uint8)
         # the smoothed estimate's variance, in the solves' own units (low_pass)
         self.track = np.zeros((4, n_pixels))
-
-    def fold(self, new: PixelSolution, smoothing: float, corr: float = 0.0) -> None:
-        low_pass(new.c, new.b, new.se_c, new.se_b, new.valid,
-                  new.reason, float(smoothing), self.c, self.b, self.se_c, self.se_b,
-                  self.seen, self.n_solved, self.reason, self.track, float(corr))
 
     def smoothed_errors(self) -> tuple[np.ndarray, np.ndarray]:
         """The standard errors of the smoothed estimate in the solves' own units (``inf``

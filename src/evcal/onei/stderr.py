@@ -57,10 +57,6 @@ class ErrorScale:
     b: float
     info: dict[str, Any]
 
-    def apply(self, se_c: np.ndarray, se_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The calibrated errors (new arrays)."""
-        return se_c * self.c, se_b * self.b
-
 
 def identity(why: str) -> ErrorScale:
     """No calibration: the solves' own errors, and why."""

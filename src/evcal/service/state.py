@@ -81,7 +81,8 @@ MSG_BYTES_PER_PIXEL = sum(m.wire.itemsize for m in CALIBRATION_MAPS)
 # calibrator fields whose dtype follows the input (frames are uint8 or float32 on the wire)
 EST_DTYPES = {"fr_images": frozenset(FRAME_DTYPES.values())}
 # calibrator fields a snapshot may lack (OnlineCalibrator.from_state does without them:
-# "track", the smoothed estimate's variance, is new in snapshots since 2026-11-29)
+# "track", the smoothed estimate's variance, is absent from snapshots written before the
+# estimate kept it)
 EST_OPTIONAL = frozenset({"hist_m", "hist_counts", "track"})
 
 
