@@ -289,9 +289,10 @@ def _register_all() -> None:
     register(EffectSpec(
         "bandwidth", Bandwidth, fx.fit_bandwidth, _bandwidth_delay_us,
         # a low-pass lags a window's events into the next in proportion to its change: the
-        # per-pixel fit's residual grows with |dL|
+        # per-pixel fit's residual grows with |dL|; it carries a moving edge's events into
+        # the still windows after it, the longer the darker
         ("speed_response", "lag_vs_intensity", "sensitivity_vs_intensity",
-         "offei_residual_vs_dl"),
+         "offei_residual_vs_dl", "static_rate_vs_intensity", "static_balance_vs_intensity"),
         _words_bandwidth))
     register(EffectSpec(
         "threshold_noise", ThresholdNoise, fx.fit_threshold_noise, plain("sigma"),

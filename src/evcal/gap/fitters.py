@@ -361,6 +361,13 @@ def _filter_fit_error(obs: Observation, cutoff_hz: float, offset: float) -> floa
     return err
 
 
+# the lag grid widened by these factors, in turn, while the events' lag lies beyond it
+BANDWIDTH_LAG_REACH = (2.0, 4.0)
+# a low-pass's lag must exceed this many times its noise (the grid's step or the seeds'
+# spread): the simulations driven by interpolated frames leave the events a step or two late
+BANDWIDTH_MIN_LAG_NOISE = 2.0
+
+
 def fit_bandwidth(ctx: FitContext) -> FitResult:
     """The cutoff at ``ref_dn``: seen by the frames, measured by the events' lag.
 
@@ -378,10 +385,15 @@ def fit_bandwidth(ctx: FitContext) -> FitResult:
     events of dark moments more than those of bright ones (the cutoff follows the
     photocurrent), a frame's timing delays every event alike. When the lag is measured in
     the darkest and the brightest third of the cells (window, pixel) by their light
-    (:func:`evcal.gap.frames._lag_by_light`) and is not longer in the dark by twice its
-    noise, there is no evidence of a low-pass; nor without a lag of the events behind the
-    frames' changes. A lag beyond the grid's reach (a slow photoreceptor in the dark) takes
-    the frame-rate filter's cutoff (the bias correction makes up part of its error).
+    (:func:`evcal.gap.frames._lag_by_light`) and is shorter in the dark by twice its noise,
+    there is no evidence of a low-pass; nor without a lag of the events behind the frames'
+    changes, or with a lag within twice its noise. Thirds alike do not refuse it (a window's
+    light mixes dark and bright moments of a moving scene: v2e's low-pass shows its thirds
+    within 10 % of each other): the simulations of the low-pass and of the frame lag,
+    compared on every statistic, decide.
+    A lag beyond the grid's reach is sought on a grid twice and four times as wide; beyond
+    that too (a slow photoreceptor in the dark), it takes the frame-rate filter's cutoff
+    (the bias correction makes up part of its error).
 
     Whatever the frames see, the lag alone is not trusted: with nothing hidden, the
     simulations driven by interpolated frames leave the events a few grid steps of lag
@@ -400,6 +412,11 @@ def fit_bandwidth(ctx: FitContext) -> FitResult:
         if den > 0:
             f = float(np.exp(x[1] + 0.5 * (x[1] - x[0]) * (y[0] - y[2]) / den))
     found = _frames.event_lag(meas, sims, rec)
+    for reach in BANDWIDTH_LAG_REACH:
+        # beyond the frame timing's grid: a low-pass in the dark delays its events longer
+        if found is None or np.isfinite(found[0]):
+            break
+        found = _frames.event_lag(meas, sims, rec, reach)
     detail: dict[str, Any] = {"frame_filter_hz": f}
     if found is None or found[0] <= 0:
         return NoEvidence("the events do not lag the frames' changes more than the model's "
@@ -407,15 +424,20 @@ def fit_bandwidth(ctx: FitContext) -> FitResult:
     lag, lags = found
     detail["lag_us"] = lag
     by_light = _frames._lag_by_light(meas, sims, lags)
+    noise_us = float(lags[1] - lags[0]) if by_light is None else by_light.noise_us
+    if lag <= BANDWIDTH_MIN_LAG_NOISE * noise_us:
+        return NoEvidence(f"the events lag the frames' changes by {lag:.0f} us beyond the "
+                          f"model's, within {BANDWIDTH_MIN_LAG_NOISE:g} times its noise "
+                          f"({noise_us:.0f} us): the interpolated frames leave as much")
     if by_light is not None:
         detail["lag_by_light_us"] = by_light.lags_us
         detail["noise_us"] = by_light.noise_us
-        if not by_light.later_in_the_dark(lag):
+        if by_light.earlier_in_the_dark():
             dark, bright = by_light.lags_us[0], by_light.lags_us[-1]
-            return NoEvidence(f"the events are about as late in the brightest third of "
-                              f"the moments ({bright:.0f} us) as in the darkest "
-                              f"({dark:.0f} us, noise {by_light.noise_us:.0f} us): a "
-                              "low-pass delays the dark ones more")
+            return NoEvidence(f"the events are later in the brightest third of the moments "
+                              f"({bright:.0f} us) than in the darkest ({dark:.0f} us, noise "
+                              f"{by_light.noise_us:.0f} us): a low-pass delays the dark ones "
+                              "more")
     if np.isfinite(lag):
         ref = float(Bandwidth().ref_dn)
         light = meas.intensity.mean(0).astype(np.float64) + float(model.log_offset)

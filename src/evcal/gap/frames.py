@@ -386,9 +386,25 @@ def _at_grid_end(r: np.ndarray) -> bool:
     return i == 0 or i == r.size - 1
 
 
-def _lag_minimum(lags: np.ndarray, r: np.ndarray) -> float:
-    """The lag of the least residual, refined by a parabola through its neighbours."""
-    i = int(np.nanargmin(r))
+def _basin_minimum(r: np.ndarray, start: int) -> int:
+    """The index of the local minimum of ``r`` reached by walking downhill from ``start``:
+    the minimum of the basin the whole recording's lag lies in. A third of the cells may
+    have a lower residual far off on the grid (a periodic scene matches itself a period
+    later), which is not the delay the whole recording shows."""
+    i = int(np.clip(start, 0, r.size - 1))
+    while True:
+        left = r[i - 1] if i > 0 else np.inf
+        right = r[i + 1] if i < r.size - 1 else np.inf
+        if not (left < r[i] or right < r[i]):
+            return i
+        i = i - 1 if left <= right else i + 1
+
+
+def _lag_minimum(lags: np.ndarray, r: np.ndarray, i: int | None = None) -> float:
+    """The lag of the least residual (of the one at index ``i`` when given), refined by a
+    parabola through its neighbours."""
+    if i is None:
+        i = int(np.nanargmin(r))
     lag = float(lags[i])
     if 0 < i < lags.size - 1:
         y0, y1, y2 = r[i - 1], r[i], r[i + 1]
@@ -403,14 +419,15 @@ def _exposure_us(rec: Recording) -> float:
     return float(np.median(rec.frames.exposure_us)) if len(rec.frames) else 0.0
 
 
-def event_lag(meas: Observation, sims: list[Observation], rec: Recording
+def event_lag(meas: Observation, sims: list[Observation], rec: Recording, reach: float = 1.0
               ) -> tuple[float, np.ndarray] | None:
     """How much later than the frames' stamps the measured events follow the frames'
     changes, less the same on the simulations (us; :func:`lag_residuals` on a grid of
     +-1.5 times the larger of the exposure and a quarter of the frame interval), and that
     grid. ``inf`` when the measurement's least residual lies at the grid's late end (a delay
     the grid does not reach); ``None`` when it lies at the early end or the lag is within
-    one grid step."""
+    one grid step. ``reach`` widens the grid (a slow photoreceptor in the dark delays its
+    events beyond any frame timing)."""
     if not sims:
         return None
     ft = meas.frame_t_us
@@ -419,7 +436,7 @@ def event_lag(meas: Observation, sims: list[Observation], rec: Recording
     # a lag of a quarter of the interval and more is seen: a DAVIS's events and its
     # frames' stamps may disagree by several ms, far beyond a short exposure
     scale = max(exp_us, 0.25 * interval)
-    lags = LAG_GRID * scale
+    lags = LAG_GRID * scale * float(reach)
     rm = lag_residuals(meas, lags)
     if not np.isfinite(rm).any():
         return None
@@ -510,30 +527,28 @@ def _lag_light_sums(obs: Observation, lags_us: np.ndarray, edges: np.ndarray
 @dataclass(frozen=True)
 class LagByLight:
     """The events' lag behind the frames (measured less simulated, us) in each third of the
-    cells by their light, darkest first (``inf``: a measured minimum at an end of the grid,
-    a delay the grid does not bracket), and the noise of the difference between the
-    darkest and the brightest third: the larger of the grid's step and the seed-to-seed
-    spread of that difference in the simulations."""
+    cells by their light, darkest first, each the minimum in the basin of the whole
+    recording's (``inf``: the basin reaches the grid's late end, a delay the grid does not
+    bracket; ``-inf``: its early end), and the noise of the difference between the darkest
+    and the brightest third: the larger of the grid's step and the seed-to-seed spread of
+    that difference in the simulations."""
 
     lags_us: list[float]
     noise_us: float
 
-    def later_in_the_dark(self, overall_us: float, k: float = 2.0) -> bool:
-        """The darkest third's events later than the brightest third's by ``k`` noise.
-        Thirds whose lag the grid does not reach count as the latest when the whole
-        recording's lag (``overall_us``) is beyond it too, or none is within it (a delay no
-        frame timing makes);
-        otherwise such a third's minimum is its noise at the grid's end (few events in the
-        dark) and the darkest third the grid reaches stands for it; when the brightest is
-        the only one within reach, the darker ones are later."""
+    def earlier_in_the_dark(self, k: float = 2.0) -> bool:
+        """The darkest third's events earlier than the brightest third's by ``k`` noise: what
+        no low-pass does (it delays the dark ones more). A third beyond an end of the grid
+        is later (``inf``) or earlier (``-inf``) than any third within it; both beyond the
+        same end tell no order. Alike thirds do not refuse a low-pass: the lag of a third of
+        the cells, by the light of a window rather than of each moment, mixes the dark and
+        the bright (a moving scene), and the simulations of the low-pass and of a frame's
+        timing, compared on every statistic, tell them apart where this cannot."""
         v = np.asarray(self.lags_us)
-        if not np.isfinite(overall_us) or not np.isfinite(v).any():
-            return not np.isfinite(v[0]) or bool(v[0] - v[-1] > k * self.noise_us)
-        within = np.flatnonzero(np.isfinite(v))
-        if within.size == 1:
-            # only one third within reach: a low-pass's when it is the brightest
-            return bool(within[0] == v.size - 1)
-        return bool(v[within[0]] - v[within[-1]] > k * self.noise_us)
+        dark, bright = float(v[0]), float(v[-1])
+        if np.isfinite(dark) and np.isfinite(bright):
+            return bool(bright - dark > k * self.noise_us)
+        return bool(dark < bright)
 
     def alike(self, k: float = 2.0) -> bool:
         """The thirds the grid reaches (at least two) within ``k`` noise of each other."""
@@ -563,17 +578,23 @@ def _lag_by_light(meas: Observation, sims: list[Observation], lags: np.ndarray
 
     rm_all = unexplained(meas)
     rs_all = [unexplained(s) for s in sims]
-    if not all(np.isfinite(r).any(axis=0).all() for r in [rm_all, *rs_all]):
+    if not all(np.isfinite(r).all() for r in [rm_all, *rs_all]):
         return None
-    sim_lags = np.array([[_lag_minimum(lags, r[:, j]) for j in range(LIGHT_BINS)]
-                         for r in rs_all])
+
+    def basins(obs: Observation, r: np.ndarray) -> list[int]:
+        # each third's minimum in the basin of the observation's own least residual
+        start = int(np.nanargmin(lag_residuals(obs, lags)))
+        return [_basin_minimum(r[:, j], start) for j in range(LIGHT_BINS)]
+
+    sim_lags = np.array([[_lag_minimum(lags, r[:, j], i) for j, i in enumerate(basins(s, r))]
+                         for s, r in zip(sims, rs_all, strict=True)])
     out = []
-    for j in range(LIGHT_BINS):
-        rm = rm_all[:, j]
-        if _at_grid_end(rm):
-            out.append(float(np.inf))
+    for j, i in enumerate(basins(meas, rm_all)):
+        if i == 0 or i == lags.size - 1:
+            # beyond the grid's reach: later (inf) or earlier (-inf) than it goes
+            out.append(float(np.inf) if i else -float(np.inf))
             continue
-        out.append(_lag_minimum(lags, rm) - float(sim_lags[:, j].mean()))
+        out.append(_lag_minimum(lags, rm_all[:, j], i) - float(sim_lags[:, j].mean()))
     diff = sim_lags[:, 0] - sim_lags[:, -1]
     spread = float(diff.std(ddof=1)) * np.sqrt(1 + 1 / diff.size) if diff.size > 1 else 0.0
     return LagByLight(out, max(float(lags[1] - lags[0]), spread))
