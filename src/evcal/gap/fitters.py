@@ -388,9 +388,9 @@ def fit_bandwidth(ctx: FitContext) -> FitResult:
     (:func:`evcal.gap.frames._lag_by_light`) and is shorter in the dark by twice its noise,
     there is no evidence of a low-pass; nor without a lag of the events behind the frames'
     changes, or with a lag within twice its noise. Thirds alike do not refuse it (a window's
-    light mixes dark and bright moments of a moving scene: v2e's low-pass shows its thirds
-    within 10 % of each other): the simulations of the low-pass and of the frame lag,
-    compared on every statistic, decide.
+    light mixes the dark and bright moments of a moving scene, which dilutes the difference):
+    the simulations of the low-pass and of the frame lag, compared on every statistic,
+    decide.
     A lag beyond the grid's reach is sought on a grid twice and four times as wide; beyond
     that too (a slow photoreceptor in the dark), it takes the frame-rate filter's cutoff
     (the bias correction makes up part of its error).
