@@ -117,7 +117,7 @@ def test_a_frame_lag_is_not_read_as_a_slow_photoreceptor() -> None:
     refuses the low-pass's light-dependent lag; the low-pass fitter may read a cutoff off a
     frame lag (a window's light mixes dark and bright moments, so alike thirds do not
     refuse it), and its simulation then explains the recording several times worse than
-    the frame lag's (measured: held-out gap 20 against 3)."""
+    the frame lag's."""
     rec, ev, cur = _evaluated("lag", 37)
     lag = _fit("lag", 37, "exposure")
     assert isinstance(lag, Fitted)
