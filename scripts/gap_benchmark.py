@@ -576,8 +576,15 @@ def generate_sim(case: dict[str, Any], out: Path) -> dict[str, Any]:
     frame_t = gs.frame_times_us(case["duration_s"], case["frame_period_us"], 0)
     median_dn = scene.median_frame_dn(frame_t, case["exposure_us"])
     effects, truth = sim_effects(case, median_dn)
-    cfg = SimConfig(height=h, width=w, duration_s=case["duration_s"],
-                    frame_rate_hz=1e6 / case["frame_period_us"],
+    duration_s = float(case["duration_s"])
+    rate_hz = 1e6 / case["frame_period_us"]
+    if int(np.floor(duration_s * rate_hz)) + 1 < frame_t.size:
+        # a duration of a whole number of periods rounds below it in the simulator's float
+        # count of frames (2.28 s at 38 ms: 59.999...), which drops the last planned frame;
+        # half a microsecond more keeps it and adds no event time
+        duration_s += 0.5e-6
+    cfg = SimConfig(height=h, width=w, duration_s=duration_s,
+                    frame_rate_hz=rate_hz,
                     internal_rate_hz=case["input_rate_hz"], log_offset=SIM_LOG_OFFSET,
                     seed=int(case["seed"]), **case["thresholds"])
     # frames stamped at the middle of their exposure; the hidden ``exposure`` effect moves
