@@ -251,9 +251,10 @@ def test_reports_follow_the_schema(tmp_path) -> None:
     paths = write_reports(res, tmp_path)
     doc = json.loads(paths["json"].read_text())
     assert set(doc) == {"named_effects", "gap_initial", "gap_final", "held_out_gap_initial",
-                        "held_out_gap_final", "steps", "not_named", "statistics",
-                        "unexplained", "window"}
+                        "held_out_gap_final", "steps", "not_named", "pairs_tried",
+                        "statistics", "unexplained", "window"}
     assert doc["named_effects"] == ["log_offset"]
+    assert isinstance(doc["pairs_tried"], list)
     assert doc["window"]["cut"] is False
     assert doc["window"]["frames"] == res.recording_info["n_frames"]
     for item in doc["unexplained"]:  # what the final model leaves, in words

@@ -236,6 +236,61 @@ def test_a_candidate_whose_gain_lies_outside_its_statistics_is_passed_over() -> 
     assert judged([jitter], 0.5).best(0.1) is None
 
 
+def test_a_pair_is_named_only_when_each_effect_adds_to_the_other() -> None:
+    """Two effects that explain the data only together (a frame lag and a dark level: each
+    alone gains little or loses) are named as a pair; not when the second adds less to the
+    first than naming a single needs, nor when the pair's gain lies outside the statistics
+    either effect moves, nor when the pair gains too little over the model."""
+    from evcal.gap.search import Candidate, Pair  # noqa: PLC0415
+    from evcal.gap.workflow import GapRun  # noqa: PLC0415
+    from evcal.sim.effects import LogOffset  # noqa: PLC0415
+
+    rec, ev, _ = _evaluated("none", 31)
+    run = GapRun(rec, GapConfig(seed=2))
+    run.ev = ev
+    run.null.gains.update(exposure=0.0, log_offset=0.0, timestamp_jitter=0.0)
+    base = {k: 1.0 for k in ev.meas_stats}
+    base.update(lag_vs_intensity=20.0, offei_residual_vs_dl=20.0,
+                sensitivity_vs_intensity=20.0, offei_residual_vs_intensity=20.0)
+    on = _held(base)
+    lag_alone = dict(base, lag_vs_intensity=10.0, sensitivity_vs_intensity=28.0)
+    dark_alone = dict(base, sensitivity_vs_intensity=12.0, offei_residual_vs_dl=40.0)
+    both = {k: 1.0 for k in base}
+
+    def pair(first_after: dict[str, float], alone_after: dict[str, float],
+             pair_after: dict[str, float]) -> Pair:
+        lag = Exposure(lag_us=3000.0, exposure_us=500.0)
+        return Pair(Candidate("exposure", "confirmed", effect=lag,
+                              evaluation=_held(first_after)),
+                    Candidate("log_offset", "confirmed", effect=LogOffset(dark_dn=50.0),
+                              evaluation=_held(pair_after)),
+                    Candidate("log_offset", "confirmed", effect=LogOffset(dark_dn=50.0),
+                              evaluation=_held(alone_after)))
+
+    named = run._pair_why(pair(lag_alone, dark_alone, both), on)
+    assert named["named"], named
+    assert named["pair"] == ["exposure", "log_offset"]
+    assert all(a["added_gain"] > a["needed_gain"] for a in named["each_adds"].values())
+    # the dark level adds nothing to the lag alone
+    lag_enough = dict(both, lag_vs_intensity=1.2)
+    idle = run._pair_why(pair(lag_enough, dark_alone, dict(lag_enough)), on)
+    assert not idle["named"]
+    assert "adds less" in idle["reason"]
+    # the pair's gain falls where neither effect has a signature
+    away = dict(base, iei_distribution=1.0)
+    off_base = _held(dict(base, iei_distribution=400.0))
+    outside = run._pair_why(pair(dict(base, iei_distribution=300.0),
+                                 dict(base, iei_distribution=350.0), away), off_base)
+    assert not outside["named"]
+    assert "falls on the statistics" in outside["reason"]
+    # a pair that gains too little over the model
+    small = run._pair_why(pair(dict(base, lag_vs_intensity=19.0),
+                               dict(base, lag_vs_intensity=19.5),
+                               dict(base, lag_vs_intensity=18.0)), on)
+    assert not small["named"]
+    assert "below" in small["reason"]
+
+
 def test_a_screening_leaves_out_a_component_whose_spread_is_unknown() -> None:
     """A candidate screened on one seed takes its spread from a neighbouring model; where
     one of that model's simulations had too little data (NaN), the component is left out

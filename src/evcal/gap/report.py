@@ -39,6 +39,7 @@ def write_details(result: GapResult, out_dir: Path) -> Path:
         "steps": [{"effect": s.effect.name, "candidates": to_jsonable(s.candidates),
                    "after": where(s.after)} for s in result.steps],
         "rejected_candidates": to_jsonable(result.rejected),
+        "pairs_tried": to_jsonable(result.pairs_tried),
     }
     path = out_dir / "details.json"
     path.write_text(dumps(d, indent=2, sort_keys=False) + "\n", encoding="utf-8")
@@ -125,6 +126,15 @@ def write_markdown(result: GapResult, out_dir: Path, *, plots: bool = True) -> P
               ""]
     lines += _candidate_lines(result.rejected)
     lines.append("")
+    if result.pairs_tried:
+        lines += ["Pairs of two effects tried (the second fitted on top of the first; "
+                  "held-out gap with both):", ""]
+        for p in result.pairs_tried:
+            why = p.get("why", {})
+            tail = f": not named, {why['reason']}" if why.get("reason") else ""
+            lines.append(f"- {' + '.join(p['pair'])} ({p['status']}): held-out gap "
+                         f"{p.get('held_out_gap', float('nan')):.2f}{tail}")
+        lines.append("")
     lines += ["## Statistics", "", "| statistic | D initial | D final | largest at (initial) |",
               "|---|---|---|---|"]
     for k in result.initial.disc.per_stat:
@@ -164,9 +174,17 @@ def _why_lines(name: str, why: dict[str, Any]) -> list[str]:
             return [f"Named because it closes the gap {how} (a simulator's timestamp "
                     "scheme, reported apart).", ""]
         return []
-    text = (f"Named: it lowers the held-out gap from {why['held_out_gap']:.2f} to "
-            f"{why['score']:.2f} (with its complexity penalty), a gain of "
-            f"{why['held_out_gain']:.2f} where {why['needed_gain']:.2f} was needed")
+    if why.get("pair"):
+        other = [n for n in why["pair"] if n != name]
+        text = (f"Named as a pair with {', '.join(other)} (no single effect was enough; "
+                f"each of the two adds what naming a single needs to the other alone): "
+                f"together they lower the held-out gap from {why['held_out_gap']:.2f} to "
+                f"{why['score']:.2f} (with their complexity penalties), a gain of "
+                f"{why['held_out_gain']:.2f} where {why['needed_gain']:.2f} was needed")
+    else:
+        text = (f"Named: it lowers the held-out gap from {why['held_out_gap']:.2f} to "
+                f"{why['score']:.2f} (with its complexity penalty), a gain of "
+                f"{why['held_out_gain']:.2f} where {why['needed_gain']:.2f} was needed")
     if why.get("null_gain", 0.0) > 0:
         text += f" plus {why['null_gain']:.2f}, what it gains with nothing missing"
     if why.get("scene"):

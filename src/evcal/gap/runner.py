@@ -77,6 +77,12 @@ class GapConfig:
     # from the current model's seeds) and only the best ``confirm_top`` with all of them
     screen: bool = True
     confirm_top: int = 2
+    # two effects at once when no single one is named and the held-out gap is still above
+    # pair_min_gap: pairs of the pair_top best candidates of the round, the second fitted on
+    # the simulations of the first (effects that explain the data only together, such as a
+    # frame lag and a dark level whose lags and sensitivities interlock); 0 turns it off
+    pair_top: int = 5
+    pair_min_gap: float = 3.0
     # a fitted value is a candidate only when its strength (evcal.gap.effects) exceeds this
     # many times the largest the fitter reads on the current model's own simulations (the
     # null calibration, evcal.gap.null)
@@ -104,6 +110,8 @@ class GapConfig:
         if self.n_seeds < 3:
             raise ConfigError(f"n_seeds={self.n_seeds} must be >= 3 (the spread needs two, "
                               "the null calibration one more)")
+        if self.pair_top < 0:
+            raise ConfigError(f"pair_top must be >= 0, got {self.pair_top}")
         if self.confirm_top < 1:
             raise ConfigError(f"confirm_top={self.confirm_top} must be >= 1")
         if not self.min_signature_share >= 0.0:

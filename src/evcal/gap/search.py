@@ -231,3 +231,112 @@ def _confirm(ev: Evaluator, rnd: Round, pen: float) -> None:
     for c, out in zip(todo, confirmed, strict=True):
         c.evaluation = out
         c.status = "confirmed"
+
+
+@dataclass
+class Pair:
+    """Two effects named together: ``first`` (a round's candidate, confirmed on every
+    seed) and ``second``, fitted on the first's simulations, its evaluation the model with
+    both (``second.evaluation``)."""
+
+    first: Candidate
+    second: Candidate
+    # the second effect's own candidate of the round (alone on the current model), confirmed
+    # when the pair is the best: each of the two must add to the other
+    alone: Candidate
+
+    @property
+    def names(self) -> tuple[str, str]:
+        return self.first.name, self.second.name
+
+    def score(self, pen: float) -> float:
+        """Held-out gap with both plus both effects' complexity penalties."""
+        if self.second.evaluation is None or self.first.effect is None or \
+                self.second.effect is None:
+            return math.inf
+        return self.second.evaluation.held_gap + pen * (self.first.effect.n_fitted +
+                                                        self.second.effect.n_fitted)
+
+    def signature_share(self, base: Evaluation) -> float:
+        """The share of the pair's held-out gain over ``base`` on the statistics either
+        effect moves (NaN without a gain)."""
+        assert self.second.evaluation is not None
+        before, after = base.held.per_stat, self.second.evaluation.held.per_stat
+        gains = {k: max(before[k], 1.0) - max(after.get(k, 1.0), 1.0) for k in before}
+        total = sum(gains.values())
+        if not total > 0:
+            return math.nan
+        moves = set(registry.spec(self.first.name).moves) | \
+            set(registry.spec(self.second.name).moves)
+        return sum(gains[k] for k in moves if k in gains) / total
+
+    def even_share(self, base: Evaluation) -> float:
+        stats = base.held.per_stat
+        moves = set(registry.spec(self.first.name).moves) | \
+            set(registry.spec(self.second.name).moves)
+        return len([k for k in moves if k in stats]) / max(len(stats), 1)
+
+    def to_json(self, pen: float) -> dict[str, Any]:
+        d = self.second.to_json(pen)
+        d["pair"] = list(self.names)
+        d["first_parameters"] = to_jsonable(self.first.effect.parameters()) \
+            if self.first.effect is not None else None
+        if math.isfinite(self.score(pen)):
+            d["score"] = float(self.score(pen))
+        return d
+
+
+def search_pairs(ev: Evaluator, on: Evaluation, rnd: Round) -> list[Pair]:
+    """Pairs of the round's ``pair_top`` best candidates (by held-out score, whatever their
+    signature share: one effect's gain may lie on the other's statistics), each effect with
+    the value its fitter read on the model alone (a candidate of the round: held to the
+    null calibration there), screened together on one seed; the pair of the best score
+    confirmed on every seed, and so are its two effects alone (what each adds to the other
+    is judged on them). The better-ranked effect of a pair is its first.
+
+    For effects that explain the data only together: each alone may gain little or even
+    lose (a dark level alone changes every pixel's sensitivity to light, which a frame lag
+    alone cannot follow), so a forward search of singles never reaches them. Screening the
+    round's own fits together costs one simulation per pair (on the screening band): the
+    value of the second effect is fitted again on the first's simulations when the pair is
+    named (:meth:`.workflow.GapRun._pair`)."""
+    cfg = ev.cfg
+    pen = cfg.penalty_per_parameter
+    top = [c for c in rnd.ranked(pen) if c.effect is not None][:cfg.pair_top]
+    jobs = [(a, b) for i, a in enumerate(top) for b in top[i + 1:]]
+    if not jobs:
+        return []
+
+    def screen(job: tuple[Candidate, Candidate]) -> Pair:
+        a, b = job
+        assert a.effect is not None
+        assert b.effect is not None
+        model = ev.candidate_model(ev.candidate_model(on.model, a.effect), b.effect)
+        e = ev.evaluate(model, f"screen {a.name} + {b.name}",
+                        spread=on if cfg.screen else None)
+        second = Candidate(b.name, "screened" if cfg.screen else "confirmed", "", b.effect,
+                           b.strength, b.null_limit, dict(b.detail), e)
+        return Pair(a, second, b)
+
+    with ThreadPoolExecutor(max_workers=max(1, min(ev.workers, len(jobs)))) as pool:
+        pairs = list(pool.map(screen, jobs))
+    pairs.sort(key=lambda p: p.score(pen))
+    best = pairs[0]
+    todo = [c for c in (best.second, best.first, best.alone)
+            if c.status != "confirmed" and c.evaluation is not None]
+    with ThreadPoolExecutor(max_workers=max(1, min(ev.workers, len(todo)))) as pool:
+        done = list(pool.map(lambda c: ev.confirm(c.evaluation, f"confirm {c.name}"), todo))
+    for c, out in zip(todo, done, strict=True):
+        c.evaluation = out
+        c.status = "confirmed"
+    pairs.sort(key=lambda p: p.score(pen))
+    return pairs
+
+
+def let_go_pairs(pairs: list[Pair], *keep: Evaluation | None) -> None:
+    """Every pair's simulations let go but ``keep``'s."""
+    kept = {id(e) for e in keep if e is not None}
+    for p in pairs:
+        e = p.second.evaluation
+        if e is not None and id(e) not in kept:
+            e.sims.clear()

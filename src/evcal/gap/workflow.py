@@ -27,6 +27,7 @@ them.
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -55,7 +56,7 @@ from .runner import (
     need,
     screening_band,
 )
-from .search import Candidate, Round, search
+from .search import Candidate, Pair, Round, let_go_pairs, search, search_pairs
 from .stats import GapError
 
 __all__ = ["SCHEME_EFFECT", "Evaluation", "GapConfig", "GapResult", "GapRun", "Step",
@@ -102,6 +103,9 @@ class GapResult:
     # candidates of the round that named nothing (why the loop stopped)
     rejected: dict[str, dict[str, Any]] = field(default_factory=dict)
     null: dict[str, Any] = field(default_factory=dict)
+    # the pairs of two effects the round that named nothing tried, best first
+    # (search.search_pairs; the best one's ``why`` says why it was not named)
+    pairs_tried: list[dict[str, Any]] = field(default_factory=list)
 
     @property
     def named_effects(self) -> list[str]:
@@ -145,6 +149,9 @@ class GapResult:
             "not_named": {name: {k: c[k] for k in ("status", "reason", "held_out_gap")
                                  if k in c}
                           for name, c in self.rejected.items()},
+            "pairs_tried": [{k: p[k] for k in ("pair", "status", "held_out_gap", "score",
+                                               "parameters", "first_parameters", "why")
+                             if k in p} for p in self.pairs_tried],
             "statistics": stats,
             # what the final model still does not explain, worst first (also when nothing
             # was named): statistic, regime, direction, in words
@@ -295,6 +302,8 @@ class GapRun:
         self.released = released
         self.steps: list[Step] = []
         self.rejected: dict[str, dict[str, Any]] = {}
+        # the pairs of the last round that named nothing (search_pairs), for the report
+        self.pairs_tried: list[dict[str, Any]] = []
         # scene effects fitted before the rounds and not named (with the reason)
         self.scene_rejected: dict[str, dict[str, Any]] = {}
         # the model each scene effect was last tried on
@@ -389,6 +398,14 @@ class GapRun:
                 self.steps.append(Step(eff_q, current, ev_q, {SCHEME_EFFECT: entry}, how))
                 current = moved_on(current, ev_q)
             why = self._why(rnd, on, best)
+            if (best is None or not why["named"]) and self._pairs_due(on):
+                named = self._pair(rnd, current, on, tried)
+                if named is not None:
+                    current = named
+                    scheme_refused = False
+                    if ev.released is not None:
+                        ev.released()
+                    continue
             if best is None or not why["named"]:
                 # the scheme's own entry (no evidence, or refused in an earlier round) stays
                 # in the report (_result leaves out what the model holds)
@@ -582,6 +599,92 @@ class GapRun:
                 "null_gain": float(null_gain), "ranked_below": others,
                 "equivalent": equivalent}
 
+    def _pairs_due(self, on: Evaluation) -> bool:
+        """Whether a round that named no single effect tries pairs: room for two more sensor
+        effects and a held-out gap still above ``pair_min_gap``."""
+        cfg = self.cfg
+        return cfg.pair_top >= 2 and self.n_sensor() + 2 <= cfg.max_effects and \
+            on.held_gap > cfg.pair_min_gap
+
+    def _pair_why(self, pair: Pair, on: Evaluation) -> dict[str, Any]:
+        """Whether ``pair`` is named, and why: its held-out gain over ``on`` against what
+        naming needs plus both effects' gains with nothing missing; what each effect adds to
+        the other alone (each must add what naming a single needs); the share of its gain
+        on the statistics either effect moves."""
+        cfg = self.cfg
+        pen = cfg.penalty_per_parameter
+        assert self.ev is not None
+        score = pair.score(pen)
+        g = gain(on.held_gap, score)
+        needed = need(cfg, on.held_gap)
+        adds: dict[str, dict[str, Any]] = {}
+        for c, other in ((pair.first, pair.second.name), (pair.alone, pair.first.name)):
+            alone = c.score(pen) if c.status == "confirmed" else math.inf
+            adds[other] = {"alone": c.name, "alone_score": float(alone),
+                           "added_gain": float(gain(alone, score)) if math.isfinite(alone)
+                           else math.nan,
+                           "needed_gain": float(need(cfg, alone)) if math.isfinite(alone)
+                           else math.nan}
+        each = all(math.isfinite(a["alone_score"]) and a["added_gain"] > a["needed_gain"]
+                   for a in adds.values())
+        null_gain = (self.null.gain(self.ev, pair.first.name) +
+                     self.null.gain(self.ev, pair.second.name)) if g > needed and each else 0.0
+        share = pair.signature_share(on)
+        sig_ok = cfg.min_signature_share <= 0 or not math.isfinite(share) or \
+            share >= cfg.min_signature_share * pair.even_share(on)
+        named = bool(g > needed + null_gain and each and sig_ok)
+        reason = "" if named else (
+            f"the pair's held-out gain {g:.2f} is below the {needed + null_gain:.2f} needed"
+            if g <= needed + null_gain else
+            "one of the two adds less to the other alone than naming a single needs"
+            if not each else
+            f"{100 * share:.0f} % of its held-out gain falls on the statistics its effects "
+            "move: it absorbs a misfit they do not describe")
+        return {"named": named, "effect": pair.first.name, "pair": list(pair.names),
+                "held_out_gap": float(on.held_gap), "score": float(score),
+                "held_out_gain": float(g), "needed_gain": float(needed),
+                "null_gain": float(null_gain), "each_adds": adds,
+                "signature_share": float(share), "reason": reason}
+
+    def _pair(self, rnd: Round, current: Evaluation, on: Evaluation,
+              tried: dict[str, dict[str, Any]]) -> Evaluation | None:
+        """Two effects named at once (:func:`.search.search_pairs`) when the round named
+        no single one; the model with both (the second finished as a single is), or
+        ``None`` (the pairs tried kept for the report)."""
+        ev = self.ev
+        assert ev is not None
+        pen = self.cfg.penalty_per_parameter
+        pairs = search_pairs(ev, on, rnd)
+        conf = [p for p in pairs if p.second.status == "confirmed"]
+        whys = {id(p): self._pair_why(p, on) for p in conf[:1]}
+        self.pairs_tried = [{**p.to_json(pen), **({"why": whys[id(p)]} if id(p) in whys
+                                                   else {})} for p in pairs]
+        if not conf or not whys[id(conf[0])]["named"]:
+            let_go_pairs(pairs)
+            return None
+        p = conf[0]
+        a, b = p.first, p.second
+        assert a.effect is not None
+        assert a.evaluation is not None
+        assert b.effect is not None
+        assert b.evaluation is not None
+        why = whys[id(p)]
+        rnd.let_go(on, a.evaluation)
+        let_go_pairs(pairs, b.evaluation)
+        tried[a.name]["status"] = "named"
+        tried[a.name]["pair"] = list(p.names)
+        self.steps.append(Step(a.effect, current, a.evaluation, tried, why))
+        eff, after, info = self._finish(a.evaluation, b)
+        entry = b.to_json(pen)
+        entry.update(status="named", finish=to_jsonable(info), pair=list(p.names))
+        self.steps.append(Step(eff, a.evaluation, after, {b.name: entry},
+                               {**why, "effect": b.name}))
+        self.pairs_tried = []
+        if after is not b.evaluation:
+            moved_on(b.evaluation, after)
+        moved_on(current, a.evaluation)
+        return moved_on(a.evaluation, after)
+
     def _finish(self, on: Evaluation, best: Candidate
                 ) -> tuple[Effect, Evaluation, dict[str, Any]]:
         """``best`` refitted on every row (its moment), bias-corrected and refined."""
@@ -650,7 +753,7 @@ class GapRun:
         not_named = {k: v for k, v in {**self.scene_rejected, **self.rejected}.items()
                      if k not in current.model.effects}
         return GapResult(info, ev.meas_stats, lighten(initial), lighten(current), steps,
-                         settings, not_named, self.null.to_json())
+                         settings, not_named, self.null.to_json(), self.pairs_tried)
 
 
 def run_gap(rec: Recording, config: GapConfig | None = None, *,
