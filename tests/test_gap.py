@@ -252,7 +252,7 @@ def test_reports_follow_the_schema(tmp_path) -> None:
     doc = json.loads(paths["json"].read_text())
     assert set(doc) == {"named_effects", "gap_initial", "gap_final", "held_out_gap_initial",
                         "held_out_gap_final", "steps", "not_named", "pairs_tried",
-                        "statistics", "unexplained", "window"}
+                        "dropped", "statistics", "unexplained", "window"}
     assert doc["named_effects"] == ["log_offset"]
     assert isinstance(doc["pairs_tried"], list)
     assert doc["window"]["cut"] is False

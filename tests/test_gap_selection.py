@@ -291,6 +291,29 @@ def test_a_pair_is_named_only_when_each_effect_adds_to_the_other() -> None:
     assert "below" in small["reason"]
 
 
+def test_a_named_effect_the_others_make_redundant_is_taken_out_again() -> None:
+    """The backward step: in a model of a recording with a dark level hidden, the dark
+    level (whose absence costs much on the held-out rows) stays, and a timestamp jitter too
+    small to move anything (named, say, in an early round) is dropped and reported."""
+    from evcal.gap.workflow import GapRun, Step  # noqa: PLC0415
+    from evcal.sim.effects import LogOffset, TimestampJitter  # noqa: PLC0415
+
+    rec = hidden_recording([LogOffset(dark_dn=45.0)], 47)
+    run = GapRun(rec, GapConfig(seed=2))
+    run.ev = ev = Evaluator(rec, run.cfg, lambda _w: None)
+    dark, idle = LogOffset(dark_dn=45.0), TimestampJitter(sigma_us=1.0)
+    base = fit_base(rec, 45.0)
+    cur = ev.evaluate(base.with_effect(idle).with_effect(dark), "both")
+    run.steps = [Step(idle, cur, cur, {}), Step(dark, cur, cur, {})]
+    out = run._prune(cur)
+    assert [s.effect.name for s in run.steps] == ["log_offset"]
+    assert [d["effect"] for d in run.dropped] == ["timestamp_jitter"]
+    assert "timestamp_jitter" not in out.model.effects
+    assert out.model.effects["log_offset"] == dark
+    d = run.dropped[0]
+    assert d["held_out_gap_without"] - d["held_out_gap_with"] < d["needed_gain"]
+
+
 def test_a_screening_leaves_out_a_component_whose_spread_is_unknown() -> None:
     """A candidate screened on one seed takes its spread from a neighbouring model; where
     one of that model's simulations had too little data (NaN), the component is left out

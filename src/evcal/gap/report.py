@@ -120,6 +120,18 @@ def write_markdown(result: GapResult, out_dir: Path, *, plots: bool = True) -> P
                       "every seed first; the fitter's reason where it saw none):", ""]
             lines += _candidate_lines(s.candidates)
             lines.append("")
+    if result.dropped:
+        lines += ["## Taken out again", "",
+                  "Effects named in a round and dropped from the final model: without them the "
+                  "held-out gap rises by less than naming needs (what was named after them "
+                  "explains the same):", ""]
+        for d in result.dropped:
+            params = ", ".join(f"{k}={v}" for k, v in d["parameters"].items())
+            lines.append(f"- {d['effect']} ({params}), named in step {d['named_in_step']}: "
+                         f"held-out gap {d['held_out_gap_with']:.2f} with it, "
+                         f"{d['held_out_gap_without']:.2f} without (naming needs "
+                         f"{d['needed_gain']:.2f})")
+        lines.append("")
     lines += ["## Why the search stopped", "",
               "Candidates of the last round (none gained enough on the held-out rows to be "
               "named):" if result.rejected else "The largest number of effects was named.",

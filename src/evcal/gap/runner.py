@@ -19,7 +19,7 @@ import threading
 import weakref
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import partial
 from typing import Any
 
@@ -69,6 +69,10 @@ class GapConfig:
     # again (the three-point search) in the final model: its value was settled in a model
     # that lacked the effects named after it, which may explain part of what it took on
     refit_named: bool = True
+    # then each sensor effect of a final model of two or more taken out in turn: one whose
+    # absence costs less on the held-out rows than naming needs is dropped (a single named
+    # early that a pair named later makes redundant)
+    prune_named: bool = True
     # bias-correct each named effect's moment estimate by refitting it on the simulations
     # made with it (see evcal.gap.finish.debias)
     debias: bool = True
@@ -423,6 +427,15 @@ class Evaluator:
             m = Model(base.contrast, base.bias, base.log_offset, dict(current.effects))
             return m.with_effect(eff)  # refitted maps: not anchored
         return current.with_effect(eff)
+
+    def model_without(self, current: Model, name: str) -> Model:
+        """``current`` without effect ``name`` (without a dark level, the maps refitted at
+        the nominal log offset; not anchored)."""
+        effects = {k: v for k, v in current.effects.items() if k != name}
+        if name == "log_offset":
+            base = fit_base(self.rec)
+            return Model(base.contrast, base.bias, base.log_offset, effects)
+        return replace(current, effects=effects)
 
     def near_model(self, current: Model, near: Model, eff: Effect) -> Model:
         """``eff`` (a new value of an effect ``near`` has) on top of ``current``, starting

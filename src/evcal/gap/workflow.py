@@ -106,6 +106,9 @@ class GapResult:
     # the pairs of two effects the round that named nothing tried, best first
     # (search.search_pairs; the best one's ``why`` says why it was not named)
     pairs_tried: list[dict[str, Any]] = field(default_factory=list)
+    # named effects taken out of the final model again (GapConfig.prune_named): effect,
+    # parameters, the step it was named in, the held-out gaps with and without it
+    dropped: list[dict[str, Any]] = field(default_factory=list)
 
     @property
     def named_effects(self) -> list[str]:
@@ -152,6 +155,7 @@ class GapResult:
             "pairs_tried": [{k: p[k] for k in ("pair", "status", "held_out_gap", "score",
                                                "parameters", "first_parameters", "why")
                              if k in p} for p in self.pairs_tried],
+            "dropped": self.dropped,
             "statistics": stats,
             # what the final model still does not explain, worst first (also when nothing
             # was named): statistic, regime, direction, in words
@@ -304,6 +308,8 @@ class GapRun:
         self.rejected: dict[str, dict[str, Any]] = {}
         # the pairs of the last round that named nothing (search_pairs), for the report
         self.pairs_tried: list[dict[str, Any]] = []
+        # named effects the backward step (_prune) took out of the final model
+        self.dropped: list[dict[str, Any]] = []
         # scene effects fitted before the rounds and not named (with the reason)
         self.scene_rejected: dict[str, dict[str, Any]] = {}
         # the model each scene effect was last tried on
@@ -429,6 +435,8 @@ class GapRun:
             if ev.released is not None:
                 ev.released()
         current = self._scenes(current)
+        if cfg.prune_named:
+            current = self._prune(current)
         if cfg.refit_named:
             todo = [i for i, s in enumerate(self.steps)
                     if registry.spec(s.effect.name).kind in SENSOR_KINDS][:-1]
@@ -701,6 +709,72 @@ class GapRun:
         info["fit_rows_value"] = float(best.effect.parameters()[key])
         return eff, after, info
 
+    def _prune(self, current: Evaluation) -> Evaluation:
+        """Each sensor effect of a final model of two or more taken out in turn
+        (:meth:`_prune_one`) until none can be. A single named in an early round can be made
+        redundant by what later rounds named (a power law of the thresholds in the dark,
+        then a dark level with a frame lag as a pair); the workflow's rounds only add."""
+        while True:
+            out = self._prune_one(current)
+            if out is None:
+                return current
+            current = out
+
+    def _keeps(self, current: Evaluation, name: str, without: float, on: float) -> float:
+        """What effect ``name`` of ``current`` gains over the model without it (held-out
+        gaps ``without`` and ``on``, its complexity penalty counted), less what naming it
+        would need."""
+        cfg = self.cfg
+        n = current.model.effects[name].n_fitted
+        return gain(without, on + cfg.penalty_per_parameter * n) - need(cfg, without)
+
+    def _prune_one(self, current: Evaluation) -> Evaluation | None:
+        """Every sensor effect of ``current`` (two or more) taken out, screened on one seed;
+        the one whose absence costs least, unless its screening shows it gaining twice what
+        naming needs, confirmed on every seed and dropped when its gain there is less than
+        naming it last would need: the model without it, or ``None``."""
+        ev = self.ev
+        assert ev is not None
+        cfg = self.cfg
+        names = [s.effect.name for s in self.steps
+                 if registry.spec(s.effect.name).kind in SENSOR_KINDS]
+        if len(names) < 2:
+            return None
+        share = 1.0 if ev.band is None else ev.band.share
+        self._plan(ev.work + round_work(cfg, share, len(names), names=False))
+        base = ev.screen_gap(current) if cfg.screen else current.held_gap
+        with ThreadPoolExecutor(max_workers=max(1, min(ev.workers, len(names)))) as pool:
+            screened = dict(zip(names, pool.map(
+                lambda n: ev.evaluate(ev.model_without(current.model, n),
+                                      f"screen without {n}",
+                                      spread=current if cfg.screen else None), names),
+                strict=True))
+        order = sorted(names, key=lambda n: self._keeps(current, n, screened[n].held_gap,
+                                                        base))
+        name = order[0]
+        for n in order[1:]:
+            screened[n].sims.clear()
+        if self._keeps(current, name, screened[name].held_gap, base) > \
+                need(cfg, screened[name].held_gap):
+            screened[name].sims.clear()
+            return None
+        without = ev.confirm(screened[name], f"confirm without {name}")
+        if without is not screened[name]:
+            screened[name].sims.clear()
+        if self._keeps(current, name, without.held_gap, current.held_gap) > 0.0:
+            without.sims.clear()
+            return None
+        i = next(i for i, s in enumerate(self.steps) if s.effect.name == name)
+        step = self.steps.pop(i)
+        self.dropped.append({
+            "effect": name, "parameters": to_jsonable(step.effect.parameters()),
+            "named_in_step": i + 1, "held_out_gap_with": float(current.held_gap),
+            "held_out_gap_without": float(without.held_gap), "gap_without": float(without.gap),
+            "needed_gain": float(need(cfg, without.held_gap))})
+        _log.info("dropped %s: the model without it has a held-out gap of %.2f, with it %.2f",
+                  name, without.held_gap, current.held_gap)
+        return moved_on(current, without)
+
     def _refit(self, current: Evaluation, i: int) -> Evaluation:
         """Step ``i``'s effect refined anew (:func:`.finish.refine`, the three-point
         search) in the final model ``current``; the step then holds the value kept and its
@@ -753,7 +827,8 @@ class GapRun:
         not_named = {k: v for k, v in {**self.scene_rejected, **self.rejected}.items()
                      if k not in current.model.effects}
         return GapResult(info, ev.meas_stats, lighten(initial), lighten(current), steps,
-                         settings, not_named, self.null.to_json(), self.pairs_tried)
+                         settings, not_named, self.null.to_json(), self.pairs_tried,
+                         self.dropped)
 
 
 def run_gap(rec: Recording, config: GapConfig | None = None, *,
