@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Iterable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
@@ -54,13 +55,7 @@ class Candidate:
         gain counted down to a discrepancy of 1 (NaN without an evaluation or a gain)."""
         if self.evaluation is None:
             return math.nan
-        before, after = base.held.per_stat, self.evaluation.held.per_stat
-        gains = {k: max(before[k], 1.0) - max(after.get(k, 1.0), 1.0) for k in before}
-        total = sum(gains.values())
-        if not total > 0:
-            return math.nan
-        moves = registry.spec(self.name).moves
-        return sum(gains[k] for k in moves if k in gains) / total
+        return gain_share(base, self.evaluation, registry.spec(self.name).moves)
 
     def to_json(self, pen: float) -> dict[str, Any]:
         d: dict[str, Any] = {"status": self.status}
@@ -137,12 +132,28 @@ class Round:
                     ev.sims.clear()
 
 
-def even_share(name: str, base: Evaluation) -> float:
-    """The share of a gain the statistics effect ``name`` moves would take were it spread
-    evenly over every statistic compared."""
+def gain_share(base: Evaluation, after: Evaluation, moves: Iterable[str]) -> float:
+    """The share of ``after``'s held-out gain over ``base`` that falls on the statistics
+    ``moves``, each statistic's gain counted down to a discrepancy of 1 (NaN without a
+    gain)."""
+    before, now = base.held.per_stat, after.held.per_stat
+    gains = {k: max(before[k], 1.0) - max(now.get(k, 1.0), 1.0) for k in before}
+    total = sum(gains.values())
+    if not total > 0:
+        return math.nan
+    return sum(gains[k] for k in set(moves) if k in gains) / total
+
+
+def even_share_of(moves: Iterable[str], base: Evaluation) -> float:
+    """The share of a gain the statistics ``moves`` would take were it spread evenly over
+    every statistic compared."""
     stats = base.held.per_stat
-    moves = [k for k in registry.spec(name).moves if k in stats]
-    return len(moves) / max(len(stats), 1)
+    return len([k for k in set(moves) if k in stats]) / max(len(stats), 1)
+
+
+def even_share(name: str, base: Evaluation) -> float:
+    """:func:`even_share_of` the statistics effect ``name`` moves."""
+    return even_share_of(registry.spec(name).moves, base)
 
 
 def signature_ok(c: Candidate, base: Evaluation, min_share: float) -> bool:
@@ -235,14 +246,14 @@ def _confirm(ev: Evaluator, rnd: Round, pen: float) -> None:
 
 @dataclass
 class Pair:
-    """Two effects named together: ``first`` (a round's candidate, confirmed on every
-    seed) and ``second``, fitted on the first's simulations, its evaluation the model with
-    both (``second.evaluation``)."""
+    """Two effects tried together: ``first`` (a round's candidate, the better-ranked) and
+    ``second`` (the other's effect, at the value its fitter read on the model alone), its
+    evaluation the model with both (``second.evaluation``)."""
 
     first: Candidate
     second: Candidate
     # the second effect's own candidate of the round (alone on the current model), confirmed
-    # when the pair is the best: each of the two must add to the other
+    # with the first when the pair is the best: each of the two must add to the other
     alone: Candidate
 
     @property
@@ -257,24 +268,20 @@ class Pair:
         return self.second.evaluation.held_gap + pen * (self.first.effect.n_fitted +
                                                         self.second.effect.n_fitted)
 
+    @property
+    def moves(self) -> set[str]:
+        """The statistics either effect moves."""
+        return set(registry.spec(self.first.name).moves) | \
+            set(registry.spec(self.second.name).moves)
+
     def signature_share(self, base: Evaluation) -> float:
         """The share of the pair's held-out gain over ``base`` on the statistics either
         effect moves (NaN without a gain)."""
         assert self.second.evaluation is not None
-        before, after = base.held.per_stat, self.second.evaluation.held.per_stat
-        gains = {k: max(before[k], 1.0) - max(after.get(k, 1.0), 1.0) for k in before}
-        total = sum(gains.values())
-        if not total > 0:
-            return math.nan
-        moves = set(registry.spec(self.first.name).moves) | \
-            set(registry.spec(self.second.name).moves)
-        return sum(gains[k] for k in moves if k in gains) / total
+        return gain_share(base, self.second.evaluation, self.moves)
 
     def even_share(self, base: Evaluation) -> float:
-        stats = base.held.per_stat
-        moves = set(registry.spec(self.first.name).moves) | \
-            set(registry.spec(self.second.name).moves)
-        return len([k for k in moves if k in stats]) / max(len(stats), 1)
+        return even_share_of(self.moves, base)
 
     def to_json(self, pen: float) -> dict[str, Any]:
         d = self.second.to_json(pen)
