@@ -1215,37 +1215,66 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 
 def truth_model(npz: Path, truth: dict[str, Any], *, effects: bool = True,
-                add: tuple[str, ...] = ()) -> Any:
+                add: tuple[str, ...] = (), backend: str = "sim", drop: str | None = None
+                ) -> Any:
     """The gap model a case was made with: its true maps, log offset and (``effects``) its
-    hidden effects in evcal's terms (a v2e case's are evcal's nearest), plus the effects
-    named in ``add`` at their defaults (``start_reset``: how v2e begins)."""
+    hidden effects in evcal's terms (a v2e case's are evcal's nearest: v2e's shot-noise law,
+    linear in light, as the power law of the same rate and slope at the scene's median),
+    plus the effects named in ``add`` at their defaults (``start_reset``: how v2e begins),
+    less the hidden effect ``drop``. A v2e case also gets v2e's stamps (steps of 1 /
+    ``V2E_INPUT_RATE_HZ`` on the absolute time grid, slots spread): a simulator's scheme,
+    but one that decides where its dead time acts and stamps its noise at a step's end."""
+    import dataclasses
+
     from evcal.gap.model import Model
-    from evcal.sim.effects import EFFECTS
+    from evcal.sim.effects import EFFECTS, TimestampQuantisation
 
     kinds = dict(EFFECTS)
     with np.load(npz) as z:
         c = z["truth_contrast"].astype(np.float64)
         b = z["truth_bias"].astype(np.float64)
         offset = float(np.median(z["truth_log_offset"]))
+        first_frame_us = int(z["frame_t_us"][0])
     chosen = {}
     if effects:
         for e in truth["effects"]:
-            try:
-                chosen[e["name"]] = kinds[e["name"]](**e["parameters"])
-            except TypeError:
-                # a v2e law with no evcal equivalent (v2e's shot noise): left out, said so
-                print(f"   ({e['name']} of {npz.stem} has no evcal equivalent: left out)")
+            if e["name"] == drop:
+                continue
+            kind = kinds[e["name"]]
+            p = dict(e["parameters"])
+            if e["name"] == "shot_noise" and "rate_at_median_hz" in p:
+                p = _v2e_shot_law(p, float(truth["median_dn"]))
+            fields = {f.name for f in dataclasses.fields(kind)}
+            chosen[e["name"]] = kind(**{k: v for k, v in p.items() if k in fields})
     for name in add:
         chosen[name] = kinds[name]()
+    if backend == "v2e":
+        step_us = 1e6 / V2E_INPUT_RATE_HZ
+        chosen[TimestampQuantisation.name] = TimestampQuantisation(
+            step_us=step_us, scheme="spread", phase_us=float(-first_frame_us % step_us))
     return Model(c, b, offset, chosen)
+
+
+def _v2e_shot_law(p: dict[str, Any], median_dn: float) -> dict[str, Any]:
+    """evcal's ``ShotNoise`` nearest v2e's: the rate at the median light (thresholds'
+    factor included) and the local slope of v2e's law there, ``rate ~ 1 - 0.75 (I + 20) /
+    275`` (v2ecore/emulator_utils.py ``generate_shot_noise``), as the power's exponent."""
+    f = 1.0 - 0.75 * (median_dn + 20.0) / 275.0
+    exponent = float(np.clip(0.75 * median_dn / 275.0 / max(f, 1e-3), 0.0, 2.0))
+    return {"rate_hz": float(p["rate_at_median_hz"]), "ref_dn": float(median_dn),
+            "light_exponent": exponent, "min_dn": 1.6}
 
 
 def cmd_oracle(args: argparse.Namespace) -> int:
     """Each case simulated from its own frames with its true maps and hidden effects (no
     anchor, no fit), compared with its recording as the workflow compares a model: the gap
-    that remains is the frame-driven base model's own misfit, which no effect can close.
-    Dev cases only: reading the test split this way would tune on it."""
-    from evcal.gap.runner import Evaluation, Evaluator, GapConfig, _empty
+    that remains is the frame-driven base model's own misfit, which no effect can close (or
+    an effect evcal's model of it does not reproduce). Then each hidden effect left out in
+    turn: what the gap gains by it is what any selection could see of it; an effect is
+    *visible* when that gain is what naming it needs (:func:`evcal.gap.runner.need`, on the
+    whole sensor rather than held-out rows). Dev cases only: reading the test split this
+    way would tune on it."""
+    from evcal.gap.runner import Evaluation, Evaluator, GapConfig, _empty, need
     from evcal.io import open_recording
 
     data = Path(args.data)
@@ -1253,32 +1282,50 @@ def cmd_oracle(args: argparse.Namespace) -> int:
     cases = [c for c in select(manifest["cases"], "dev", args.only, args.limit, None)
              if c["truth"] is not None]
     add = tuple(a for a in (args.add or "").split(",") if a)
+    cfg = GapConfig(n_seeds=args.seeds)
+    tally: dict[str, list[int]] = {}
     for c in cases:
         npz, _ = case_paths(data, c)
         rec = open_recording(npz)
-        ev = Evaluator(rec, GapConfig(n_seeds=args.seeds), tick=lambda _share: None)
+        ev = Evaluator(rec, cfg, tick=lambda _share: None)
+        extra = add + (("start_reset",) if c["backend"] == "v2e" and
+                       args.v2e_reset and "start_reset" not in add else ())
         rows = []
-        for label, eff in (("true maps + effects", True), ("true maps only", False)):
-            extra = add + (("start_reset",) if c["backend"] == "v2e" and
-                           args.v2e_reset and "start_reset" not in add else ())
-            model = truth_model(npz, c["truth"], effects=eff, add=extra)
+        for drop in (None, *c["truth"]["hidden"]):
+            model = truth_model(npz, c["truth"], add=extra, backend=c["backend"], drop=drop)
+            label = "true maps + effects" if drop is None else f"without {drop}"
             out = ev.extend(Evaluation(model, [], _empty(), _empty()), args.seeds, label)
-            rows.append((label, out))
-            if not c["truth"]["effects"]:
-                break
+            per = dict(out.disc.per_stat)
+            rows.append((label, drop, float(np.mean(list(per.values()))), per, out))
         hidden = ",".join(c["truth"]["hidden"]) or "-"
         print(f"{c['id']}  {c['backend']}  {c['category']}  hidden {hidden}  "
               f"{c['illumination']['kind']}  {fmt_scene(c['scene'])}")
-        for label, out in rows:
-            per = dict(out.disc.per_stat)
-            if c["backend"] == "v2e":
-                # v2e's frame-driven stamps (the scheme, which the workflow fits apart) are
-                # not among the truth's effects: their statistic is left out of the gap
-                per.pop("timestamp_quantum", None)
+        record: dict[str, Any] = {"id": c["id"], "backend": c["backend"],
+                                  "category": c["category"], "gap_truth": rows[0][2],
+                                  "effects": {}}
+        for label, drop, gap, per, out in rows:
             worst = sorted(per.items(), key=lambda kv: -kv[1])[:args.top]
-            print(f"   {label:22s} gap {float(np.mean(list(per.values()))):8.2f}  " + "  ".join(
+            tail = ""
+            if drop is not None:
+                gained = gap - max(rows[0][2], 1.0)
+                needed = need(cfg, gap)
+                visible = gained > needed
+                tally.setdefault(f"{c['backend']} {drop}", [0, 0])[0] += int(visible)
+                tally[f"{c['backend']} {drop}"][1] += 1
+                record["effects"][drop] = {"gap_without": gap, "gained": gained,
+                                           "needed": needed, "visible": visible}
+                tail = f"  gains {gained:.2f} ({'visible' if visible else 'not visible'}: " \
+                       f"{needed:.2f} needed)"
+            print(f"   {label:22s} gap {gap:8.2f}{tail}  " + "  ".join(
                 f"{k} {v:.1f} [{out.disc.where(k)}]" for k, v in worst))
+        if args.results:
+            with open(args.results, "a") as fh:
+                fh.write(json.dumps(record) + "\n")
         sys.stdout.flush()
+    if tally:
+        print("\nvisible (the truth's gap gains what naming needs by the effect) / cases:")
+        for key in sorted(tally):
+            print(f"   {key:24s} {tally[key][0]} / {tally[key][1]}")
     return 0
 
 
@@ -1349,6 +1396,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                    help="do not add start_reset to v2e cases (v2e starts every pixel's "
                         "reference at its first frame; added by default)")
     p.add_argument("--top", type=int, default=3, help="statistics shown per model (3)")
+    p.add_argument("--results", default=None,
+                   help="JSON lines, appended: per case the truth's gap and per hidden "
+                        "effect the gap without it, its gain, what naming needs, visible")
     p.set_defaults(func=cmd_oracle)
 
     p = sub.add_parser("report", help="score a results file")
