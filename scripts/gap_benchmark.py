@@ -42,6 +42,7 @@ criteria are :data:`CRITERIA`.
 from __future__ import annotations
 
 import argparse
+import gc
 import hashlib
 import json
 import math
@@ -1128,6 +1129,13 @@ def report_text(scored: list[dict[str, Any]], markdown: bool = False
                          [[k] + [f"{_pct(v['named_first'])} of {v['n']}"
                                  for v in ms[k]["single_by_activity"].values()]
                           for k in names], markdown))
+        if any("oracle" in s for s in ss):
+            out.append("\n   singles by what their truth shows (`oracle --results`): "
+                       "reproduced = the truth's gap at most 3; visible = leaving the effect "
+                       "out of the truth gains what naming needs")
+            out.append(table(["scope", "class", "n", "named first", "effects"],
+                             [[k, cls, *row] for k in names
+                              for cls, row in oracle_classes(scopes[k]).items()], markdown))
         out.append("\n3. pairs and mixes")
         rows = [[k, cat, ms[k][cat]["n"], _pct(ms[k][cat]["two_plus"]),
                  _pct(ms[k][cat]["all_named"]), _pct(ms[k][cat]["no_false"])]
@@ -1177,6 +1185,37 @@ def report_text(scored: list[dict[str, Any]], markdown: bool = False
     return "\n".join(out), metrics
 
 
+ORACLE_CLASSES = ("reproduced, visible", "reproduced, not visible", "not reproduced")
+
+
+def oracle_class(s: dict[str, Any]) -> str | None:
+    """A single case's class by its oracle record (None without one): whether evcal's
+    model of the truth reproduces the recording (gap at most 3) and, if so, whether the
+    hidden effect shows in the gap (``visible``)."""
+    o = s.get("oracle")
+    if not o or s["category"] != "single":
+        return None
+    eff = o["effects"].get(s["hidden"][0])
+    if eff is None:
+        return None
+    if o["gap_truth"] > 3.0:
+        return ORACLE_CLASSES[2]
+    return ORACLE_CLASSES[0] if eff["visible"] else ORACLE_CLASSES[1]
+
+
+def oracle_classes(scored: list[dict[str, Any]]) -> dict[str, list[Any]]:
+    """Per oracle class of the single cases: n, share named first, the effects (count)."""
+    out = {}
+    for cls in ORACLE_CLASSES:
+        cs = [s for s in scored if oracle_class(s) == cls]
+        if cs:
+            out[cls] = [len(cs), _pct(_share(sum(s["named"][:1] == s["hidden"] for s in cs),
+                                             len(cs))),
+                        ", ".join(f"{e} {n}" for e, n in
+                                  sorted(Counter(s["hidden"][0] for s in cs).items()))]
+    return out
+
+
 def confusion(scored: list[dict[str, Any]], markdown: bool) -> str:
     """Rows: hidden category (singles by effect); columns: the effects named."""
     rows_key = []
@@ -1203,6 +1242,11 @@ def cmd_report(args: argparse.Namespace) -> int:
         print(f"no results in {args.results}")
         return 1
     scored = [score_case(r) for r in results.values()]
+    if args.oracle:
+        oracle = load_results(Path(args.oracle))
+        for sc in scored:
+            if sc["id"] in oracle:
+                sc["oracle"] = oracle[sc["id"]]
     text, metrics = report_text(scored)
     print(text)
     if args.markdown:
@@ -1227,7 +1271,8 @@ def truth_model(npz: Path, truth: dict[str, Any], *, effects: bool = True,
     import dataclasses
 
     from evcal.gap.model import Model
-    from evcal.sim.effects import EFFECTS, TimestampQuantisation
+    from evcal.gap.stats import NOMINAL_LOG_OFFSET_DN
+    from evcal.sim.effects import EFFECTS, ApsFpn, LogOffset, TimestampQuantisation
 
     kinds = dict(EFFECTS)
     with np.load(npz) as z:
@@ -1245,7 +1290,14 @@ def truth_model(npz: Path, truth: dict[str, Any], *, effects: bool = True,
             if e["name"] == "shot_noise" and "rate_at_median_hz" in p:
                 p = _v2e_shot_law(p, float(truth["median_dn"]))
             fields = {f.name for f in dataclasses.fields(kind)}
-            chosen[e["name"]] = kind(**{k: v for k, v in p.items() if k in fields})
+            eff = kind(**{k: v for k, v in p.items() if k in fields})
+            if isinstance(eff, ApsFpn):
+                # the gap model corrects the frames by a known map only: the drawn one
+                eff = dataclasses.replace(eff, offset_dn=eff.offsets_dn(c.shape))
+            chosen[e["name"]] = eff
+    if drop == LogOffset.name:
+        # the maps' log offset is the dark level the case hid: without it, the nominal one
+        offset = NOMINAL_LOG_OFFSET_DN
     for name in add:
         chosen[name] = kinds[name]()
     if backend == "v2e":
@@ -1291,12 +1343,16 @@ def cmd_oracle(args: argparse.Namespace) -> int:
         extra = add + (("start_reset",) if c["backend"] == "v2e" and
                        args.v2e_reset and "start_reset" not in add else ())
         rows = []
-        for drop in (None, *c["truth"]["hidden"]):
-            model = truth_model(npz, c["truth"], add=extra, backend=c["backend"], drop=drop)
+        # v2e's start from its first frame is how such a recording begins, named apart by
+        # the workflow: left out in turn like the hidden effects
+        for drop in (None, *c["truth"]["hidden"], *(a for a in extra if a == "start_reset")):
+            model = truth_model(npz, c["truth"], add=tuple(a for a in extra if a != drop),
+                                backend=c["backend"], drop=drop)
             label = "true maps + effects" if drop is None else f"without {drop}"
             out = ev.extend(Evaluation(model, [], _empty(), _empty()), args.seeds, label)
             per = dict(out.disc.per_stat)
             rows.append((label, drop, float(np.mean(list(per.values()))), per, out))
+            out.sims.clear()  # a case's simulations are let go as soon as they are summed
         hidden = ",".join(c["truth"]["hidden"]) or "-"
         print(f"{c['id']}  {c['backend']}  {c['category']}  hidden {hidden}  "
               f"{c['illumination']['kind']}  {fmt_scene(c['scene'])}")
@@ -1322,6 +1378,8 @@ def cmd_oracle(args: argparse.Namespace) -> int:
             with open(args.results, "a") as fh:
                 fh.write(json.dumps(record) + "\n")
         sys.stdout.flush()
+        del ev, rec, rows
+        gc.collect()
     if tally:
         print("\nvisible (the truth's gap gains what naming needs by the effect) / cases:")
         for key in sorted(tally):
@@ -1404,6 +1462,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p = sub.add_parser("report", help="score a results file")
     p.add_argument("--results", required=True)
     p.add_argument("--markdown", default=None)
+    p.add_argument("--oracle", default=None,
+                   help="the oracle's JSON lines (dev): singles split by whether the truth "
+                        "reproduces the recording and shows the effect")
     p.add_argument("--json", default=None)
     p.set_defaults(func=cmd_report)
     return ap.parse_args(argv)
