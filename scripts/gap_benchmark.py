@@ -8,7 +8,8 @@ Run with evcal's venv (``. .venv/bin/activate``)::
     python scripts/gap_benchmark.py generate --out DIR [--split dev|test|all] [--jobs 2]
     python scripts/gap_benchmark.py run --data DIR --split dev --results dev.jsonl
     python scripts/gap_benchmark.py report --results dev.jsonl [--markdown OUT.md]
-    python scripts/gap_benchmark.py oracle --data DIR --only dev1002   # true maps' own gap
+        [--oracle oracle.jsonl]                        # singles by what their truth shows
+    python scripts/gap_benchmark.py oracle --data DIR [--only dev1002] [--results FILE]
 
 **Cases.** ``--n-dev`` cases with seeds ``--dev-seed-base`` (1000).. form the ``dev`` split
 (for tuning), ``--n-test`` with seeds ``--test-seed-base`` (2000).. the ``test`` split (run
