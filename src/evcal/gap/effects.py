@@ -102,9 +102,10 @@ class FitContext:
     # the rows of the recording's frames that ``meas`` holds when they are not ``rows``
     # (a band of rows the fit sees as a sensor of its own)
     frame_rows: slice | None = None
-    # the current model (whole sensor) with an effect added, simulated on one seed, its
-    # observation on the rows of ``meas``: for a fitter that matches by simulation (a
-    # scene's flicker); ``None`` where the workflow offers none
+    # the current model (whole sensor) with an effect added, simulated on one seed (not
+    # anchored), its observation on the rows of ``meas``: for a fitter that matches or
+    # settles by simulation (a scene's flicker, the dark level); ``None`` outside the
+    # workflow (each call costs a whole-sensor simulation)
     simulate: Callable[[Effect], Observation] | None = None
 
     @property

@@ -274,19 +274,21 @@ class Evaluator:
         measurement (the null calibration's pseudo-measurements, simulations themselves)."""
         m = self.meas_obs if meas is None else meas
         if not held_out:
-            return FitContext(m, list(sims), model, self.rec, m, None, self.cfg.seed)
+            return FitContext(m, list(sims), model, self.rec, m, None, self.cfg.seed,
+                              simulate=partial(self.simulate_with, model, rows=False))
         w = self.whole
         return FitContext(w.fit_of(m), [w.fit_of(s) for s in sims],
                           model_on_rows(model, w.fit_rows), self.rec, m, w.fit_rows,
-                          self.cfg.seed)
+                          self.cfg.seed, simulate=partial(self.simulate_with, model))
 
-    def simulate_with(self, model: Model, eff: Effect) -> Observation:
+    def simulate_with(self, model: Model, eff: Effect, *, rows: bool = True) -> Observation:
         """``model`` with ``eff`` added, simulated on the first seed (not anchored: a
-        fitter's trial), its observation on the fit rows (as a held-out fit sees them)."""
+        fitter's trial), its observation on the fit rows (as a held-out fit sees them;
+        every row with ``rows=False``)."""
         obs = observe(simulate_model(model.with_effect(eff), self.rec, self.seeds[0],
                                      self.settings, self.render), trusted=self.trusted)
         self._counted(1.0)
-        return self.whole.fit_of(obs)
+        return self.whole.fit_of(obs) if rows else obs
 
     # -------------------------------------------------------------------- simulations
 
