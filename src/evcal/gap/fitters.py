@@ -498,8 +498,9 @@ def sensitivity_by_light(obs: Observation, edges: np.ndarray | None = None
 class _SensitivityShape:
     """The measurement's events per unit of change by light against the model's
     simulations: ``y`` the log ratio per usable bin, ``var`` its noise (the simulations'
-    spread, floored), ``light`` the bins' light. :meth:`chi2` of a model's curve (a common
-    factor free) or of another observation's sensitivity."""
+    spread, floored), ``light`` the bins' light; :meth:`curve_fit` the dark level whose
+    curve fits it, :meth:`chi2_of` how far another observation's sensitivity is from the
+    measurement's (a common factor free in both)."""
 
     def __init__(self, meas: Observation, sims: list[Observation]) -> None:
         sens_m, lbar, n, self.edges = sensitivity_by_light(meas)
@@ -571,16 +572,19 @@ def fit_log_offset(ctx: FitContext) -> FitResult:
         return NoEvidence(f"the log offset could not be estimated: {detail.get('offei')}")
     d = readings[0]
     lo, hi = min(readings), max(readings)
-    if len(readings) == 2 and hi > LOG_OFFSET_DISAGREE * max(lo, 1e-9) and hi >= floor \
-            and shape is not None and ctx.simulate is not None:
+    # the curve alone (OffEI could not read) or two readings apart: settled by simulation
+    unsettled = "offei_dn" not in detail or hi > LOG_OFFSET_DISAGREE * max(lo, 1e-9)
+    if unsettled and hi >= floor and shape is not None and ctx.simulate is not None:
         trials = {r: ctx.simulate(LogOffset(dark_dn=round(r, 3))) for r in readings
                   if r >= floor}
         chi = {r: shape.chi2_of(obs) for r, obs in trials.items()}
-        if lo < floor:
+        if lo < floor or len(readings) == 1:
             # the model as it is: its own simulations say what no dark level gives
-            chi[lo] = float(np.mean([shape.chi2_of(s) for s in sims]))
+            chi[min(lo, m)] = float(np.mean([shape.chi2_of(s) for s in sims]))
         d = min(chi, key=lambda r: chi[r])
         detail["chi2"] = {f"{r:.3g}": round(v, 2) for r, v in chi.items()}
+    elif "offei_dn" not in detail:
+        d = m  # the curve alone, unsettled: no evidence
     if d < floor:
         return NoEvidence(f"the offset that explains the events best is {d:.3g} DN, at the "
                           f"model's {m:.3g} DN")
