@@ -64,3 +64,25 @@ def test_a_callback_that_raises_leaves_the_relay_working(caplog):
     finally:
         relay.close()
     assert "handling signal" in caplog.text
+
+
+def test_after_a_stop_a_second_signal_is_ignored_while_the_command_finishes():
+    """A command told to stop saves and closes what it holds, then exits: a second stop
+    signal in that time (a shell's exit trap signals every job it started, the one already
+    stopping too) must not kill it halfway. Without a signal received, close() puts the
+    previous handler back as before."""
+    before = signal.getsignal(signal.SIGUSR2)
+    quiet = SignalRelay([signal.SIGUSR2], lambda _s: None)
+    quiet.close(ignore_after_stop=True)
+    assert signal.getsignal(signal.SIGUSR2) is before
+    relay = SignalRelay([signal.SIGUSR2], lambda _s: None)
+    try:
+        os.kill(os.getpid(), signal.SIGUSR2)
+        assert relay.received.wait(10)
+    finally:
+        relay.close(ignore_after_stop=True)
+    try:
+        assert signal.getsignal(signal.SIGUSR2) == signal.SIG_IGN
+        os.kill(os.getpid(), signal.SIGUSR2)  # ignored: the default would end the process
+    finally:
+        signal.signal(signal.SIGUSR2, before)

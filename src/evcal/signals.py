@@ -28,6 +28,7 @@ class SignalRelay:
 
     def __init__(self, signums: Iterable[int], callback: Callable[[int], None]) -> None:
         self._callback = callback
+        self.received = threading.Event()  # a signal has arrived (any of ``signums``)
         self._r, self._w = os.pipe()
         os.set_blocking(self._w, False)  # a full pipe drops a signal, never blocks
         self._thread = threading.Thread(target=self._run, name="evcal-signals", daemon=True)
@@ -46,6 +47,7 @@ class SignalRelay:
         try:
             while data := os.read(self._r, 64):
                 for signum in data:
+                    self.received.set()
                     try:
                         self._callback(signum)
                     except Exception:  # a callback's bug must not end the relay
@@ -53,10 +55,18 @@ class SignalRelay:
         finally:
             os.close(self._r)
 
-    def close(self) -> None:
-        """Put the previous handlers back; the relay thread ends."""
+    def close(self, *, ignore_after_stop: bool = False) -> None:
+        """Put the previous handlers back; the relay thread ends.
+
+        ``ignore_after_stop``: when a signal has arrived (the command is stopping), ignore
+        these signals from now on instead: the command is finishing what the first one
+        asked for (its state saved, its files closed, its threads joined at exit), and a
+        second one, with the default handler back, would kill it halfway with status 143
+        (a supervisor or a shell's exit trap signals every job it started, including one
+        already told to stop). SIGKILL still ends it."""
+        ignore = ignore_after_stop and self.received.is_set()
         for s, h in self._old.items():
-            signal.signal(s, h)
+            signal.signal(s, signal.SIG_IGN if ignore else h)
         self._old.clear()
         if self._w >= 0:
             os.close(self._w)  # end of file for the relay thread

@@ -233,7 +233,7 @@ def _record(prog: str, zopts: Any, recorder: Any, duration: float | None, what: 
         code = fail(prog, str(exc))
     finally:
         counts = recorder.close()
-        relay.close()
+        relay.close(ignore_after_stop=True)
     return counts, code
 
 

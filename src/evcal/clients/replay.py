@@ -366,7 +366,7 @@ def _main_ros2(args: Any, prog: str) -> int:
     except TransportError as exc:
         return fail(prog, str(exc))
     finally:
-        relay.close()
+        relay.close(ignore_after_stop=True)
     return report(prog, stats, args.wait_subscriber, domain)
 
 
@@ -429,7 +429,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except TransportError as exc:
         return fail(prog, str(exc), EXIT_ERROR)
     finally:
-        relay.close()
+        relay.close(ignore_after_stop=True)
         # a put still blocked by a stalled receiver cannot be cancelled, and closing the
         # session would time out after 10 s with it still blocked (zenoh 1.10), as would
         # dropping the last reference to it: the session is kept open for the process's

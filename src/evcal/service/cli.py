@@ -321,7 +321,7 @@ def main_serve(argv: Sequence[str] | None = None) -> int:
             return serve_workers(parser, args, zenoh=zopts, prefix=config.prefix,
                                  instance=config.instance, claims=config.cameras, stop=stop)
         finally:
-            relay.close()
+            relay.close(ignore_after_stop=True)
     parent_gone = None
     if args.supervised is not None:
         from .workers import watch_parent
@@ -341,7 +341,7 @@ def main_serve(argv: Sequence[str] | None = None) -> int:
         print(f"evcal serve: {exc}", file=sys.stderr)
         return 1
     finally:
-        relay.close()
+        relay.close(ignore_after_stop=True)
     if parent_gone is not None and parent_gone.is_set():
         from .workers import remove_orphaned_socket
 
