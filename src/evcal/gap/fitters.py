@@ -547,10 +547,10 @@ def fit_log_offset(ctx: FitContext) -> FitResult:
     nearest the measurement's is taken. No evidence below twice ``m``.
 
     Each pixel's own windows may not tell a dark level from thresholds that grow in the dark
-    as a power (its ``c`` takes up the mean, the rest is in the events' quantisation): OffEI
-    read 4 DN on a 25 Hz recording made at 29. The curve sees the sensor's whole light but
-    also what other effects and the interpolation between frames do to the sensitivity (on
-    a recording at 35 DN with shot noise it read 71): neither reading is trusted alone."""
+    as a power (its ``c`` takes up the mean, the rest is in the events' quantisation), least
+    with few frames. The curve sees the sensor's whole light but also what other effects
+    (shot noise) and the interpolation between frames do to the sensitivity: neither
+    reading is trusted alone (docs/notes/gap-oracle-2026-11-29.md)."""
     meas, sims, model = ctx.meas, ctx.sims, ctx.model
     m = _dark_dn(model)
     floor = 2.0 * max(m, NOMINAL_LOG_OFFSET_DN)
