@@ -199,6 +199,25 @@ def test_query_selector_fields_and_errors(two_cameras, service):
     assert json.loads(bad[0].payload)["reason"] == "bad_query"
 
 
+def test_query_estimate_gives_raw_or_posterior_maps(two_cameras, service, tmp_path):
+    """The service publishes raw maps (no --posterior); `evcal query --estimate posterior`
+    gets their posterior, computed by the service, and says which it holds."""
+    from evcal.posterior import estimate_of, posterior_maps
+
+    res = run_client("query", ["--camera", "lab/rig1/cam0", "--connect", service["ep"],
+                               *ZARGS, "--out", str(tmp_path / "post.npz"), "--estimate",
+                               "posterior", "--timeout", "5"])
+    assert res.returncode == 0, res.stderr
+    assert "(posterior maps)" in res.stderr
+    post = load_calibration(tmp_path / "post.npz")
+    raw = two_cameras["a"]
+    assert estimate_of(raw) == "raw"
+    assert estimate_of(post) == "posterior"
+    np.testing.assert_allclose(post.contrast, posterior_maps(raw).contrast, rtol=0, atol=1e-7)
+    bad = service["t"].get("evcal/lab/rig1/cam0/calibration?estimate=best", timeout_s=3)
+    assert json.loads(bad[0].payload)["reason"] == "bad_query"
+
+
 def test_environment_gives_the_endpoint_and_a_flag_wins(two_cameras, service, tmp_path):
     """EVCAL_CONNECT stands in for --connect; a --connect on the command line wins over it;
     a bad EVCAL_MODE is refused by name."""

@@ -34,7 +34,7 @@ class ErrorReason(str, Enum):
     TOO_LARGE = "too_large"  # a payload above the configured size limit
     TOO_MANY_CAMERAS = "too_many_cameras"  # a new camera beyond the configured limit
     REJECTED = "rejected"  # the estimator refused it (e.g. a frame of the wrong shape)
-    BAD_QUERY = "bad_query"  # a query with an unknown field or format
+    BAD_QUERY = "bad_query"  # a query with an unknown field, format or estimate
     NO_CALIBRATION = "no_calibration"  # a query before the first update
     INTERNAL = "internal"  # an unexpected exception (a bug), counted, never fatal
 

@@ -26,24 +26,72 @@ There is no pull toward a pixel's neighbours: the estimates' errors are themselv
 correlated between neighbouring pixels (they share the scene's edges), so a neighbourhood
 says less about a pixel than it seems to, even where the true maps have spatial structure.
 What the posterior gains and costs is measured in docs/MEASUREMENTS.md.
+
+The priors and their use are apart (:func:`posterior_priors`, :func:`apply_priors`): the
+priors move slowly with the maps, so a live service refreshes them now and then and applies
+them to every update (a few elementwise passes over the maps); :func:`posterior_maps` does
+both at once.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from concurrent.futures import Future
+from dataclasses import dataclass
+from functools import partial
 from typing import Any
 
+import numba
 import numpy as np
 
 from .calibration import Calibration, Special
 from .errors import ConfigError
 
-__all__ = ["BINS", "POSTERIOR_METHODS", "estimate_of", "posterior_maps"]
+__all__ = ["BINS", "POSTERIOR_METHODS", "LivePosterior", "MapPrior", "PosteriorPriors",
+           "apply_priors", "estimate_of", "posterior_maps", "posterior_priors"]
 
 BINS = 8  # equal-count bins of the stated error, each with its own prior
 MIN_BIN_PIXELS = 50  # fewer pixels than this per bin: fewer bins
 TAU2_FLOOR_SHARE = 0.02  # tau^2 is at least this share of the estimates' robust variance
 MAD_TO_SD = 1.4826
+# the priors come from an evenly strided sample of at most about this many pool pixels: a
+# median of a few thousand pixels per bin is as good as one of all of them, at a fraction of
+# the cost (a live service applies a posterior to every update)
+PRIOR_PIXELS = 16384
 POSTERIOR_METHODS = ("offei", "onei")  # estimators whose stated errors are calibrated
+
+# ``split(n, work)`` runs ``work(lo, hi)`` over ranges of n pixels (OnEIExecutor.split)
+Split = Callable[[int, Callable[[int, int], None]], None]
+# ``submit(fn, *args)`` runs ``fn(*args)`` on a worker thread (OnEIExecutor.submit)
+Submit = Callable[..., "Future[Any]"]
+
+
+@dataclass(frozen=True)
+class MapPrior:
+    """The prior of one map: bins of the stated error (``edges``: the upper bounds of all
+    bins but the last), each bin's centre ``mu`` and spread ``tau2``."""
+
+    edges: np.ndarray
+    mu: np.ndarray
+    tau2: np.ndarray
+    pixels: np.ndarray  # pool pixels per bin (estimated from the sample)
+
+    def doc(self) -> list[dict[str, float]]:
+        return [{"bin": k, "pixels": int(self.pixels[k]), "mu": float(self.mu[k]),
+                 "tau": float(np.sqrt(self.tau2[k])),
+                 "stderr_below": float(self.edges[k]) if k < self.edges.size else float("inf")}
+                for k in range(self.mu.size) if self.pixels[k] > 0]
+
+
+@dataclass(frozen=True)
+class PosteriorPriors:
+    """The priors of ``contrast`` and ``bias`` (:func:`posterior_priors`); ``None`` where
+    the pool has fewer than two pixels (that map is left as it is)."""
+
+    contrast: MapPrior | None
+    bias: MapPrior | None
+    pool_pixels: int
+    bins: int
 
 
 def estimate_of(cal: Calibration) -> str:
@@ -51,23 +99,45 @@ def estimate_of(cal: Calibration) -> str:
     return str(cal.diagnostics.extra.get("estimate", "raw"))
 
 
-def posterior_maps(cal: Calibration, *, bins: int = BINS) -> Calibration:
-    """``cal`` with its valid, normal pixels' ``contrast``, ``bias`` and their standard
-    errors replaced by the posterior's (see the module docstring); everything else, the
-    special pixels' values included, as it was. Raises :class:`ConfigError` for a method
-    whose errors are not calibrated or a calibration that holds the posterior already."""
+def _check(cal: Calibration) -> None:
     if cal.method not in POSTERIOR_METHODS:
         raise ConfigError(f"posterior maps need calibrated standard errors: "
                           f"{', '.join(POSTERIOR_METHODS)} has them, {cal.method} does not")
     if estimate_of(cal) == "posterior":
         raise ConfigError("this calibration holds posterior maps already")
-    pool = cal.valid & (cal.special == Special.NORMAL)
-    c, se_c, prior_c = _shrink(cal.contrast, cal.stderr_contrast, pool, bins)
-    b, se_b, prior_b = _shrink(cal.bias, cal.stderr_bias, pool, bins)
+
+
+def _pool(cal: Calibration) -> np.ndarray:
+    pool: np.ndarray = cal.valid & (cal.special == Special.NORMAL)
+    return pool
+
+
+def posterior_priors(cal: Calibration, *, bins: int = BINS) -> PosteriorPriors:
+    """The population priors of ``cal``'s raw maps (see the module docstring). Raises
+    :class:`ConfigError` as :func:`posterior_maps` does."""
+    _check(cal)
+    pool = _pool(cal)
+    return PosteriorPriors(_prior(cal.contrast, cal.stderr_contrast, pool, bins),
+                           _prior(cal.bias, cal.stderr_bias, pool, bins),
+                           int(pool.sum()), int(bins))
+
+
+def apply_priors(cal: Calibration, priors: PosteriorPriors, *, split: Split | None = None
+                 ) -> Calibration:
+    """``cal`` with its valid, normal pixels' ``contrast``, ``bias`` and their standard
+    errors replaced by their posterior under ``priors`` (from this calibration or an
+    earlier one of the same sensor); everything else, the special pixels' values included,
+    as it was. ``split(n, work)``: runs ``work(lo, hi)`` over ranges of the ``n`` pixels
+    (on threads: :meth:`evcal.onei.OnEIExecutor.split`); None: one pass here."""
+    _check(cal)
+    pool = _pool(cal)
+    c, se_c = _apply(cal.contrast, cal.stderr_contrast, pool, priors.contrast, split)
+    b, se_b = _apply(cal.bias, cal.stderr_bias, pool, priors.bias, split)
     info: dict[str, Any] = {
         "estimate": "posterior",
-        "posterior": {"pixels": int(pool.sum()), "bins": bins,
-                      "contrast_prior": prior_c, "bias_prior": prior_b},
+        "posterior": {"pixels": priors.pool_pixels, "bins": priors.bins,
+                      "contrast_prior": priors.contrast.doc() if priors.contrast else [],
+                      "bias_prior": priors.bias.doc() if priors.bias else []},
     }
     diag = cal.diagnostics
     diag = diag.updated(extra={**diag.extra, **info})
@@ -75,28 +145,37 @@ def posterior_maps(cal: Calibration, *, bins: int = BINS) -> Calibration:
                        diagnostics=diag)
 
 
-def _shrink(est: np.ndarray, se: np.ndarray, pool: np.ndarray, bins: int
-            ) -> tuple[np.ndarray, np.ndarray, list[dict[str, float]]]:
-    """The posterior of one map over the ``pool`` pixels; the priors of its bins."""
-    out = est.astype(np.float32, copy=True)
-    out_se = se.astype(np.float32, copy=True)
-    x = est[pool].astype(np.float64)
-    s = se[pool].astype(np.float64)
+def posterior_maps(cal: Calibration, *, bins: int = BINS) -> Calibration:
+    """``cal`` with its valid, normal pixels' ``contrast``, ``bias`` and their standard
+    errors replaced by the posterior's (see the module docstring); everything else, the
+    special pixels' values included, as it was. Raises :class:`ConfigError` for a method
+    whose errors are not calibrated or a calibration that holds the posterior already."""
+    return apply_priors(cal, posterior_priors(cal, bins=bins))
+
+
+def _prior(est: np.ndarray, se: np.ndarray, pool: np.ndarray, bins: int) -> MapPrior | None:
+    """The prior of one map from (a strided sample of) its ``pool`` pixels."""
+    x = est[pool]
+    s = se[pool]
+    step = max(1, x.size // PRIOR_PIXELS)
+    x = x[::step].astype(np.float64)
+    s = s[::step].astype(np.float64)
     finite = np.isfinite(x)
     x, s = x[finite], s[finite]
     if x.size < 2:
-        return out, out_se, []
-    n_bins = int(max(1, min(bins, x.size // MIN_BIN_PIXELS)))
-    s_sort = np.where(np.isfinite(s), s, np.inf)
+        return None
+    n_bins = int(max(1, min(bins, x.size * step // MIN_BIN_PIXELS)))
+    s = np.where(np.isfinite(s), s, np.inf)
+    fin_s = s[np.isfinite(s)]
     # equal-count bins of the stated error (an infinite error falls in the last)
-    edges = np.quantile(s_sort[np.isfinite(s_sort)], np.linspace(0, 1, n_bins + 1)[1:-1]) \
-        if np.isfinite(s_sort).any() else np.zeros(0)
-    which = np.searchsorted(edges, s_sort, side="right")
+    edges = (np.quantile(fin_s, np.linspace(0, 1, n_bins + 1)[1:-1]) if fin_s.size
+             else np.zeros(0))
+    which = np.searchsorted(edges, s, side="right")
     mu = np.zeros(n_bins)
     tau2 = np.zeros(n_bins)
-    priors = []
+    pixels = np.zeros(n_bins, np.int64)
     for k in range(n_bins):
-        xk, sk = x[which == k], s_sort[which == k]
+        xk, sk = x[which == k], s[which == k]
         if not xk.size:
             continue
         mu[k] = float(np.median(xk))
@@ -104,15 +183,115 @@ def _shrink(est: np.ndarray, se: np.ndarray, pool: np.ndarray, bins: int
         fin = sk[np.isfinite(sk)]
         noise = float(np.median(fin ** 2)) if fin.size else 0.0
         tau2[k] = max(robust - noise, TAU2_FLOOR_SHARE * robust, 1e-12)
-        priors.append({"bin": k, "pixels": int(xk.size), "mu": mu[k],
-                       "tau": float(np.sqrt(tau2[k])),
-                       "stderr_below": float(edges[k]) if k < edges.size else float("inf")})
-    t2, m = tau2[which], mu[which]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        s2 = np.square(s_sort)
-        w = np.where(np.isfinite(s2), t2 / (t2 + s2), 0.0)
-        post_se = np.where(np.isfinite(s2), np.sqrt(w * s2), np.sqrt(t2))
-    idx = np.flatnonzero(pool.ravel())[finite]
-    out.flat[idx] = (m + w * (x - m)).astype(np.float32)
-    out_se.flat[idx] = post_se.astype(np.float32)
-    return out, out_se, priors
+        pixels[k] = xk.size * step
+    return MapPrior(edges, mu, tau2, pixels)
+
+
+def _apply(est: np.ndarray, se: np.ndarray, pool: np.ndarray, prior: MapPrior | None,
+           split: Split | None) -> tuple[np.ndarray, np.ndarray]:
+    """One map's posterior and its standard error (float32, the shape of ``est``)."""
+    x = np.ascontiguousarray(est, np.float32)
+    s = np.ascontiguousarray(se, np.float32)
+    if prior is None:
+        return x.copy(), s.copy()
+    out, out_se = np.empty_like(x), np.empty_like(s)
+    args = (x.ravel(), s.ravel(), np.ascontiguousarray(pool).ravel(),
+            prior.edges.astype(np.float32), prior.mu.astype(np.float32),
+            prior.tau2.astype(np.float32), out.ravel(), out_se.ravel())
+    if split is None:
+        _shrink_kernel(*args, 0, x.size)
+    else:
+        split(x.size, lambda lo, hi: _shrink_kernel(*args, lo, hi))
+    return out, out_se
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _shrink_kernel(x: np.ndarray, s: np.ndarray, pool: np.ndarray, edges: np.ndarray,
+                   mu: np.ndarray, tau2: np.ndarray, out: np.ndarray, out_se: np.ndarray,
+                   lo: int, hi: int) -> None:  # pragma: no cover - compiled
+    # one branch-free pass in float32: a live service shrinks every update's maps, and
+    # numpy's passes (bin search, gathers, masks) cost as much as the update itself
+    inf = np.float32(np.inf)
+    for i in range(lo, hi):
+        xi = x[i]
+        si = s[i]
+        k = 0
+        for j in range(edges.size):  # a count, not a search: no branch to mispredict
+            k += si >= edges[j]  # an infinite error is past every edge: the last bin
+        t2 = tau2[k]
+        m = mu[k]
+        s2 = si * si
+        w = t2 / (t2 + s2)  # 0 for an infinite error: the bin's centre
+        post = m + w * (xi - m)
+        post_se = np.sqrt(t2) if si == inf else np.sqrt(w * s2)
+        use = pool[i] and np.isfinite(xi)
+        out[i] = post if use else xi
+        out_se[i] = post_se if use else si
+
+
+class LivePosterior:
+    """Posterior maps of a stream of calibrations of one sensor (a live service's camera).
+
+    The priors are taken from the raw maps every ``refresh_us`` of sensor time and applied to
+    every calibration in between: they follow the population, which moves slowly, while
+    each update's own pixels are shrunk at once. They are taken afresh, before the update
+    is shrunk, when none are held yet, the maps' shape or method changes, or the sensor's
+    time goes backwards (a new session). With ``submit`` a periodic refresh runs on a
+    worker thread, off the update's path, and the updates keep the older priors until it
+    is done (``refresh_us`` 0: at every update, before it is shrunk); with ``split`` the
+    pass over the pixels is split over threads.
+    """
+
+    def __init__(self, refresh_us: int = 1_000_000, *, bins: int = BINS,
+                 split: Split | None = None, submit: Submit | None = None) -> None:
+        if refresh_us < 0:
+            raise ConfigError(f"posterior refresh_us={refresh_us} must be >= 0")
+        self.refresh_us = int(refresh_us)
+        self.bins = int(bins)
+        self.split = split
+        self.submit = submit
+        self.priors: PosteriorPriors | None = None
+        self.priors_t_us: int | None = None
+        self._key: tuple[tuple[int, ...], str] | None = None
+        self._pending: tuple[Future[PosteriorPriors], int, tuple[tuple[int, ...], str]] \
+            | None = None
+        self.refreshes = 0
+
+    def reset(self) -> None:
+        """Forget the priors (a new sensor, a restore)."""
+        self.priors = self.priors_t_us = self._key = self._pending = None
+
+    def _take_pending(self) -> None:
+        if self._pending is None or not self._pending[0].done():
+            return
+        fut, t_us, key = self._pending
+        self._pending = None
+        if fut.exception() is None and key == self._key:
+            self.priors, self.priors_t_us = fut.result(), t_us
+            self.refreshes += 1
+
+    def apply(self, cal: Calibration, t_us: int) -> Calibration:
+        """``cal``'s posterior maps (:func:`apply_priors`), with priors taken no more than
+        ``refresh_us`` of sensor time before ``t_us`` (or, while a refresh on the worker
+        thread runs, the ones before it)."""
+        key = (tuple(cal.shape), cal.method)
+        self._take_pending()
+        last = self.priors_t_us
+        if self.priors is None or last is None or key != self._key or t_us < last:
+            self._pending = None  # a refresh of other maps, or of the old session
+            self.priors = posterior_priors(cal, bins=self.bins)
+            self.priors_t_us = int(t_us)
+            self._key = key
+            self.refreshes += 1
+        elif t_us - last >= self.refresh_us and self._pending is None:
+            if self.submit is None or self.refresh_us == 0:  # 0: at every update, here
+                self.priors = posterior_priors(cal, bins=self.bins)
+                self.priors_t_us = int(t_us)
+                self.refreshes += 1
+            else:
+                self._pending = (self.submit(partial(posterior_priors, cal, bins=self.bins)),
+                                 int(t_us), key)
+        out = apply_priors(cal, self.priors, split=self.split)
+        extra = dict(out.diagnostics.extra)
+        extra["posterior"] = {**extra["posterior"], "priors_t_us": self.priors_t_us}
+        return out.replace(diagnostics=out.diagnostics.updated(extra=extra))

@@ -81,6 +81,10 @@ def compile_kernels(progress: Callable[[str], None] | None = None) -> WarmupRepo
     stage("onei-stream", lambda: onei(rec, OnEIConfig(n_small=1000, n_large=100_000,
                                                       eager=True, log_offset="auto")))
     cal = state.get("offei")
+    if cal is not None:  # calibrate --posterior and serve --posterior
+        from .posterior import posterior_maps
+
+        stage("posterior", lambda: posterior_maps(cal))  # type: ignore[arg-type]
     # the scores need scikit-image's SSIM, which an install's build environment lacks; the
     # reconstruction's kernels are the estimators' (accumulation), compiled above
     if cal is not None and importlib.util.find_spec("skimage") is not None:

@@ -27,6 +27,7 @@ from typing import Any
 from evcal.calibration import Calibration
 from evcal.io import load_calibration
 from evcal.io.calibfile import CalibrationFileError
+from evcal.posterior import estimate_of
 from evcal.service import keys
 from evcal.service.signing import (
     KnownServices,
@@ -79,8 +80,8 @@ class _Answer:
 
 def fetch_calibration_npz(t: Transport, camera: str, *, prefix: str = "evcal",
                           timeout_s: float = 5.0, verifier: Verifier | None = None,
-                          instance: str | None = None, known: KnownServices | None = None
-                          ) -> tuple[bytes, dict[str, Any]]:
+                          instance: str | None = None, known: KnownServices | None = None,
+                          estimate: str | None = None) -> tuple[bytes, dict[str, Any]]:
     """The ``.npz`` bytes of ``camera``'s calibration and its params (``t_us``,
     ``instance``, and ``trust``: how the answer was checked).
 
@@ -91,6 +92,7 @@ def fetch_calibration_npz(t: Transport, camera: str, *, prefix: str = "evcal",
     else signs in the service's name, or its key was replaced); with nothing pinned, signed
     answers (checked against the key they carry) outrank unsigned ones, which are then
     ignored, and their key is pinned. With ``instance`` only that instance's answers count.
+    ``estimate``: ``"raw"`` or ``"posterior"`` maps (None: those the service publishes).
     Answers that disagree are refused (:class:`QueryError`): a rogue queryable cannot win
     by claiming a newer calibration, nor by naming the genuine instance.
     """
@@ -99,7 +101,8 @@ def fetch_calibration_npz(t: Transport, camera: str, *, prefix: str = "evcal",
     import numpy as np
 
     key = keys.camera_key(prefix, camera, "calibration")
-    replies = t.get(f"{key}?format=npz", timeout_s=timeout_s, wait_route=True)
+    selector = f"{key}?format=npz" + (f";estimate={estimate}" if estimate else "")
+    replies = t.get(selector, timeout_s=timeout_s, wait_route=True)
     pinned = known.get(prefix) if known is not None and verifier is None else None
     check = verifier or pinned
     answers: list[_Answer] = []
@@ -260,6 +263,10 @@ def build_parser() -> argparse.ArgumentParser:
     p = base_parser("evcal query", "Fetch a camera's current calibration from the service.")
     p.add_argument("--camera", type=camera_arg, help="camera id, e.g. lab/rig1/cam0")
     p.add_argument("--out", metavar="CALIB.npz", help="write the calibration here")
+    p.add_argument("--estimate", choices=("raw", "posterior"), default=None,
+                   help="with --out: each pixel's own estimate (raw) or the posterior maps, "
+                        "pulled toward the sensor's population (default: whichever the "
+                        "service publishes; serve --posterior publishes the posterior)")
     p.add_argument("--status", action="store_true", help="print the camera's status (JSON)")
     p.add_argument("--list", action="store_true",
                    help="a table of every instance and its cameras (--json: the whole replies)")
@@ -320,9 +327,11 @@ def main(argv: Sequence[str] | None = None) -> int:
                 payload, params = fetch_calibration_npz(t, args.camera, prefix=args.prefix,
                                                         timeout_s=args.timeout,
                                                         verifier=verifier,
-                                                        instance=args.instance, known=known)
+                                                        instance=args.instance, known=known,
+                                                        estimate=args.estimate)
                 cal = save_npz_bytes(payload, Path(args.out))
                 print(f"{prog}: {args.camera}: {cal.shape[1]}x{cal.shape[0]} {cal.method} "
+                      f"({estimate_of(cal)} maps) "
                       f"calibration at t_us={params.get('t_us')} from instance "
                       f"{params.get('instance')} ({params['trust']}), "
                       f"{100 * cal.valid_fraction:.1f}% valid pixels -> {args.out}",

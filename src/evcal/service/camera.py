@@ -28,6 +28,7 @@ from ..events import SensorSize
 from ..io.wire import encode_calibration
 from ..offe import OffEConfig, StreamingOffE
 from ..online import OnEIConfig, OnEIExecutor, OnlineCalibrator
+from ..posterior import POSTERIOR_METHODS, LivePosterior, estimate_of, posterior_maps
 from ..stream import DuplicateMessage, LateMessage, StreamGuard
 
 log = logging.getLogger("evcal.service")
@@ -161,7 +162,8 @@ class CameraState:
     def __init__(self, camera_id: str, *, onei: OnEIConfig | None = None,
                  max_pixels: int | None = None, observe: bool = False,
                  offe: OffEConfig | None = None, offe_period_us: int = 1_000_000,
-                 executor: OnEIExecutor | None = None) -> None:
+                 executor: OnEIExecutor | None = None,
+                 posterior_refresh_us: int | None = None) -> None:
         self.id = camera_id
         self.onei = onei or OnEIConfig()
         # OnEI's threads, shared by the service's cameras and closed by the service (None:
@@ -182,6 +184,19 @@ class CameraState:
         self.calibration_t_us: int | None = None
         self.calibration: Calibration | None = None
         self.extra_maps: dict[str, np.ndarray] = {}  # of the latest calibration
+        # posterior maps (serve --posterior): OnEI's updates are published as posterior
+        # maps, priors refreshed every posterior_refresh_us of sensor time; the raw estimate
+        # of the latest update stays here for queries (estimate=raw; not kept in snapshots)
+        # (the priors' refresh on OnEI's worker thread, the pass on its pixel threads)
+        self.live_posterior = (
+            LivePosterior(posterior_refresh_us,
+                          split=executor.split if executor is not None else None,
+                          submit=executor.submit if executor is not None else None)
+            if posterior_refresh_us is not None else None)
+        self.raw_calibration: Calibration | None = None
+        # the posterior a query asked for while the published maps are raw, by update seq:
+        # at most one computation per update however many queries come
+        self.posterior_cache: tuple[int, Calibration] | None = None
         self.last_update_wall: float | None = None
         self.latency_ms: deque[float] = deque(maxlen=200)
         self.latency_parts_ms: deque[tuple[float, ...]] = deque(maxlen=200)
@@ -243,6 +258,9 @@ class CameraState:
             if check.new_sensor:
                 # the old sensor's calibration does not describe this one
                 self.calibration = self.calibration_msg = None
+                self.raw_calibration = self.posterior_cache = None
+                if self.live_posterior is not None:
+                    self.live_posterior.reset()
                 self.extra_maps = {}
                 c.restarts[kind] += 1
             # live: the online log offset is taken when it is ready, no frame waits for it
@@ -400,12 +418,18 @@ class CameraState:
         published message, the query cache and the recorder share it."""
         t_fed = time.monotonic()
         cal = cal_state.calibration()
-        return self._publishable(cal, t_us, t_recv_s, t_start_s, t_fed, from_frame=from_frame)
+        raw = None
+        if self.live_posterior is not None and cal.method in POSTERIOR_METHODS:
+            raw, cal = cal, self.live_posterior.apply(cal, t_us)
+        return self._publishable(cal, t_us, t_recv_s, t_start_s, t_fed, from_frame=from_frame,
+                                 raw=raw)
 
     def _publishable(self, cal: Calibration, t_us: int, t_recv_s: float, t_start_s: float,
                      t_fed: float, *, from_frame: bool,
-                     extra_maps: dict[str, np.ndarray] | None = None) -> CalibrationUpdate:
-        """``cal`` (with ``extra_maps``) encoded once, as this camera's latest calibration."""
+                     extra_maps: dict[str, np.ndarray] | None = None,
+                     raw: Calibration | None = None) -> CalibrationUpdate:
+        """``cal`` (with ``extra_maps``) encoded once, as this camera's latest calibration;
+        ``raw``: the raw estimate ``cal`` holds the posterior of."""
         t_cal = time.monotonic()
         extra = extra_maps or {}
         msg = encode_calibration(cal, t_us=t_us, seq=self.calibration_seq, extra_maps=extra)
@@ -414,6 +438,8 @@ class CameraState:
                                 t_start_s, t_fed, t_cal, t_enc, from_frame, extra)
         self.calibration_seq += 1
         self.calibration = cal
+        self.raw_calibration = raw
+        self.posterior_cache = None
         self.extra_maps = extra
         self.calibration_msg = msg
         self.calibration_t_us = t_us
@@ -466,6 +492,33 @@ class CameraState:
         return {"t_us": int(self.latency_t_us[i]), "total": float(self.latency_ms[i]),
                 "parts": {name: float(v) * 1e3
                           for name, v in zip(LATENCY_PARTS, parts, strict=True)}}
+
+    def calibration_as(self, estimate: str) -> Calibration:
+        """The latest calibration holding ``estimate`` (``"raw"`` or ``"posterior"``),
+        whichever the published maps hold; raises :class:`Rejected`. Raw maps of published
+        posterior ones are those of the latest update (not kept across a restore); posterior
+        maps of published raw ones are computed on demand, once per update."""
+        cal = self.current_calibration()
+        if cal is None:
+            raise Rejected(f"camera {self.id!r} has no calibration yet",
+                           ErrorReason.NO_CALIBRATION)
+        held = estimate_of(cal)
+        if held == estimate:
+            return cal
+        if estimate == "raw":
+            if self.raw_calibration is None:
+                raise Rejected(f"camera {self.id!r}: the raw maps of its latest calibration "
+                               "are not kept across a restart of the service; its next "
+                               "update has them", ErrorReason.NO_CALIBRATION)
+            return self.raw_calibration
+        if cal.method not in POSTERIOR_METHODS:
+            raise Rejected(f"camera {self.id!r}: estimate=posterior needs calibrated standard "
+                           f"errors ({', '.join(POSTERIOR_METHODS)}); its calibration is "
+                           f"{cal.method}'s", ErrorReason.BAD_QUERY)
+        seq = self.calibration_seq
+        if self.posterior_cache is None or self.posterior_cache[0] != seq:
+            self.posterior_cache = (seq, posterior_maps(cal))
+        return self.posterior_cache[1]
 
     def current_calibration(self) -> Calibration | None:
         """The latest calibration (rebuilt from the stored message after a restore)."""
@@ -549,6 +602,9 @@ class CameraState:
         self.calibration_msg = msg or None
         self.calibration = None
         self.extra_maps = {}  # current_calibration() reads them from the message
+        self.raw_calibration = self.posterior_cache = None  # not in snapshots
+        if self.live_posterior is not None:
+            self.live_posterior.reset()
         now_wall = time.time()
         saved = meta.get("saved_wall")
         self.counters.restores += 1

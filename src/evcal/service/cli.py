@@ -144,6 +144,15 @@ def build_parser(prog: str = "evcal serve") -> argparse.ArgumentParser:
                         "estimated per camera from its first frames and events with the "
                         "criterion of `evcal calibrate --log-offset auto`, re-checked as data "
                         "accumulate")
+    g.add_argument("--posterior", action="store_true",
+                   help="publish posterior maps: each pixel's c and b pulled toward the "
+                        "sensor's population by how little its own events say (as `evcal "
+                        "calibrate --posterior`); a query with estimate=raw (evcal query "
+                        "--estimate raw) still gets each pixel's own estimate")
+    g.add_argument("--posterior-refresh", type=float, default=1.0, metavar="S",
+                   help="with --posterior: seconds of sensor time between two estimates of "
+                        "the population's priors (default 1); every update is shrunk with "
+                        "the latest")
     add_verbosity(p)
     return p
 
@@ -202,7 +211,15 @@ def config_from_args(args: argparse.Namespace) -> ServiceConfig:
         max_message_bytes=int(args.max_message_mb * (1 << 20)),
         status_period_s=args.status_period, snapshot_period_s=args.snapshot_period,
         onei=OnEIConfig(**onei),
+        posterior=bool(args.posterior),
+        posterior_refresh_us=_refresh_us(args.posterior_refresh),
     )
+
+
+def _refresh_us(seconds: float) -> int:
+    if not seconds >= 0:
+        raise ConfigError(f"--posterior-refresh {seconds} must be >= 0 seconds")
+    return int(round(seconds * 1e6))
 
 
 def add_ros2_arguments(p: argparse.ArgumentParser, ros2_help: str

@@ -128,6 +128,13 @@ class ServiceConfig:
     # every offe_period_us of sensor time; its first frame moves it to OnEI
     offe: OffEConfig = field(default_factory=OffEConfig)
     offe_period_us: int = 1_000_000
+    # publish OnEI's updates as posterior maps (evcal.posterior: each pixel pulled toward
+    # the sensor's population by how little its own evidence says), the priors taken afresh
+    # every posterior_refresh_us of sensor time; a query with estimate=raw gets the raw
+    # maps. Off by default: on some recordings (v2e's) the pull shrinks the stated errors
+    # below the maps' shared bias (docs/MEASUREMENTS.md)
+    posterior: bool = False
+    posterior_refresh_us: int = 1_000_000
 
     def __post_init__(self) -> None:
         if self.on_full not in ON_FULL:
@@ -147,7 +154,7 @@ class ServiceConfig:
                              f"queue_bytes={self.queue_bytes}: such a message could never be "
                              "queued")
         for name in ("idle_evict_s", "probation_s", "displace_idle_s", "probation_frames",
-                     "probation_events"):
+                     "probation_events", "posterior_refresh_us"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"{name}={getattr(self, name)} must be >= 0")
         for name in ("status_period_s", "snapshot_period_s", "error_rate_hz"):
@@ -310,7 +317,9 @@ class Service(ServiceReplies):
         cfg = self.config
         state = CameraState(camera_id, onei=cfg.onei, max_pixels=cfg.max_pixels,
                             observe=observe, offe=cfg.offe, offe_period_us=cfg.offe_period_us,
-                            executor=self.executor)
+                            executor=self.executor,
+                            posterior_refresh_us=(cfg.posterior_refresh_us if cfg.posterior
+                                                  else None))
         cam = CameraWorker(state, emit=self._emit, queue_bytes=cfg.queue_bytes,
                      max_message_bytes=cfg.max_message_bytes, block=cfg.on_full == "block")
         cam.limiter = ErrorLimiter(cfg.error_rate_hz)

@@ -23,6 +23,7 @@ from ..errors import ErrorReason, EvcalError
 from ..io.calibfile import calibration_npz_bytes
 from ..io.wire import EXTRA_MAP_DTYPES, encode_calibration
 from ..jsonable import strict_dumps
+from ..posterior import estimate_of
 from . import keys
 from .camera import CameraState, Rejected, Rejection
 from .ingest import BoundedQueue, CameraWorker
@@ -30,6 +31,7 @@ from .ingest import BoundedQueue, CameraWorker
 log = logging.getLogger("evcal.service")
 
 QUERY_FORMATS = ("msgpack", "npz")
+QUERY_ESTIMATES = ("raw", "posterior")
 
 
 # ----------------------------------------------------------------------------- status
@@ -91,6 +93,10 @@ def camera_status(cam: CameraWorker, *, now_s: float | None = None) -> dict[str,
         },
         "valid_fraction": (st.calibration.valid_fraction
                            if st.calibration is not None else None),
+        # what the published maps hold: "raw" (each pixel's own estimate) or "posterior"
+        # (serve --posterior); None before the first update
+        "estimate": (estimate_of(st.calibration) if st.calibration is not None
+                     else ("posterior" if st.live_posterior is not None else None)),
         "estimator": cal.status() if cal is not None else None,
         # "offe" while the camera has sent no frame (events-only estimate), then "onei"
         "method": "offe" if st.events_only is not None else "onei",
@@ -106,8 +112,9 @@ def camera_status(cam: CameraWorker, *, now_s: float | None = None) -> dict[str,
 # ----------------------------------------------------------------------------- queries
 
 
-def parse_query(params: Mapping[str, str]) -> tuple[str, list[str] | None]:
-    """``(format, fields)`` of a calibration query (:class:`Rejected` ``bad_query``)."""
+def parse_query(params: Mapping[str, str]) -> tuple[str, list[str] | None, str | None]:
+    """``(format, fields, estimate)`` of a calibration query (:class:`Rejected`
+    ``bad_query``); ``estimate`` None: whichever the published maps hold."""
     fmt = params.get("format", "msgpack")
     if fmt not in QUERY_FORMATS:
         raise Rejected(f"format={fmt!r}: expected one of {', '.join(QUERY_FORMATS)}",
@@ -121,7 +128,11 @@ def parse_query(params: Mapping[str, str]) -> tuple[str, list[str] | None]:
         except EvcalError as exc:
             raise Rejected(str(exc), ErrorReason.BAD_QUERY) from None
         fields = names
-    return fmt, fields
+    estimate = params.get("estimate") or None
+    if estimate is not None and estimate not in QUERY_ESTIMATES:
+        raise Rejected(f"estimate={estimate!r}: expected one of {', '.join(QUERY_ESTIMATES)}",
+                       ErrorReason.BAD_QUERY)
+    return fmt, fields, estimate
 
 
 def no_calibration_message(st: CameraState) -> str:
@@ -134,19 +145,25 @@ def no_calibration_message(st: CameraState) -> str:
     return f"{head}: {cal.waiting_for() or 'its first update is being published'}"
 
 
-def calibration_reply(st: CameraState, fmt: str, fields: list[str] | None
-                      ) -> tuple[bytes, str]:
-    """The camera's current calibration as ``(payload, encoding)`` (call with its lock held).
+def calibration_reply(st: CameraState, fmt: str, fields: list[str] | None,
+                      estimate: str | None = None) -> tuple[bytes, str]:
+    """The camera's current calibration as ``(payload, encoding)`` (call with its lock held);
+    ``estimate``: ``"raw"`` or ``"posterior"`` maps (:meth:`CameraState.calibration_as`),
+    None: the published ones.
 
     Raises :class:`Rejected` ``no_calibration`` before the first update.
     """
     msg = st.calibration_msg
     if msg is None:
         raise Rejected(no_calibration_message(st), ErrorReason.NO_CALIBRATION)
-    if fmt == "msgpack" and fields is None:
-        return msg, keys.ENC_CALIBRATION
     cal = st.current_calibration()
     assert cal is not None  # msg is not None
+    published = estimate is None or estimate_of(cal) == estimate
+    if fmt == "msgpack" and fields is None and published:
+        return msg, keys.ENC_CALIBRATION
+    if not published:
+        assert estimate is not None
+        cal = st.calibration_as(estimate)
     t_us = int(st.calibration_t_us or 0)
     # an extra map asked for but not in this estimate (an OnEI camera's noise_rate_hz) is
     # left out, as the published message leaves it out

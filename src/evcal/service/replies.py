@@ -102,7 +102,7 @@ class ServiceReplies:
         """Replies ``(key, payload, encoding)`` for every camera whose calibration key
         intersects ``query_key``; raises :class:`Rejected` if the query is malformed or no
         matching camera has a calibration yet."""
-        fmt, fields = parse_query(params)
+        fmt, fields, estimate = parse_query(params)
         out, problems = [], []
         for cam in list(self.cameras.values()):
             key = self.key(cam.id, "calibration")
@@ -110,13 +110,18 @@ class ServiceReplies:
                 continue
             try:
                 with cam.lock:
-                    payload, enc = calibration_reply(cam.state, fmt, fields)
+                    payload, enc = calibration_reply(cam.state, fmt, fields, estimate)
             except EvcalError as exc:
-                problems.append(str(exc))
+                problems.append(exc)
                 continue
             out.append((key, payload, enc))
         if not out and problems:
-            raise Rejected("; ".join(problems), ErrorReason.NO_CALIBRATION)
+            # one reason for all (a query the cameras cannot answer as asked: bad_query),
+            # else none has a calibration to give
+            reasons = {str(p.reason) for p in problems}
+            reason = (problems[0].reason if len(reasons) == 1
+                      else ErrorReason.NO_CALIBRATION)
+            raise Rejected("; ".join(map(str, problems)), reason)
         return out
 
     def status(self, cam: CameraWorker) -> dict[str, Any]:
