@@ -9,11 +9,13 @@ posterior, OffE): the share of valid pixels, the RMSE of ``c`` and ``b`` over th
 truth calls normal, the spread of the z-scores ``(estimate - truth) / stderr`` (1 when the
 stated errors are calibrated; OffE states none for ``c``), the special pixels' precision and
 recall against the truth's own classes, and the reconstruction PSNR (``evcal.evaluate``,
-standard dB) with the maps and with the true maps.
+standard dB) with the maps and with the true maps. ``--real`` recordings (no truth): the
+valid share, the special pixels found and the PSNR, raw and posterior.
 
     python scripts/bench_posterior.py                       # simulated, about 3 min
     python scripts/bench_posterior.py --data /work/gapbench --only dev1009,dev1019
     python scripts/bench_posterior.py --json out.jsonl      # one line per recording
+    python scripts/bench_posterior.py --no-sim --real ../shared/data/road.aedat4
 
 Prints a table per recording and the medians over them of the posterior's RMSE over the
 raw's. Nothing here is tuned to these figures: they say where each method stands.
@@ -148,6 +150,35 @@ def score(name: str, rec: Recording, c: np.ndarray, b: np.ndarray, offset: float
     return row
 
 
+def score_real(name: str, rec: Recording) -> dict[str, Any]:
+    """A recording without known maps: what a user of it sees, raw and posterior."""
+    row: dict[str, Any] = {"recording": name, "n_events": int(rec.n_events), "real": True}
+    for method in POSTERIOR_METHODS:
+        try:
+            cal = evcal.calibrate(rec, method)
+        except CalibrationError as e:
+            row[method] = {"error": str(e)}
+            continue
+        for key, m in ((method, cal), (f"{method}_posterior", posterior_maps(cal))):
+            special = (m.special != Special.NORMAL) & (m.special != Special.UNOBSERVED)
+            row[key] = {"valid": float(m.valid.mean()), "special": int(special.sum()),
+                        "psnr": psnr(rec, m)}
+    return row
+
+
+def print_real(row: dict[str, Any]) -> None:
+    print(f"\n{row['recording']}  ({row['n_events'] / 1e6:.2f} M events, no truth)")
+    print(f"  {'method':16s} {'valid':>6s} {'special':>8s} {'PSNR dB':>8s}")
+    for key in ("offei", "offei_posterior", "onei", "onei_posterior"):
+        r = row.get(key)
+        if r is None:
+            continue
+        if "error" in r:
+            print(f"  {key:16s} {r['error']}")
+            continue
+        print(f"  {key:16s} {r['valid']:6.3f} {r['special']:8d} {r['psnr']:8.2f}")
+
+
 def print_row(row: dict[str, Any]) -> None:
     print(f"\n{row['recording']}  ({row['n_events'] / 1e6:.2f} M events, "
           f"{row['truth_special']} special pixels in the truth; true maps: PSNR "
@@ -174,6 +205,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-sim", action="store_true", help="only the benchmark's recordings")
     ap.add_argument("--duration", type=float, default=4.0, help="simulated seconds (4)")
     ap.add_argument("--json", type=Path, help="append one JSON line per recording")
+    ap.add_argument("--real", type=Path, action="append", default=[],
+                    help="a recording without known maps (repeatable): PSNR, valid share and "
+                         "special pixels, raw and posterior")
     args = ap.parse_args(argv)
     jobs: list[Any] = []
     if not args.no_sim:
@@ -187,6 +221,13 @@ def main(argv: list[str] | None = None) -> int:
         if not ids:
             raise SystemExit("--data needs --only (dev case ids)")
         jobs += [lambda i=i: from_benchmark(args.data, i) for i in ids]
+    for path in args.real:
+        real = score_real(path.name, evcal.open_recording(path))
+        print_real(real)
+        if args.json is not None:
+            with args.json.open("a") as f:
+                f.write(json.dumps(real) + "\n")
+        sys.stdout.flush()
     rows = []
     for job in jobs:
         name, rec, c, b, offset = job()

@@ -266,3 +266,16 @@ def test_a_periodic_refresh_on_a_worker_keeps_the_old_priors_until_done(sim):
     assert len(ranges) == 6
     np.testing.assert_array_equal(a.contrast, b.contrast)
     np.testing.assert_array_equal(a.stderr_bias, b.stderr_bias)
+
+
+def test_serve_flags_reach_the_service_config():
+    from evcal.errors import ConfigError
+    from evcal.service.cli import build_parser, config_from_args
+
+    parse = build_parser().parse_args
+    cfg = config_from_args(parse(["--posterior", "--posterior-refresh", "0.5"]))
+    assert cfg.posterior is True
+    assert cfg.posterior_refresh_us == 500_000
+    assert config_from_args(parse([])).posterior is False
+    with pytest.raises(ConfigError, match="--posterior-refresh"):
+        config_from_args(parse(["--posterior", "--posterior-refresh", "-1"]))
