@@ -20,7 +20,8 @@ benchmark's dev recordings; test recordings are refused) on a sample of busy pix
 - per-pixel cumulative fits ``log(I + o) = a + c CP + b CE`` at the true offset: plain
   (with the last polarity as a regressor) and weighted by the bracket (frames' variance
   ``s0^2 + (alpha gap)^2 + (beta exposure / gap)^2``, unbracketed ``c^2/3``): c and b RMSE
-  against the truth;
+  against the truth, beside OffEI's at the true offset on the same pixels (those it calls
+  valid);
 - the log offset: OffEI's estimate (:func:`evcal.offline.estimate_log_offset`) and the root
   of the median over pixels of the fitted curvature of ``log(I + o)`` against the events'
   reference, plain and weighted (the curvature is 0 at the true offset when the residuals
@@ -43,7 +44,7 @@ import numpy as np
 
 from evcal.errors import EvcalError
 from evcal.io import open_recording
-from evcal.offline import OffEIConfig, estimate_log_offset
+from evcal.offline import OffEIConfig, estimate_log_offset, offei
 from evcal.recording import Recording
 from evcal.sim.ideal import SimConfig, simulate_ideal
 
@@ -121,10 +122,11 @@ def _wls(x: np.ndarray, y: np.ndarray, wt: np.ndarray) -> np.ndarray:
 
 
 def fit(br: Brackets, offset: float, timing: bool
-        ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
-    """``(c, b, median curvature, pixels used)`` of the per-pixel cumulative fits at
-    ``offset``; the curvature is of ``log(I + o)`` against the fitted reference, relative to
-    the reference's spread."""
+        ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray, np.ndarray]:
+    """``(c, b, median curvature, pixels of the curvature, pixels fitted)`` of the
+    per-pixel cumulative fits at ``offset``; the curvature is of ``log(I + o)`` against the
+    fitted reference, relative to the reference's spread (pixels with a light range of 0.3
+    log units); a pixel is fitted with 8 usable frames."""
     img = br.images
     usable = (img > 3) & (img < 250)
     if timing:
@@ -150,9 +152,10 @@ def fit(br: Brackets, offset: float, timing: bool
     zr = np.sqrt((zc ** 2 * wt).sum(1, keepdims=True) / tot)
     x2 = np.concatenate([x, ((zc / np.maximum(zr, 1e-9)) ** 2)[..., None]], -1)
     kappa = _wls(x2, y, wt)[:, -1] / np.maximum(zr[:, 0], 1e-9)
-    used = (np.isfinite(kappa) & (beta[:, 1] > 0.02) & (zr[:, 0] > 0.3)
-            & ((wt > 0).sum(1) >= 8))
-    return beta[:, 1], beta[:, 2], float(np.median(kappa[used])) if used.any() else np.nan, used
+    fitted = np.isfinite(beta).all(1) & ((wt > 0).sum(1) >= 8)
+    used = fitted & np.isfinite(kappa) & (beta[:, 1] > 0.02) & (zr[:, 0] > 0.3)
+    med = float(np.median(kappa[used])) if used.any() else np.nan
+    return beta[:, 1], beta[:, 2], med, used, fitted
 
 
 def offset_root(br: Brackets, timing: bool) -> float:
@@ -232,8 +235,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--pixels", type=int, default=4000, help="sampled busy pixels")
     args = p.parse_args(argv)
     print("| recording | events (M) | offset: true / OffEI / curvature plain / timing | "
-          "c RMSE plain / timing | b RMSE plain / timing | pixels | residual sd, plain -> "
-          "timing, by bracket (frames) |")
+          "c RMSE OffEI / cumulative plain / timing | b RMSE OffEI / plain / timing | "
+          "pixels | residual sd, plain -> timing, by bracket (frames) |")
     print("|---|---|---|---|---|---|---|")
     for name, rec, (c_true, b_true, o_true) in cases(args):
         t0 = time.monotonic()
@@ -243,9 +246,12 @@ def main(argv: list[str] | None = None) -> int:
             o_offei = float("nan")
         br = brackets(rec, args.pixels, seed=0)
         ct, bt = c_true[br.pix], b_true[br.pix]
-        c0, b0, _, u0 = fit(br, o_true, timing=False)
-        c1, b1, _, u1 = fit(br, o_true, timing=True)
-        m = u0 & u1
+        c0, b0, _, _, u0 = fit(br, o_true, timing=False)
+        c1, b1, _, _, u1 = fit(br, o_true, timing=True)
+        # OffEI at the true offset on the same pixels (those it calls valid)
+        ref = offei(rec, OffEIConfig(log_offset=o_true))
+        c2, b2 = (a.ravel()[br.pix].astype(np.float64) for a in (ref.contrast, ref.bias))
+        m = u0 & u1 & ref.valid.ravel()[br.pix]
 
         def rmse(a: np.ndarray, ref: np.ndarray) -> float:
             return float(np.sqrt(np.mean((a[m] - ref[m]) ** 2)))  # noqa: B023
@@ -254,8 +260,9 @@ def main(argv: list[str] | None = None) -> int:
         resid = "; ".join(f"{lab} ({n}): {a:.3f} -> {b_:.3f}" for lab, n, a, b_ in table if n)
         print(f"| {name} | {rec.n_events / 1e6:.2f} | {o_true:.1f} / {o_offei:.1f} / "
               f"{offset_root(br, False):.1f} / {offset_root(br, True):.1f} | "
-              f"{rmse(c0, ct):.4f} / {rmse(c1, ct):.4f} | {rmse(b0, bt):.4f} / "
-              f"{rmse(b1, bt):.4f} | {int(m.sum())} | {resid} |", flush=True)
+              f"{rmse(c2, ct):.4f} / {rmse(c0, ct):.4f} / {rmse(c1, ct):.4f} | "
+              f"{rmse(b2, bt):.4f} / {rmse(b0, bt):.4f} / {rmse(b1, bt):.4f} | "
+              f"{int(m.sum())} | {resid} |", flush=True)
         print(f"  ({time.monotonic() - t0:.0f} s)", file=sys.stderr)
     return 0
 
