@@ -158,6 +158,42 @@ def fit(br: Brackets, offset: float, timing: bool
     return beta[:, 1], beta[:, 2], med, used, fitted
 
 
+def segment_fit(br: Brackets, offset: float, timing: bool, frames: int
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(c, b, pixels fitted)`` of per-pixel fits with an intercept per segment of
+    ``frames`` frames (the counts' drift against the frames limited to a segment): the
+    weighted means of each segment taken out, then one weighted fit of ``c`` and ``b``."""
+    img = br.images
+    usable = (img > 3) & (img < 250)
+    if timing:
+        bracketed = br.direction != 0
+        cp = br.cp + br.direction * br.phi
+        ce = br.ce + np.where(bracketed, br.phi, 0.0)
+        g = np.where(bracketed, br.gap_us, 1.0)
+        var = np.where(bracketed, S0 ** 2 + (ALPHA_PER_US * g) ** 2
+                       + (BETA * br.exposure_us / g) ** 2, UNBRACKETED_VAR)
+        wt = usable / np.minimum(var, UNBRACKETED_VAR)
+        q = np.where(bracketed, 0.0, br.last_p)
+    else:
+        cp, ce, q = br.cp, br.ce, br.last_p.astype(np.float64)
+        wt = usable.astype(np.float64)
+    y = np.where(usable, np.log(np.maximum(img, 0.0) + offset), 0.0)
+    cols = [cp, ce, q.astype(np.float64), y]
+    seg = np.arange(img.shape[0]) // max(int(frames), 2)
+    n_seg = int(seg.max()) + 1
+    wsum = np.zeros((n_seg, img.shape[1]))
+    np.add.at(wsum, seg, wt)
+    out = []
+    for a in cols:
+        m = np.zeros((n_seg, img.shape[1]))
+        np.add.at(m, seg, wt * a)
+        out.append(a - (m / np.maximum(wsum, 1e-12))[seg])
+    x = np.stack(out[:3], -1).transpose(1, 0, 2)
+    beta = _wls(x, out[3].T, wt.T)
+    fitted = np.isfinite(beta).all(1) & ((wt > 0).sum(0) >= 8)
+    return beta[:, 0], beta[:, 1], fitted
+
+
 def offset_root(br: Brackets, timing: bool) -> float:
     """The offset on :data:`OFFSET_GRID` where the median curvature changes sign (NaN:
     none)."""
@@ -233,7 +269,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--data", help="the gap benchmark's data folder (dev recordings only)")
     p.add_argument("--only", default="", help="with --data: comma-separated dev case ids")
     p.add_argument("--pixels", type=int, default=4000, help="sampled busy pixels")
+    p.add_argument("--segments", default="",
+                   help="comma-separated segment lengths (frames): also per-pixel fits with "
+                        "an intercept per segment, c / b RMSE beside OffEI's")
     args = p.parse_args(argv)
+    seg_lengths = [int(v) for v in args.segments.split(",") if v]
     print("| recording | events (M) | offset: true / OffEI / curvature plain / timing | "
           "c RMSE OffEI / cumulative plain / timing | b RMSE OffEI / plain / timing | "
           "pixels | residual sd, plain -> timing, by bracket (frames) |")
@@ -263,6 +303,17 @@ def main(argv: list[str] | None = None) -> int:
               f"{rmse(c2, ct):.4f} / {rmse(c0, ct):.4f} / {rmse(c1, ct):.4f} | "
               f"{rmse(b2, bt):.4f} / {rmse(b0, bt):.4f} / {rmse(b1, bt):.4f} | "
               f"{int(m.sum())} | {resid} |", flush=True)
+        for n_f in seg_lengths:
+            cs0, bs0, f0 = segment_fit(br, o_true, False, n_f)
+            cs1, bs1, f1 = segment_fit(br, o_true, True, n_f)
+            mm = f0 & f1 & ref.valid.ravel()[br.pix]
+
+            def rm(a: np.ndarray, t: np.ndarray) -> float:
+                return float(np.sqrt(np.mean((a[mm] - t[mm]) ** 2)))  # noqa: B023
+
+            print(f"|   segments of {n_f} frames | | | {rm(c2, ct):.4f} / {rm(cs0, ct):.4f} / "
+                  f"{rm(cs1, ct):.4f} | {rm(b2, bt):.4f} / {rm(bs0, bt):.4f} / "
+                  f"{rm(bs1, bt):.4f} | {int(mm.sum())} | |", flush=True)
         print(f"  ({time.monotonic() - t0:.0f} s)", file=sys.stderr)
     return 0
 
