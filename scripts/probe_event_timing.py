@@ -37,6 +37,7 @@ import argparse
 import json
 import sys
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -238,7 +239,8 @@ def _rms(a: np.ndarray) -> float:
     return float(np.sqrt(np.mean(a ** 2))) if a.size else float("nan")
 
 
-def cases(args: argparse.Namespace):
+def cases(args: argparse.Namespace
+          ) -> Iterator[tuple[str, Recording, tuple[np.ndarray, np.ndarray, float]]]:
     if args.data:
         data = Path(args.data)
         man = {c["id"]: c for c in json.loads((data / "manifest.json").read_text())["cases"]}
