@@ -56,6 +56,7 @@ S0 = 0.004  # frames' own noise (8-bit quantisation of the ideal simulator), log
 ALPHA_PER_US = 1e-6  # the light's unevenness over a bracket, log units per us of its length
 BETA = 0.06  # exposure blur across a bracket: about c / sqrt(12) per exposure / gap
 UNBRACKETED_VAR = 0.0133  # (0.2 / sqrt(3))^2: a frame's residual without timing
+READ_NOISE_DN = 0.0  # the frames' read noise in the weights (--read-noise-dn)
 OFFSET_GRID = np.geomspace(1.0, 400.0, 31)
 
 
@@ -72,9 +73,13 @@ class Brackets:
     gap_us: np.ndarray  # time between the bracketing events (inf: none on one side)
     images: np.ndarray  # the frames at the pixels (float)
     exposure_us: float
+    # the fractional counts averaged over each frame's exposure (``--exposure-samples``):
+    # net polarity, count, bracketed at every sample, the longest bracket; None: not asked
+    exposure_avg: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
 
 
-def brackets(rec: Recording, n_pixels: int, seed: int, min_events: int = 20) -> Brackets:
+def brackets(rec: Recording, n_pixels: int, seed: int, min_events: int = 20,
+             exposure_samples: int = 0) -> Brackets:
     """Counts and brackets of a random sample of the pixels with ``min_events`` events
     (vectorised: one search of every (pixel, frame) in the events sorted by pixel and time)."""
     ev = rec.events
@@ -96,23 +101,45 @@ def brackets(rec: Recording, n_pixels: int, seed: int, min_events: int = 20) -> 
     key = rank * span + (t - min(t.min(), 0))
     starts = np.searchsorted(rank, np.arange(pix.size))  # first event of each pixel
     cpol = np.concatenate([[0], np.cumsum(pol)])
-    tf = rec.frames.t_us.astype(np.int64)
-    q = np.arange(pix.size)[None, :] * span + (tf[:, None] - min(t.min(), 0))
-    k = np.searchsorted(key, q, side="right")  # events of the pixel up to the frame, + start
-    before = k - starts[None, :]
     n_pix = np.diff(np.concatenate([starts, [rank.size]]))
-    has_prev = before > 0
-    has_next = before < n_pix[None, :]
-    kp = np.clip(k - 1, 0, rank.size - 1)
-    kn = np.clip(k, 0, rank.size - 1)
-    cp = (cpol[k] - cpol[starts][None, :]).astype(np.float64)
-    gap = np.where(has_prev & has_next, (t[kn] - t[kp]).astype(np.float64), np.inf)
-    same = has_prev & has_next & (pol[kp] == pol[kn])
-    phi = np.where(same, (tf[:, None] - t[kp]) / np.maximum(gap, 1.0), 0.0)
+    t_min = min(int(t.min()), 0)
+
+    def at(times: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Counts and brackets of every sampled pixel at ``times`` ([frame])."""
+        q = np.arange(pix.size)[None, :] * span + (times[:, None] - t_min)
+        k = np.searchsorted(key, q, side="right")  # the pixel's events up to then, + start
+        before = k - starts[None, :]
+        has_prev = before > 0
+        has_next = before < n_pix[None, :]
+        kp = np.clip(k - 1, 0, rank.size - 1)
+        kn = np.clip(k, 0, rank.size - 1)
+        cp = (cpol[k] - cpol[starts][None, :]).astype(np.float64)
+        gap = np.where(has_prev & has_next, (t[kn] - t[kp]).astype(np.float64), np.inf)
+        same = has_prev & has_next & (pol[kp] == pol[kn])
+        phi = np.where(same, (times[:, None] - t[kp]) / np.maximum(gap, 1.0), 0.0)
+        return (cp, before.astype(np.float64), np.where(has_prev, pol[kp], 0), phi,
+                np.where(same, pol[kn], 0), gap)
+
+    tf = rec.frames.t_us.astype(np.int64)
+    cp, ce, last_p, phi, direction, gap = at(tf)
+    exposure = float(np.median(rec.frames.exposure_us))
+    avg = None
+    if exposure_samples > 1 and exposure > 0:
+        # the frame is the exposure's average of the light: the fractional counts averaged
+        # over it (to first order in the light's change across the exposure)
+        acc_p = np.zeros_like(cp)
+        acc_e = np.zeros_like(cp)
+        all_br = np.ones(cp.shape, bool)
+        longest = np.zeros_like(cp)
+        for dt in np.linspace(-exposure / 2, exposure / 2, exposure_samples):
+            c_k, e_k, _, phi_k, dir_k, gap_k = at(tf + int(round(dt)))
+            acc_p += c_k + dir_k * phi_k
+            acc_e += e_k + np.where(dir_k != 0, phi_k, 0.0)
+            all_br &= dir_k != 0
+            longest = np.maximum(longest, np.where(dir_k != 0, gap_k, np.inf))
+        avg = (acc_p / exposure_samples, acc_e / exposure_samples, all_br, longest)
     images = rec.frames.images.reshape(len(tf), -1)[:, pix].astype(np.float64)
-    return Brackets(pix, cp, before.astype(np.float64), np.where(has_prev, pol[kp], 0),
-                    phi, np.where(same, pol[kn], 0), gap, images,
-                    float(np.median(rec.frames.exposure_us)))
+    return Brackets(pix, cp, ce, last_p, phi, direction, gap, images, exposure, avg)
 
 
 def _wls(x: np.ndarray, y: np.ndarray, wt: np.ndarray) -> np.ndarray:
@@ -122,26 +149,14 @@ def _wls(x: np.ndarray, y: np.ndarray, wt: np.ndarray) -> np.ndarray:
     return np.linalg.solve(g, np.einsum("pfi,pf->pi", xw, y)[..., None])[..., 0]
 
 
-def fit(br: Brackets, offset: float, timing: bool
+def fit(br: Brackets, offset: float, timing: bool | str
         ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray, np.ndarray]:
     """``(c, b, median curvature, pixels of the curvature, pixels fitted)`` of the
     per-pixel cumulative fits at ``offset``; the curvature is of ``log(I + o)`` against the
     fitted reference, relative to the reference's spread (pixels with a light range of 0.3
     log units); a pixel is fitted with 8 usable frames."""
     img = br.images
-    usable = (img > 3) & (img < 250)
-    if timing:
-        bracketed = br.direction != 0
-        cp = br.cp + br.direction * br.phi
-        ce = br.ce + np.where(bracketed, br.phi, 0.0)
-        g = np.where(bracketed, br.gap_us, 1.0)
-        var = np.where(bracketed, S0 ** 2 + (ALPHA_PER_US * g) ** 2
-                       + (BETA * br.exposure_us / g) ** 2, UNBRACKETED_VAR)
-        wt = usable / np.minimum(var, UNBRACKETED_VAR)
-        q = np.where(bracketed, 0.0, br.last_p)
-    else:
-        cp, ce, q = br.cp, br.ce, br.last_p.astype(np.float64)
-        wt = usable.astype(np.float64)
+    cp, ce, q, wt = _regressors(br, timing)
     y = np.log(img + offset).T
     wt, cp, ce, q = wt.T, cp.T, ce.T, q.T
     one = np.ones_like(cp)
@@ -159,25 +174,42 @@ def fit(br: Brackets, offset: float, timing: bool
     return beta[:, 1], beta[:, 2], med, used, fitted
 
 
-def segment_fit(br: Brackets, offset: float, timing: bool, frames: int
+def _regressors(br: Brackets, timing: bool | str
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``(cp, ce, q, weight)`` [frame, pixel]: integer counts and the last polarity
+    (``timing`` False); fractional counts at the frame's middle, weighted by the bracket
+    (True); or averaged over its exposure (``"exposure"``: bracketed only where every
+    sample of the exposure is)."""
+    img = br.images
+    usable = (img > 3) & (img < 250)
+    # the frames' own noise in log units (at a nominal offset of 30 DN: the weights' shape)
+    s0_2 = S0 ** 2 + (READ_NOISE_DN / (np.maximum(img, 0.0) + 30.0)) ** 2
+    if timing == "exposure" and br.exposure_avg is not None:
+        cp, ce, bracketed, longest = br.exposure_avg
+        g = np.where(bracketed, longest, 1.0)
+        var = np.where(bracketed, s0_2 + (ALPHA_PER_US * g) ** 2, UNBRACKETED_VAR)
+        q = np.where(bracketed, 0.0, br.last_p)
+        return cp, ce, q, usable / np.minimum(var, UNBRACKETED_VAR)
+    if timing:
+        bracketed = br.direction != 0
+        cp = br.cp + br.direction * br.phi
+        ce = br.ce + np.where(bracketed, br.phi, 0.0)
+        g = np.where(bracketed, br.gap_us, 1.0)
+        var = np.where(bracketed, s0_2 + (ALPHA_PER_US * g) ** 2
+                       + (BETA * br.exposure_us / g) ** 2, UNBRACKETED_VAR)
+        q = np.where(bracketed, 0.0, br.last_p)
+        return cp, ce, q, usable / np.minimum(var, UNBRACKETED_VAR)
+    return br.cp, br.ce, br.last_p.astype(np.float64), usable.astype(np.float64)
+
+
+def segment_fit(br: Brackets, offset: float, timing: bool | str, frames: int
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(c, b, pixels fitted)`` of per-pixel fits with an intercept per segment of
     ``frames`` frames (the counts' drift against the frames limited to a segment): the
     weighted means of each segment taken out, then one weighted fit of ``c`` and ``b``."""
     img = br.images
     usable = (img > 3) & (img < 250)
-    if timing:
-        bracketed = br.direction != 0
-        cp = br.cp + br.direction * br.phi
-        ce = br.ce + np.where(bracketed, br.phi, 0.0)
-        g = np.where(bracketed, br.gap_us, 1.0)
-        var = np.where(bracketed, S0 ** 2 + (ALPHA_PER_US * g) ** 2
-                       + (BETA * br.exposure_us / g) ** 2, UNBRACKETED_VAR)
-        wt = usable / np.minimum(var, UNBRACKETED_VAR)
-        q = np.where(bracketed, 0.0, br.last_p)
-    else:
-        cp, ce, q = br.cp, br.ce, br.last_p.astype(np.float64)
-        wt = usable.astype(np.float64)
+    cp, ce, q, wt = _regressors(br, timing)
     y = np.where(usable, np.log(np.maximum(img, 0.0) + offset), 0.0)
     cols = [cp, ce, q.astype(np.float64), y]
     seg = np.arange(img.shape[0]) // max(int(frames), 2)
@@ -274,7 +306,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--segments", default="",
                    help="comma-separated segment lengths (frames): also per-pixel fits with "
                         "an intercept per segment, c / b RMSE beside OffEI's")
+    p.add_argument("--exposure-samples", type=int, default=0, metavar="K",
+                   help="also fits with the fractional counts averaged over each frame's "
+                        "exposure at K instants (the frame as the exposure's average)")
+    p.add_argument("--read-noise-dn", type=float, default=0.0,
+                   help="the frames' read noise (DN) in the bracketed frames' weights")
     args = p.parse_args(argv)
+    global READ_NOISE_DN
+    READ_NOISE_DN = float(args.read_noise_dn)
     seg_lengths = [int(v) for v in args.segments.split(",") if v]
     print("| recording | events (M) | offset: true / OffEI / curvature plain / timing | "
           "c RMSE OffEI / cumulative plain / timing | b RMSE OffEI / plain / timing | "
@@ -286,7 +325,7 @@ def main(argv: list[str] | None = None) -> int:
             o_offei = estimate_log_offset(rec, OffEIConfig())[0]
         except EvcalError:
             o_offei = float("nan")
-        br = brackets(rec, args.pixels, seed=0)
+        br = brackets(rec, args.pixels, seed=0, exposure_samples=args.exposure_samples)
         ct, bt = c_true[br.pix], b_true[br.pix]
         c0, b0, _, _, u0 = fit(br, o_true, timing=False)
         c1, b1, _, _, u1 = fit(br, o_true, timing=True)
@@ -305,6 +344,18 @@ def main(argv: list[str] | None = None) -> int:
               f"{rmse(c2, ct):.4f} / {rmse(c0, ct):.4f} / {rmse(c1, ct):.4f} | "
               f"{rmse(b2, bt):.4f} / {rmse(b0, bt):.4f} / {rmse(b1, bt):.4f} | "
               f"{int(m.sum())} | {resid} |", flush=True)
+        if br.exposure_avg is not None:
+            c3, b3, _, _, u3 = fit(br, o_true, timing="exposure")
+            me = u0 & u3 & ref.valid.ravel()[br.pix]
+
+            def re(a: np.ndarray, tt: np.ndarray) -> float:
+                return float(np.sqrt(np.mean((a[me] - tt[me]) ** 2)))  # noqa: B023
+
+            print(f"|   exposure average ({args.exposure_samples} samples) | | | "
+                  f"{re(c2, ct):.4f} / {re(c0, ct):.4f} / {re(c3, ct):.4f} | "
+                  f"{re(b2, bt):.4f} / {re(b0, bt):.4f} / {re(b3, bt):.4f} | {int(me.sum())} "
+                  f"| bracketed over the whole exposure: "
+                  f"{float(br.exposure_avg[2].mean()):.3f} |", flush=True)
         for n_f in seg_lengths:
             cs0, bs0, f0 = segment_fit(br, o_true, False, n_f)
             cs1, bs1, f1 = segment_fit(br, o_true, True, n_f)
