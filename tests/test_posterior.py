@@ -116,3 +116,25 @@ def test_calibrate_posterior_on_the_command_line(tmp_path):
     assert estimate_of(evcal.load_calibration(out)) == "posterior"
     assert cli.main(["calibrate", str(path), "--out", str(out), "--method", "offe",
                      "--posterior", "-q"]) == 2
+
+
+def test_a_pixel_without_a_stated_error_takes_its_bins_centre():
+    """An infinite or NaN standard error says nothing of the pixel: its posterior is the
+    last bin's centre, its error that bin's spread (no NaN leaks into the maps)."""
+    from evcal.calibration import Calibration
+    from evcal.posterior import posterior_priors
+
+    rng = np.random.default_rng(5)
+    shape = (40, 50)
+    se = rng.uniform(0.005, 0.03, shape).astype(np.float32)
+    est = rng.normal(0.2, 0.03, shape).astype(np.float32)
+    se[0, 0], se[0, 1] = np.nan, np.inf
+    cal = Calibration.uniform(shape, method="offei", log_offset=30.0).replace(
+        contrast=est, stderr_contrast=se)
+    prior = posterior_priors(cal).contrast
+    assert prior is not None
+    post = posterior_maps(cal)
+    for j in (0, 1):
+        assert post.contrast[0, j] == pytest.approx(prior.mu[-1], rel=1e-6)
+        assert post.stderr_contrast[0, j] == pytest.approx(np.sqrt(prior.tau2[-1]), rel=1e-6)
+    assert np.isfinite(post.contrast).all()

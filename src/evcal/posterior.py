@@ -122,13 +122,14 @@ def posterior_priors(cal: Calibration, *, bins: int = BINS) -> PosteriorPriors:
                            int(pool.sum()), int(bins))
 
 
-def apply_priors(cal: Calibration, priors: PosteriorPriors, *, split: Split | None = None
-                 ) -> Calibration:
+def apply_priors(cal: Calibration, priors: PosteriorPriors, *, split: Split | None = None,
+                 note: dict[str, Any] | None = None) -> Calibration:
     """``cal`` with its valid, normal pixels' ``contrast``, ``bias`` and their standard
     errors replaced by their posterior under ``priors`` (from this calibration or an
     earlier one of the same sensor); everything else, the special pixels' values included,
     as it was. ``split(n, work)``: runs ``work(lo, hi)`` over ranges of the ``n`` pixels
-    (on threads: :meth:`evcal.onei.OnEIExecutor.split`); None: one pass here."""
+    (on threads: :meth:`evcal.onei.OnEIExecutor.split`); None: one pass here. ``note``:
+    more figures for the diagnostics' ``posterior`` entry."""
     _check(cal)
     pool = _pool(cal)
     c, se_c = _apply(cal.contrast, cal.stderr_contrast, pool, priors.contrast, split)
@@ -137,7 +138,8 @@ def apply_priors(cal: Calibration, priors: PosteriorPriors, *, split: Split | No
         "estimate": "posterior",
         "posterior": {"pixels": priors.pool_pixels, "bins": priors.bins,
                       "contrast_prior": priors.contrast.doc() if priors.contrast else [],
-                      "bias_prior": priors.bias.doc() if priors.bias else []},
+                      "bias_prior": priors.bias.doc() if priors.bias else [],
+                      **(note or {})},
     }
     diag = cal.diagnostics
     diag = diag.updated(extra={**diag.extra, **info})
@@ -214,7 +216,7 @@ def _shrink_kernel(x: np.ndarray, s: np.ndarray, pool: np.ndarray, edges: np.nda
     inf = np.float32(np.inf)
     for i in range(lo, hi):
         xi = x[i]
-        si = s[i]
+        si = s[i] if np.isfinite(s[i]) else inf  # no stated error (NaN): none at all
         k = 0
         for j in range(edges.size):  # a count, not a search: no branch to mispredict
             k += si >= edges[j]  # an infinite error is past every edge: the last bin
@@ -277,21 +279,19 @@ class LivePosterior:
         key = (tuple(cal.shape), cal.method)
         self._take_pending()
         last = self.priors_t_us
-        if self.priors is None or last is None or key != self._key or t_us < last:
+        afresh = self.priors is None or last is None or key != self._key or t_us < last
+        due = afresh or (t_us - (last or 0) >= self.refresh_us and self._pending is None)
+        if afresh or (due and (self.submit is None or self.refresh_us == 0)):
+            # here, before this update is shrunk (0: at every update)
             self._pending = None  # a refresh of other maps, or of the old session
             self.priors = posterior_priors(cal, bins=self.bins)
             self.priors_t_us = int(t_us)
             self._key = key
             self.refreshes += 1
-        elif t_us - last >= self.refresh_us and self._pending is None:
-            if self.submit is None or self.refresh_us == 0:  # 0: at every update, here
-                self.priors = posterior_priors(cal, bins=self.bins)
-                self.priors_t_us = int(t_us)
-                self.refreshes += 1
-            else:
-                self._pending = (self.submit(partial(posterior_priors, cal, bins=self.bins)),
-                                 int(t_us), key)
-        out = apply_priors(cal, self.priors, split=self.split)
-        extra = dict(out.diagnostics.extra)
-        extra["posterior"] = {**extra["posterior"], "priors_t_us": self.priors_t_us}
-        return out.replace(diagnostics=out.diagnostics.updated(extra=extra))
+        elif due:
+            assert self.submit is not None
+            self._pending = (self.submit(partial(posterior_priors, cal, bins=self.bins)),
+                             int(t_us), key)
+        assert self.priors is not None
+        return apply_priors(cal, self.priors, split=self.split,
+                            note={"priors_t_us": self.priors_t_us})

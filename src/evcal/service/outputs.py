@@ -156,14 +156,13 @@ def calibration_reply(st: CameraState, fmt: str, fields: list[str] | None,
     msg = st.calibration_msg
     if msg is None:
         raise Rejected(no_calibration_message(st), ErrorReason.NO_CALIBRATION)
-    cal = st.current_calibration()
-    assert cal is not None  # msg is not None
-    published = estimate is None or estimate_of(cal) == estimate
-    if fmt == "msgpack" and fields is None and published:
+    if fmt == "msgpack" and fields is None and estimate is None:
         return msg, keys.ENC_CALIBRATION
-    if not published:
-        assert estimate is not None
-        cal = st.calibration_as(estimate)
+    published = st.current_calibration()
+    cal = published if estimate is None else st.calibration_as(estimate)
+    assert cal is not None  # msg is not None
+    if fmt == "msgpack" and fields is None and cal is published:
+        return msg, keys.ENC_CALIBRATION
     t_us = int(st.calibration_t_us or 0)
     # an extra map asked for but not in this estimate (an OnEI camera's noise_rate_hz) is
     # left out, as the published message leaves it out
