@@ -1260,15 +1260,17 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 
 def truth_model(npz: Path, truth: dict[str, Any], *, effects: bool = True,
-                add: tuple[str, ...] = (), backend: str = "sim", drop: str | None = None
-                ) -> Any:
+                add: tuple[str, ...] = (), backend: str = "sim", drop: str | None = None,
+                illumination: dict[str, Any] | None = None) -> Any:
     """The gap model a case was made with: its true maps, log offset and (``effects``) its
     hidden effects in evcal's terms (a v2e case's are evcal's nearest: v2e's shot-noise law,
     linear in light, as the power law of the same rate and slope at the scene's median),
     plus the effects named in ``add`` at their defaults (``start_reset``: how v2e begins),
     less the hidden effect ``drop``. A v2e case also gets v2e's stamps (steps of 1 /
     ``V2E_INPUT_RATE_HZ`` on the absolute time grid, slots spread): a simulator's scheme,
-    but one that decides where its dead time acts and stamps its noise at a step's end."""
+    but one that decides where its dead time acts and stamps its noise at a step's end.
+    ``illumination`` (the case's): a flickering light is part of the scene the frames
+    cannot show, so the model of the case has it (``flicker``, the same time base)."""
     import dataclasses
 
     from evcal.gap.model import Model
@@ -1301,6 +1303,10 @@ def truth_model(npz: Path, truth: dict[str, Any], *, effects: bool = True,
         offset = NOMINAL_LOG_OFFSET_DN
     for name in add:
         chosen[name] = kinds[name]()
+    if illumination is not None and illumination["kind"] == "flicker" and drop != "flicker":
+        chosen["flicker"] = kinds["flicker"](
+            freq_hz=float(illumination["freq_hz"]), depth=float(illumination["depth"]),
+            phase_rad=float(illumination["phase_rad"]))
     if backend == "v2e":
         step_us = 1e6 / V2E_INPUT_RATE_HZ
         chosen[TimestampQuantisation.name] = TimestampQuantisation(
@@ -1346,9 +1352,14 @@ def cmd_oracle(args: argparse.Namespace) -> int:
         rows = []
         # v2e's start from its first frame is how such a recording begins, named apart by
         # the workflow: left out in turn like the hidden effects
-        for drop in (None, *c["truth"]["hidden"], *(a for a in extra if a == "start_reset")):
+        # and a flickering light, the scene's: what its model gains shows whether the
+        # events see it
+        lit = ("flicker",) if c["illumination"]["kind"] == "flicker" else ()
+        for drop in (None, *c["truth"]["hidden"], *(a for a in extra if a == "start_reset"),
+                     *lit):
             model = truth_model(npz, c["truth"], add=tuple(a for a in extra if a != drop),
-                                backend=c["backend"], drop=drop)
+                                backend=c["backend"], drop=drop,
+                                illumination=c["illumination"])
             label = "true maps + effects" if drop is None else f"without {drop}"
             out = ev.extend(Evaluation(model, [], _empty(), _empty()), args.seeds, label)
             per = dict(out.disc.per_stat)

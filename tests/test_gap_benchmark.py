@@ -121,3 +121,23 @@ def test_singles_are_classed_by_what_their_truth_shows(gb: ModuleType) -> None:
     classes = gb.oracle_classes(cases)
     assert classes["reproduced, visible"][:2] == [2, "50%"]
     assert gb.oracle_class({"category": "single", "hidden": ["leak"], "named": []}) is None
+
+
+def test_a_flickering_light_is_in_the_truth_on_the_same_time_base(gb: ModuleType,
+                                                                  tmp_path: Path) -> None:
+    # the frames cannot show a mains flicker, so a truth without it is not the case's model;
+    # its factor must be the generator's light at the same (the recording's) times
+    ill = {"kind": "flicker", "freq_hz": 120.0, "depth": 0.07, "phase_rad": 2.5}
+    npz = _case_npz(tmp_path)
+    model = gb.truth_model(npz, {"hidden": [], "median_dn": 80.0, "effects": []},
+                           illumination=ill)
+    fl = model.effects["flicker"]
+    t_s = np.linspace(0.0, 3.0, 997)
+    np.testing.assert_allclose(fl.on_light(t_s), gb.gs.illumination_gain(ill, t_s, 3.0),
+                               rtol=1e-12)
+    assert "flicker" not in gb.truth_model(npz, {"hidden": [], "median_dn": 80.0,
+                                                 "effects": []}, illumination=ill,
+                                           drop="flicker").effects
+    steady = {"kind": "sine", "freq_hz": 1.0, "depth": 0.2, "phase_rad": 0.0}
+    assert "flicker" not in gb.truth_model(npz, {"hidden": [], "median_dn": 80.0,
+                                                 "effects": []}, illumination=steady).effects

@@ -345,3 +345,27 @@ def test_flicker_is_a_line_in_the_net_polarity_and_in_the_frames() -> None:
     np.testing.assert_allclose(got / got[0], want / want[0], rtol=1e-2)
     with pytest.raises(EffectError, match="depth"):
         Flicker(depth=1.2)
+
+
+def test_a_flicker_frequency_error_is_read_off_the_phase_drift_against_a_simulation() -> None:
+    """The measured net polarity's line drifts in phase against a simulated one at a
+    slightly wrong frequency; the drift, segment by segment, gives the error (the line's
+    swelling with the motion, shared by both, does not move it), also for a simulation
+    with its own noise and another origin of its bins."""
+    from evcal.gap.flicker import BIN_US, frequency_error  # noqa: PLC0415
+
+    rng = np.random.default_rng(3)
+    n = 6000  # 3 s of bins
+    t0 = 1_250_000
+    t = (t0 + (np.arange(n) + 0.5) * BIN_US) * 1e-6
+    swell = 20 * (1.2 + np.sin(2 * np.pi * 0.7 * t)) ** 2  # the motion's share near a threshold
+    meas = swell * np.cos(2 * np.pi * 100.04 * t + 0.4) + rng.normal(0, 15, n)
+    for f_sim, t0_sim in ((100.0, t0), (100.1, t0 + BIN_US), (100.04, t0)):
+        ts = (t0_sim + (np.arange(n) + 0.5) * BIN_US) * 1e-6
+        sim = 0.6 * (20 * (1.2 + np.sin(2 * np.pi * 0.7 * ts)) ** 2) * np.cos(
+            2 * np.pi * f_sim * ts - 1.1) + rng.normal(0, 15, n)
+        step = frequency_error(t0, meas, t0_sim, sim, f_sim)
+        assert step == pytest.approx(100.04 - f_sim, abs=0.005)
+    # nothing to compare: NaN, not a step
+    assert np.isnan(frequency_error(t0, np.zeros(n), t0, np.zeros(n), 100.0))
+    assert np.isnan(frequency_error(t0, meas[:20], t0, meas[:20], 100.0))

@@ -1,6 +1,6 @@
 """The scene's flicker (:class:`evcal.sim.effects.Flicker`) in the gap workflow: its
-frequency read off the spectrum of the events' net polarity, its depth and phase matched by
-simulation.
+frequency read off the spectrum of the events' net polarity and refined against simulations,
+its depth and phase matched by simulation.
 
 A lamp on the mains flickers at twice its frequency (100 or 120 Hz). The frames cannot show
 it: each averages the light over its exposure at another phase of the flicker (they alias
@@ -14,7 +14,11 @@ threshold depends on the scene, the motion and the thresholds), so the fitter si
 current model with a flicker and moves its depth and phase until the simulated line has the
 measured amplitude and phase: the phase by the angle between them, the depth by their ratio
 (to a power measured by the secant, since pixels join the flicker's rhythm faster than in
-proportion once it spans their thresholds).
+proportion once it spans their thresholds). The frequency of the spectrum's peak is off by a
+few hundredths of a hertz where the line swells and fades with the motion (its phase drifts
+by a radian over a 3 s recording): each simulation also gives the drift of the measured
+line's phase against the simulated one's, segment by segment, where the shared swelling
+cancels (:func:`frequency_error`).
 """
 
 from __future__ import annotations
@@ -110,6 +114,33 @@ def find_line(t0_us: int, x: np.ndarray) -> tuple[float, float]:
     return f, ratio
 
 
+def frequency_error(t0_us: int, x: np.ndarray, t0_sim_us: int, x_sim: np.ndarray,
+                    freq_hz: float) -> float:
+    """How far (Hz) the flicker in ``x`` (the measured net polarity, bins from ``t0_us``)
+    is above ``freq_hz``, the frequency of the flicker simulated in ``x_sim``: the slope of
+    the phase of the measured line over the simulated one across :data:`PHASE_SEGMENTS`
+    segments of the recording, weighted by their amplitudes. NaN where a segment pair has no
+    line to compare."""
+    n = min(x.size, x_sim.size)
+    if n < 8 * PHASE_SEGMENTS:
+        return float("nan")
+    t = _bin_times(t0_us, n)
+    ts = _bin_times(t0_sim_us, n)
+    xm = x[:n] - x[:n].mean()
+    xs = x_sim[:n] - x_sim[:n].mean()
+    segments = np.array_split(np.arange(n), PHASE_SEGMENTS)
+    centres = np.array([t[s].mean() for s in segments])
+    zm = np.array([np.sum(xm[s] * np.exp(-2j * np.pi * freq_hz * t[s])) for s in segments])
+    zs = np.array([np.sum(xs[s] * np.exp(-2j * np.pi * freq_hz * ts[s])) for s in segments])
+    ratio = zm * np.conj(zs)
+    w = np.sqrt(np.abs(ratio))
+    if not np.all(np.isfinite(w)) or np.count_nonzero(w) < 3:
+        return float("nan")
+    design = np.stack([np.ones_like(centres), centres], 1) * w[:, None]
+    coef = np.linalg.lstsq(design, np.unwrap(np.angle(ratio)) * w, rcond=None)[0]
+    return float(coef[1]) / (2 * np.pi)
+
+
 def _wrap(phase: float) -> float:
     return float((phase + np.pi) % (2 * np.pi) - np.pi)
 
@@ -117,8 +148,8 @@ def _wrap(phase: float) -> float:
 def fit_flicker(ctx: FitContext) -> FitResult:
     """A flicker of the light: a line in the events' net polarity between 40 and 250 Hz,
     :data:`MIN_LINE` times the band's median and :data:`MIN_OVER_MODEL` times what the
-    model's simulations show there; depth and phase by up to :data:`ITERATIONS` simulations
-    of the model with it (``ctx.simulate``)."""
+    model's simulations show there; depth, phase and the frequency's last hundredths by up
+    to :data:`ITERATIONS` simulations of the model with it (``ctx.simulate``)."""
     if ctx.simulate is None:
         return NoEvidence("fitting a flicker needs simulations of the model, which this "
                           "context cannot run")
@@ -145,12 +176,16 @@ def fit_flicker(ctx: FitContext) -> FitResult:
     gamma = 1.0
     prev: tuple[float, float] | None = None  # (log depth, log |simulated line|)
     history = []
+    t_mid_s = 0.5 * (float(ctx.meas.frame_t_us[0]) + float(ctx.meas.frame_t_us[-1])) * 1e-6
+    df_max = 1.0 / max(x.size * BIN_US * 1e-6, 1e-3)  # the spectrum's bin
     for _ in range(ITERATIONS):
         obs = ctx.simulate(Flicker(freq_hz=f, depth=depth, phase_rad=phase))
-        z = line_at(*net_series(obs), f)
+        t0_sim, x_sim = net_series(obs)
+        z = line_at(t0_sim, x_sim, f)
         if abs(z) <= 0:
             break
-        history.append({"depth": depth, "phase_rad": phase,
+        z_meas = line_at(t0, x, f)
+        history.append({"freq_hz": f, "depth": depth, "phase_rad": phase,
                         "amplitude_ratio": abs(z) / abs(z_meas)})
         now = (float(np.log(depth)), float(np.log(abs(z))))
         if prev is not None and abs(now[0] - prev[0]) > 1e-3:
@@ -158,6 +193,16 @@ def fit_flicker(ctx: FitContext) -> FitResult:
         prev = now
         phase = _wrap(phase + float(np.angle(z_meas / z)))
         depth = float(np.clip(depth * (abs(z_meas) / abs(z)) ** (1.0 / gamma), *DEPTH_RANGE))
+        # the frequency, from the drift of the measured line's phase against the simulated
+        # one's, segment by segment: the simulation shares the scene's motion, so the
+        # swelling and fading of the line cancel in their ratio, which leaves the drift a
+        # frequency error makes (0.05 Hz turns it by 0.8 rad over 2.5 s); the phase (the
+        # light's at t = 0) turned with it so that it stays at the recording's middle,
+        # where the whole recording's line set it
+        step = frequency_error(t0, x, t0_sim, x_sim, f)
+        if np.isfinite(step) and abs(step) < df_max:
+            f += step
+            phase = _wrap(phase - 2 * np.pi * step * t_mid_s)
     return Fitted(Flicker(freq_hz=round(f, 3), depth=depth, phase_rad=phase),
                   {"line_over_band_median": line, "line_over_model": over,
                    "iterations": history})
