@@ -385,6 +385,9 @@ def latency(rate: float, seconds: float, *, chunk_ms: float = 10.0, rrd: str | N
                                          if len(faults_at) == 2 and faults0 else None),
             "gc": recorder.get("gc"), "shm": recorder.get("shm"),
             "service_cores": service_cpu / max(wall, 1e-9),
+            # the service's work per frame (its CPU time over the timed stream's frames,
+            # every thread: what an option that adds work at each update costs per frame)
+            "service_cpu_ms_per_frame": service_cpu * 1e3 / max(n_frames, 1),
             "client_cores": client_cpu / max(wall, 1e-9)}
 
 
@@ -791,7 +794,8 @@ def print_latency(r: dict) -> None:
           + (f"; service page faults per update after start-up "
              f"{r['steady_faults_per_update']:.0f}"
              if r.get("steady_faults_per_update") is not None else "")
-          + f"; cores used by the service {r['service_cores']:.2f}, by this publisher "
+          + f"; cores used by the service {r['service_cores']:.2f} (CPU "
+          f"{r['service_cpu_ms_per_frame']:.2f} ms a frame), by this publisher "
           f"{r['client_cores']:.2f}, by other processes {r['other_load_cores']:.2f}"
           + (f"; garbage collector: max pause {r['gc'].get('max_pause_ms', nan):.1f} ms"
              if isinstance(r.get("gc"), dict) else "")
