@@ -305,20 +305,21 @@ def _joint_kernel(xc: np.ndarray, sc: np.ndarray, xb: np.ndarray, sb: np.ndarray
             osb[i] = np.sqrt(max(t2 - t2 * t2 * i22, 0.0))
             continue
         # a map without a stated error (or outside the pool): each as the one-map pull
-        if use_c:
-            oc[i] = m1 + t1 / (t1 + np.float64(sa) * sa) * (a - m1) if sa < inf else m1
-            osc[i] = np.sqrt(t1 * np.float64(sa) * sa / (t1 + np.float64(sa) * sa)) \
-                if sa < inf else np.sqrt(t1)
-        else:
-            oc[i] = a
-            osc[i] = sa
-        if use_b:
-            ob[i] = m2 + t2 / (t2 + np.float64(sv) * sv) * (bb - m2) if sv < inf else m2
-            osb[i] = np.sqrt(t2 * np.float64(sv) * sv / (t2 + np.float64(sv) * sv)) \
-                if sv < inf else np.sqrt(t2)
-        else:
-            ob[i] = bb
-            osb[i] = sv
+        oc[i], osc[i] = _alone(a, sa, use_c, t1, m1)
+        ob[i], osb[i] = _alone(bb, sv, use_b, t2, m2)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _alone(x: np.float32, s: np.float32, use: bool, t2: float, m: float
+           ) -> tuple[Any, Any]:  # pragma: no cover - compiled
+    """One map's pull of one pixel (estimate ``x``, stated error ``s``, inf for none) toward
+    its bin's centre ``m`` by the bin's ``t2``: ``(posterior, its error)``."""
+    if not use:
+        return x, s
+    if s == np.inf:
+        return m, np.sqrt(t2)
+    s2 = np.float64(s) * s
+    return m + t2 / (t2 + s2) * (x - m), np.sqrt(t2 * s2 / (t2 + s2))
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
