@@ -267,11 +267,10 @@ def _joint_kernel(xc: np.ndarray, sc: np.ndarray, xb: np.ndarray, sb: np.ndarray
                   tc: np.ndarray, eb: np.ndarray, mb: np.ndarray, tb: np.ndarray,
                   oc: np.ndarray, osc: np.ndarray, ob: np.ndarray, osb: np.ndarray,
                   lo: int, hi: int) -> None:  # pragma: no cover - compiled
-    # a pixel's errors of c and b correlate (OffEI's rho, often 0.4-0.8): what its events
-    # measure well is a combination of the two (the threshold of the polarity it fires most),
-    # and pulling each map alone moves that combination as much as the poorly measured one
-    # (on v2e recordings b's RMSE rose above the raw's, and the reconstruction lost up to
-    # 0.3 dB). With the pixel's error covariance S and the priors T = diag(tau_c^2, tau_b^2)
+    # a pixel's errors of c and b correlate: what its events measure well is a combination
+    # of the two (the threshold of the polarity it fires most), and pulling each map alone
+    # moves that combination as much as the poorly measured one, which the pixel's own
+    # events contradict. With the pixel's error covariance S and T = diag(tau_c^2, tau_b^2)
     # of each map's own error bin: posterior mean mu + T (T + S)^-1 (x - mu), covariance
     # T - T (T + S)^-1 T, of which the diagonal is stated. rho = 0 gives the one-map pull.
     inf = np.float32(np.inf)
