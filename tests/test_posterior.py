@@ -118,9 +118,10 @@ def test_calibrate_posterior_on_the_command_line(tmp_path):
                      "--posterior", "-q"]) == 2
 
 
-def test_a_pixel_without_a_stated_error_takes_its_bins_centre():
-    """An infinite or NaN standard error says nothing of the pixel: its posterior is the
-    last bin's centre, its error that bin's spread (no NaN leaks into the maps)."""
+def test_a_pixel_without_a_stated_error_keeps_its_own_estimate():
+    """An infinite or NaN standard error gives nothing to weigh the pixel's estimate by:
+    it keeps it and its error (no NaN leaks into the maps), and such pixels do not enter
+    the priors; the pixels with one are pulled as before."""
     from evcal.calibration import Calibration
     from evcal.posterior import posterior_priors
 
@@ -129,15 +130,19 @@ def test_a_pixel_without_a_stated_error_takes_its_bins_centre():
     se = rng.uniform(0.005, 0.03, shape).astype(np.float32)
     est = rng.normal(0.2, 0.03, shape).astype(np.float32)
     se[0, 0], se[0, 1] = np.nan, np.inf
+    est[0, 0], est[0, 1] = 0.9, 0.01  # far from the population: they would move the most
     cal = Calibration.uniform(shape, method="offei", log_offset=30.0).replace(
         contrast=est, stderr_contrast=se)
     prior = posterior_priors(cal).contrast
     assert prior is not None
+    assert prior.pixels.sum() == est.size - 2
     post = posterior_maps(cal)
-    for j in (0, 1):
-        assert post.contrast[0, j] == pytest.approx(prior.mu[-1], rel=1e-6)
-        assert post.stderr_contrast[0, j] == pytest.approx(np.sqrt(prior.tau2[-1]), rel=1e-6)
+    np.testing.assert_array_equal(post.contrast[0, :2], est[0, :2])
+    assert np.isinf(post.stderr_contrast[0, :2]).all()
     assert np.isfinite(post.contrast).all()
+    moved = np.abs(post.contrast - est)
+    moved[0, :2] = 0.0
+    assert (moved > 0).mean() > 0.99
 
 
 def _correlated_estimates(rho: float, seed: int = 9, shape: tuple[int, int] = (120, 160)):
