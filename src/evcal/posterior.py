@@ -27,8 +27,7 @@ Special pixels (hot, cold, warm, cool: :mod:`evcal.special`) are judged on their
 evidence and keep their raw estimates; they and the invalid pixels are not in the
 population. Nor is a valid pixel without a stated error (infinite or NaN: OnEI's pixels
 whose solves had no residual freedom): there is nothing to weigh its estimate by, so it
-keeps it (on OnEI's simulated recordings those estimates are twice as close to the truth
-as their bin's centre). Only estimators whose errors are calibrated get posterior maps: OffEI's and
+keeps it. Only estimators whose errors are calibrated get posterior maps: OffEI's and
 OnEI's (:mod:`evcal.onei.stderr`); OffE states none for ``c``, and shrinking by errors that
 are not calibrated would pull too hard or not at all. The raw estimate is always there: it
 is what the estimator returns, and :func:`posterior_maps` returns a new calibration saying it
@@ -145,13 +144,8 @@ def apply_priors(cal: Calibration, priors: PosteriorPriors, *, split: Split | No
     _check(cal)
     pool = _pool(cal)
     rho = _correlation(cal)
-    pc, pb = priors.contrast, priors.bias
-    joint = rho is not None and pc is not None and pb is not None
-    if rho is not None and pc is not None and pb is not None:
-        c, se_c, b, se_b = _apply_joint(cal, rho, pool, pc, pb, split)
-    else:
-        c, se_c = _apply(cal.contrast, cal.stderr_contrast, pool, priors.contrast, split)
-        b, se_b = _apply(cal.bias, cal.stderr_bias, pool, priors.bias, split)
+    joint = rho.size > 0 and priors.contrast is not None and priors.bias is not None
+    c, se_c, b, se_b = _apply(cal, rho, pool, priors.contrast, priors.bias, split)
     info: dict[str, Any] = {
         "estimate": "posterior",
         "posterior": {"pixels": priors.pool_pixels, "bins": priors.bins,
@@ -205,50 +199,38 @@ def _prior(est: np.ndarray, se: np.ndarray, pool: np.ndarray, bins: int) -> MapP
     return MapPrior(edges, mu, tau2, pixels)
 
 
-def _apply(est: np.ndarray, se: np.ndarray, pool: np.ndarray, prior: MapPrior | None,
-           split: Split | None) -> tuple[np.ndarray, np.ndarray]:
-    """One map's posterior and its standard error (float32, the shape of ``est``)."""
-    x = np.ascontiguousarray(est, np.float32)
-    s = np.ascontiguousarray(se, np.float32)
-    if prior is None:
-        return x.copy(), s.copy()
-    out, out_se = np.empty_like(x), np.empty_like(s)
-    args = (x.ravel(), s.ravel(), np.ascontiguousarray(pool).ravel(),
-            prior.edges.astype(np.float32), prior.mu.astype(np.float32),
-            prior.tau2.astype(np.float32), out.ravel(), out_se.ravel())
-    if split is None:
-        _shrink_kernel(*args, 0, x.size)
-    else:
-        split(x.size, lambda lo, hi: _shrink_kernel(*args, lo, hi))
-    return out, out_se
-
-
-def _correlation(cal: Calibration) -> np.ndarray | None:
+def _correlation(cal: Calibration) -> np.ndarray:
     """The correlation of each pixel's errors of ``c`` and ``b`` (flat float32, NaN read as
     0), where the estimator stated it (OffEI, in memory: ``diagnostics.error_correlation``);
-    else None."""
+    else an empty array (no correlation)."""
     rho = getattr(cal.diagnostics, "error_correlation", None)
     if rho is None or np.shape(rho) != cal.shape:
-        return None
+        return np.zeros(0, np.float32)
     out: np.ndarray = np.nan_to_num(np.asarray(rho, np.float32).ravel(), nan=0.0)
     return out
 
 
-def _apply_joint(cal: Calibration, rho: np.ndarray, pool: np.ndarray, pc: MapPrior,
-                 pb: MapPrior, split: Split | None
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Both maps' posterior and standard errors at once, each pixel's ``c`` and ``b`` pulled
-    together by their errors' covariance (:func:`_joint_kernel`)."""
+_NO_PRIOR = (np.zeros(0, np.float32), np.zeros(1, np.float32), np.ones(1, np.float32))
+
+
+def _apply(cal: Calibration, rho: np.ndarray, pool: np.ndarray, pc: MapPrior | None,
+           pb: MapPrior | None, split: Split | None
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Both maps' posterior and standard errors (float32, the maps' shape) in one compiled
+    pass (:func:`_pull_kernel`); a map without a prior is left as it is."""
     shape = cal.shape
     xc, sc, xb, sb = (np.ascontiguousarray(a, np.float32).ravel() for a in (
         cal.contrast, cal.stderr_contrast, cal.bias, cal.stderr_bias))
     outs = [np.empty(xc.size, np.float32) for _ in range(4)]
-    f32 = [a.astype(np.float32) for a in (pc.edges, pc.mu, pc.tau2, pb.edges, pb.mu, pb.tau2)]
-    args = (xc, sc, xb, sb, rho, np.ascontiguousarray(pool).ravel(), *f32, *outs)
+    priors = [_NO_PRIOR if p is None else
+              (p.edges.astype(np.float32), p.mu.astype(np.float32), p.tau2.astype(np.float32))
+              for p in (pc, pb)]
+    args = (xc, sc, xb, sb, rho, np.ascontiguousarray(pool).ravel(), *priors[0], *priors[1],
+            pc is not None, pb is not None, *outs)
     if split is None:
-        _joint_kernel(*args, 0, xc.size)
+        _pull_kernel(*args, 0, xc.size)
     else:
-        split(xc.size, lambda lo, hi: _joint_kernel(*args, lo, hi))
+        split(xc.size, lambda lo, hi: _pull_kernel(*args, lo, hi))
     c, se_c, b, se_b = (o.reshape(shape) for o in outs)
     return c, se_c, b, se_b
 
@@ -256,23 +238,27 @@ def _apply_joint(cal: Calibration, rho: np.ndarray, pool: np.ndarray, pc: MapPri
 @numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _bin(s: np.float32, edges: np.ndarray) -> int:  # pragma: no cover - compiled
     k = 0
-    for j in range(edges.size):
+    for j in range(edges.size):  # a count, not a search: no branch to mispredict
         k += s >= edges[j]
     return k
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _joint_kernel(xc: np.ndarray, sc: np.ndarray, xb: np.ndarray, sb: np.ndarray,
-                  rho: np.ndarray, pool: np.ndarray, ec: np.ndarray, mc: np.ndarray,
-                  tc: np.ndarray, eb: np.ndarray, mb: np.ndarray, tb: np.ndarray,
-                  oc: np.ndarray, osc: np.ndarray, ob: np.ndarray, osb: np.ndarray,
-                  lo: int, hi: int) -> None:  # pragma: no cover - compiled
-    # a pixel's errors of c and b correlate: what its events measure well is a combination
+def _pull_kernel(xc: np.ndarray, sc: np.ndarray, xb: np.ndarray, sb: np.ndarray,
+                 rho: np.ndarray, pool: np.ndarray, ec: np.ndarray, mc: np.ndarray,
+                 tc: np.ndarray, eb: np.ndarray, mb: np.ndarray, tb: np.ndarray,
+                 has_c: bool, has_b: bool, oc: np.ndarray, osc: np.ndarray, ob: np.ndarray,
+                 osb: np.ndarray, lo: int, hi: int) -> None:  # pragma: no cover - compiled
+    # one pass over both maps: a live service shrinks every update's maps, and numpy's
+    # passes (bin search, gathers, masks) cost as much as the update itself.
+    # A pixel's errors of c and b correlate: what its events measure well is a combination
     # of the two (the threshold of the polarity it fires most), and pulling each map alone
     # moves that combination as much as the poorly measured one, which the pixel's own
     # events contradict. With the pixel's error covariance S and T = diag(tau_c^2, tau_b^2)
     # of each map's own error bin: posterior mean mu + T (T + S)^-1 (x - mu), covariance
-    # T - T (T + S)^-1 T, of which the diagonal is stated. rho = 0 gives the one-map pull.
+    # T - T (T + S)^-1 T, of which the diagonal is stated; no correlation (an empty rho)
+    # makes it each map's own pull. A pixel without a stated error (NaN or infinite) has no
+    # weight to be pulled by: it keeps its estimate.
     inf = np.float32(np.inf)
     for i in range(lo, hi):
         a = xc[i]
@@ -281,69 +267,37 @@ def _joint_kernel(xc: np.ndarray, sc: np.ndarray, xb: np.ndarray, sb: np.ndarray
         sv = sb[i] if np.isfinite(sb[i]) else inf
         kc = _bin(sa, ec)
         kb = _bin(sv, eb)
-        t1, m1 = np.float64(tc[kc]), np.float64(mc[kc])
-        t2, m2 = np.float64(tb[kb]), np.float64(mb[kb])
-        use_c = pool[i] and np.isfinite(a)
-        use_b = pool[i] and np.isfinite(bb)
-        if use_c and use_b and sa < inf and sv < inf:
-            r = min(max(np.float64(rho[i]), -0.999), 0.999)
-            s11 = np.float64(sa) * sa
-            s22 = np.float64(sv) * sv
+        t1, m1 = tc[kc], mc[kc]
+        t2, m2 = tb[kb], mb[kb]
+        use_c = has_c and pool[i] and np.isfinite(a) and sa < inf
+        use_b = has_b and pool[i] and np.isfinite(bb) and sv < inf
+        s11 = sa * sa
+        s22 = sv * sv
+        dc = a - m1
+        db = bb - m2
+        # a map not pulled takes no part in the other's: no correlation with it
+        r = rho[i] if rho.size > 0 and use_c and use_b else np.float32(0.0)
+        if r != 0.0:
+            # the 2x2 in float64: a correlation near 1 leaves little of the determinant
+            r = min(max(np.float64(r), -0.999), 0.999)
             s12 = r * np.float64(sa) * sv
-            a11 = t1 + s11
-            a22 = t2 + s22
+            a11 = np.float64(t1) + np.float64(sa) * sa
+            a22 = np.float64(t2) + np.float64(sv) * sv
             det = a11 * a22 - s12 * s12
             i11 = a22 / det
             i22 = a11 / det
             i12 = -s12 / det
-            dc = a - m1
-            db = bb - m2
             oc[i] = m1 + t1 * (i11 * dc + i12 * db)
             ob[i] = m2 + t2 * (i12 * dc + i22 * db)
-            osc[i] = np.sqrt(max(t1 - t1 * t1 * i11, 0.0))
-            osb[i] = np.sqrt(max(t2 - t2 * t2 * i22, 0.0))
+            osc[i] = np.sqrt(max(t1 - np.float64(t1) * t1 * i11, 0.0))
+            osb[i] = np.sqrt(max(t2 - np.float64(t2) * t2 * i22, 0.0))
             continue
-        # a map without a stated error (or outside the pool): each as the one-map pull
-        oc[i], osc[i] = _alone(a, sa, use_c, t1, m1)
-        ob[i], osb[i] = _alone(bb, sv, use_b, t2, m2)
-
-
-@numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _alone(x: np.float32, s: np.float32, use: bool, t2: float, m: float
-           ) -> tuple[Any, Any]:  # pragma: no cover - compiled
-    """One map's pull of one pixel (estimate ``x``, stated error ``s``, inf for none) toward
-    its bin's centre ``m`` by the bin's ``t2``: ``(posterior, its error)``."""
-    if not use or s == np.inf:  # no stated error: its own estimate (see _shrink_kernel)
-        return x, s
-    s2 = np.float64(s) * s
-    return m + t2 / (t2 + s2) * (x - m), np.sqrt(t2 * s2 / (t2 + s2))
-
-
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def _shrink_kernel(x: np.ndarray, s: np.ndarray, pool: np.ndarray, edges: np.ndarray,
-                   mu: np.ndarray, tau2: np.ndarray, out: np.ndarray, out_se: np.ndarray,
-                   lo: int, hi: int) -> None:  # pragma: no cover - compiled
-    # one branch-free pass in float32: a live service shrinks every update's maps, and
-    # numpy's passes (bin search, gathers, masks) cost as much as the update itself
-    inf = np.float32(np.inf)
-    for i in range(lo, hi):
-        xi = x[i]
-        si = s[i] if np.isfinite(s[i]) else inf  # no stated error (NaN): none at all
-        k = 0
-        for j in range(edges.size):  # a count, not a search: no branch to mispredict
-            k += si >= edges[j]  # an infinite error is past every edge: the last bin
-        t2 = tau2[k]
-        m = mu[k]
-        s2 = si * si
-        w = t2 / (t2 + s2)
-        post = m + w * (xi - m)
-        post_se = np.sqrt(w * s2)
-        # a pixel without a stated error has no weight to be pulled by: it keeps its own
-        # estimate (OnEI's pixels whose solves had no residual freedom: their estimates
-        # are good, their bin's centre is not)
-        use = pool[i] and np.isfinite(xi) and si < inf
-        out[i] = post if use else xi
-        out_se[i] = post_se if use else si
+        w1 = t1 / (t1 + s11)
+        w2 = t2 / (t2 + s22)
+        oc[i] = m1 + w1 * dc if use_c else a
+        ob[i] = m2 + w2 * db if use_b else bb
+        osc[i] = np.sqrt(w1 * s11) if use_c else sa
+        osb[i] = np.sqrt(w2 * s22) if use_b else sv
 
 
 class LivePosterior:

@@ -84,11 +84,7 @@ def compile_kernels(progress: Callable[[str], None] | None = None) -> WarmupRepo
     if cal is not None:  # calibrate --posterior and serve --posterior
         from .posterior import posterior_maps
 
-        # OffEI's maps are pulled jointly (its errors' correlation), OnEI's each alone:
-        # two kernels
-        streamed = state.get("onei-stream")
-        stage("posterior", lambda: [posterior_maps(c) for c in (cal, streamed)  # type: ignore[arg-type]
-                                    if c is not None])
+        stage("posterior", lambda: posterior_maps(cal))  # type: ignore[arg-type]
     # the scores need scikit-image's SSIM, which an install's build environment lacks; the
     # reconstruction's kernels are the estimators' (accumulation), compiled above
     if cal is not None and importlib.util.find_spec("skimage") is not None:

@@ -98,20 +98,34 @@ def find_line(t0_us: int, x: np.ndarray) -> tuple[float, float]:
     grid = freqs[i] + np.linspace(-3 * df, 3 * df, 121)
     amp = np.abs(np.exp(-2j * np.pi * grid[:, None] * t[None, :]) @ (xx * np.hanning(x.size)))
     f = float(grid[int(np.argmax(amp))])
-    segments = np.array_split(np.arange(x.size), PHASE_SEGMENTS)
-    centres = np.array([t[s].mean() for s in segments])
     for _ in range(3):
-        z = np.array([np.sum(xx[s] * np.exp(-2j * np.pi * f * t[s])) for s in segments])
-        w = np.sqrt(np.abs(z))
-        if not np.all(np.isfinite(w)) or w.sum() <= 0:
-            break
-        design = np.stack([np.ones_like(centres), centres], 1) * w[:, None]
-        coef = np.linalg.lstsq(design, np.unwrap(np.angle(z)) * w, rcond=None)[0]
-        step = float(coef[1]) / (2 * np.pi)
+        step = _drift_hz(*_segment_lines(t, xx, f), min_segments=1)
         if not np.isfinite(step) or abs(step) > df:
             break
         f += step
     return f, ratio
+
+
+def _segment_lines(t_s: np.ndarray, xx: np.ndarray, freq_hz: float
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """The centres (s) of :data:`PHASE_SEGMENTS` segments of the bins (times ``t_s``, values
+    ``xx`` less their mean) and each segment's complex amplitude at ``freq_hz``."""
+    segments = np.array_split(np.arange(xx.size), PHASE_SEGMENTS)
+    centres = np.array([t_s[s].mean() for s in segments])
+    z = np.array([np.sum(xx[s] * np.exp(-2j * np.pi * freq_hz * t_s[s])) for s in segments])
+    return centres, z
+
+
+def _drift_hz(centres: np.ndarray, z: np.ndarray, *, min_segments: int) -> float:
+    """The slope (Hz) of the unwrapped phase of the segments' amplitudes ``z`` over their
+    ``centres``, each weighted by the square root of its magnitude; NaN with fewer than
+    ``min_segments`` segments that carry a line."""
+    w = np.sqrt(np.abs(z))
+    if not np.all(np.isfinite(w)) or np.count_nonzero(w) < min_segments:
+        return float("nan")
+    design = np.stack([np.ones_like(centres), centres], 1) * w[:, None]
+    coef = np.linalg.lstsq(design, np.unwrap(np.angle(z)) * w, rcond=None)[0]
+    return float(coef[1]) / (2 * np.pi)
 
 
 def frequency_error(t0_us: int, x: np.ndarray, t0_sim_us: int, x_sim: np.ndarray,
@@ -124,21 +138,9 @@ def frequency_error(t0_us: int, x: np.ndarray, t0_sim_us: int, x_sim: np.ndarray
     n = min(x.size, x_sim.size)
     if n < 8 * PHASE_SEGMENTS:
         return float("nan")
-    t = _bin_times(t0_us, n)
-    ts = _bin_times(t0_sim_us, n)
-    xm = x[:n] - x[:n].mean()
-    xs = x_sim[:n] - x_sim[:n].mean()
-    segments = np.array_split(np.arange(n), PHASE_SEGMENTS)
-    centres = np.array([t[s].mean() for s in segments])
-    zm = np.array([np.sum(xm[s] * np.exp(-2j * np.pi * freq_hz * t[s])) for s in segments])
-    zs = np.array([np.sum(xs[s] * np.exp(-2j * np.pi * freq_hz * ts[s])) for s in segments])
-    ratio = zm * np.conj(zs)
-    w = np.sqrt(np.abs(ratio))
-    if not np.all(np.isfinite(w)) or np.count_nonzero(w) < 3:
-        return float("nan")
-    design = np.stack([np.ones_like(centres), centres], 1) * w[:, None]
-    coef = np.linalg.lstsq(design, np.unwrap(np.angle(ratio)) * w, rcond=None)[0]
-    return float(coef[1]) / (2 * np.pi)
+    centres, zm = _segment_lines(_bin_times(t0_us, n), x[:n] - x[:n].mean(), freq_hz)
+    _, zs = _segment_lines(_bin_times(t0_sim_us, n), x_sim[:n] - x_sim[:n].mean(), freq_hz)
+    return _drift_hz(centres, zm * np.conj(zs), min_segments=3)
 
 
 def _wrap(phase: float) -> float:
