@@ -35,6 +35,7 @@ import numpy as np
 import evcal
 from evcal.calibration import Calibration, Special
 from evcal.errors import CalibrationError
+from evcal.estimators import ERROR_SCALES
 from evcal.posterior import POSTERIOR_METHODS, posterior_maps
 from evcal.recording import Recording
 from evcal.sim.ideal import SimConfig, draw_maps, simulate_ideal
@@ -120,8 +121,8 @@ def psnr(rec: Recording, cal: Calibration) -> float:
     return float(res.summary()["calibrated"]["psnr"])
 
 
-def score(name: str, rec: Recording, c: np.ndarray, b: np.ndarray, offset: float
-          ) -> dict[str, Any]:
+def score(name: str, rec: Recording, c: np.ndarray, b: np.ndarray, offset: float,
+          error_scale: str = "auto") -> dict[str, Any]:
     truth_cls = classify(c, b, np.zeros_like(c), np.zeros_like(b), np.ones(c.shape, bool))
     normal = truth_cls == Special.NORMAL
     row: dict[str, Any] = {"recording": name, "n_events": int(rec.n_events),
@@ -132,7 +133,7 @@ def score(name: str, rec: Recording, c: np.ndarray, b: np.ndarray, offset: float
     for method in METHODS:
         t0 = time.perf_counter()
         try:
-            cal = evcal.calibrate(rec, method)
+            cal = evcal.calibrate(rec, method, error_scale=error_scale)
         except CalibrationError as e:  # too few events for this method: said, not fatal
             row[method] = {"error": str(e)}
             if method in POSTERIOR_METHODS:
@@ -140,6 +141,8 @@ def score(name: str, rec: Recording, c: np.ndarray, b: np.ndarray, offset: float
             continue
         row[method] = {**map_scores(cal, c, b, normal), **special_scores(cal, truth_cls),
                        "seconds": time.perf_counter() - t0}
+        if "error_scale" in cal.diagnostics.extra:
+            row[method]["error_scale"] = cal.diagnostics.extra["error_scale"]
         if method != "offe":  # OffE's c has no absolute scale: its PSNR says little
             row[method]["psnr"] = psnr(rec, cal)
         if method in POSTERIOR_METHODS:
@@ -150,12 +153,12 @@ def score(name: str, rec: Recording, c: np.ndarray, b: np.ndarray, offset: float
     return row
 
 
-def score_real(name: str, rec: Recording) -> dict[str, Any]:
+def score_real(name: str, rec: Recording, error_scale: str = "auto") -> dict[str, Any]:
     """A recording without known maps: what a user of it sees, raw and posterior."""
     row: dict[str, Any] = {"recording": name, "n_events": int(rec.n_events), "real": True}
     for method in POSTERIOR_METHODS:
         try:
-            cal = evcal.calibrate(rec, method)
+            cal = evcal.calibrate(rec, method, error_scale=error_scale)
         except CalibrationError as e:
             row[method] = {"error": str(e)}
             continue
@@ -208,6 +211,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--real", type=Path, action="append", default=[],
                     help="a recording without known maps (repeatable): PSNR, valid share and "
                          "special pixels, raw and posterior")
+    ap.add_argument("--error-scale", choices=list(ERROR_SCALES), default="auto",
+                    help="the stated errors' split-half check (evcal.splithalf; default: "
+                         "evcal.calibrate's, OnEI only)")
     args = ap.parse_args(argv)
     jobs: list[Any] = []
     if not args.no_sim:
@@ -222,7 +228,7 @@ def main(argv: list[str] | None = None) -> int:
             raise SystemExit("--data needs --only (dev case ids)")
         jobs += [lambda i=i: from_benchmark(args.data, i) for i in ids]
     for path in args.real:
-        real = score_real(path.name, evcal.open_recording(path))
+        real = score_real(path.name, evcal.open_recording(path), args.error_scale)
         print_real(real)
         if args.json is not None:
             with args.json.open("a") as f:
@@ -231,7 +237,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for job in jobs:
         name, rec, c, b, offset = job()
-        row = score(name, rec, c, b, offset)
+        row = score(name, rec, c, b, offset, args.error_scale)
         rows.append(row)
         print_row(row)
         if args.json is not None:

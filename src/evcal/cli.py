@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from .clihelp import HelpFormatter
-from .estimators import ESTIMATORS
+from .estimators import ERROR_SCALES, ESTIMATORS
 from .events import SensorSize
 
 if TYPE_CHECKING:
@@ -171,7 +171,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     else:
         cal = calibrate(rec, args.method, log_offset=args.log_offset,
                         window_frames=args.window_frames, n_small=args.n_small,
-                        n_large=args.n_large, smoothing=args.smoothing)
+                        n_large=args.n_large, smoothing=args.smoothing,
+                        error_scale=args.error_scale)
     if args.posterior:
         from .posterior import POSTERIOR_METHODS, posterior_maps  # noqa: PLC0415
 
@@ -229,9 +230,10 @@ def _calibrate_stream(args: argparse.Namespace) -> int:
     from .io import save_calibration, sniff, write_csv  # noqa: PLC0415
     from .offline import OffEIConfig, offei_file  # noqa: PLC0415
 
-    if args.method != "offei" or args.model or args.rrd:
+    if args.method != "offei" or args.model or args.rrd or args.error_scale == "split-half":
         raise CliError("--stream is OffEI alone: no --method other than offei, no --model, "
-                       "no --rrd")
+                       "no --rrd, no --error-scale split-half (the halves need the "
+                       "recording in memory)")
     if sniff(args.recording) != "mcap":
         raise CliError(f"--stream reads evcal's .mcap recordings; {args.recording} is not one "
                        "(convert it with evcal simulate/record, or drop --stream)")
@@ -519,6 +521,10 @@ def build_parser() -> argparse.ArgumentParser:
                     help="OnEI events in the large buffer (default: 1.7 M, scaled likewise)")
     sp.add_argument("--smoothing", type=float, default=None,
                     help="OnEI low-pass factor in (0, 1] (default 0.1)")
+    sp.add_argument("--error-scale", choices=list(ERROR_SCALES), default="auto",
+                    help="check the stated standard errors on the recording's two halves in "
+                         "time and rescale them ('auto': OnEI only, about twice its time; "
+                         "the scale is in the file's diagnostics)")
     sp.add_argument("--csv", metavar="DIR", help="also write scale.csv and bias.csv")
     sp.add_argument("--model", metavar="REPORT.json", default=None,
                     help="OffEI corrected for the bias of the effects named by 'evcal gap' "

@@ -8,7 +8,7 @@ does (``evcal calibrate --method`` takes its keys).
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from types import MappingProxyType
 from typing import Any
 
@@ -17,6 +17,7 @@ from .errors import ConfigError
 from .recording import Recording
 
 FALLBACK_LOG_OFFSET = 30.0  # DN: where the offset cannot be estimated (no frames)
+ERROR_SCALES = ("auto", "split-half", "none")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -28,8 +29,15 @@ class CalibrateOptions:
     n_small: int | None = None  # OnEI's small buffer (events)
     n_large: int | None = None  # OnEI's large buffer (events)
     smoothing: float | None = None  # OnEI's low-pass factor
+    # the stated errors checked on the recording's two halves (evcal.splithalf):
+    # "split-half", "none", or "auto" (split-half for OnEI, whose error model the frames'
+    # noise decides; OffEI's errors come from its own residuals and stay as they are)
+    error_scale: str = "auto"
 
     def __post_init__(self) -> None:
+        if self.error_scale not in ERROR_SCALES:
+            raise ConfigError(f"error_scale={self.error_scale!r} must be one of "
+                              f"{', '.join(ERROR_SCALES)}")
         lo = self.log_offset
         if not (lo == "auto" or (isinstance(lo, (int, float)) and not isinstance(lo, bool)
                                  and lo >= 0)):
@@ -117,7 +125,9 @@ def calibrate(rec: Recording, method: str = "offei", **options: Any) -> Calibrat
     """Calibrate ``rec`` with ``method`` (a key of :data:`ESTIMATORS`).
 
     ``options`` are the fields of :class:`CalibrateOptions`: ``log_offset`` (DN or ``"auto"``),
-    ``window_frames`` (OffEI), ``n_small``, ``n_large``, ``smoothing`` (OnEI).
+    ``window_frames`` (OffEI), ``n_small``, ``n_large``, ``smoothing`` (OnEI), ``error_scale``
+    (the stated errors checked on the recording's two halves: :mod:`evcal.splithalf`; by
+    default for OnEI, at about twice its cost).
 
     Examples
     --------
@@ -130,4 +140,16 @@ def calibrate(rec: Recording, method: str = "offei", **options: Any) -> Calibrat
     est = ESTIMATORS.get(method)
     if est is None:
         raise ConfigError(f"unknown method {method!r}; choose one of {', '.join(ESTIMATORS)}")
-    return est.run(rec, CalibrateOptions(**options))
+    opts = CalibrateOptions(**options)
+    cal = est.run(rec, opts)
+    mode = opts.error_scale
+    if mode == "auto":
+        mode = "split-half" if method == "onei" else "none"
+    if mode == "none":
+        return cal
+    from . import splithalf  # noqa: PLC0415
+
+    def run_half(half: Recording, log_offset: float) -> Calibration:
+        return est.run(half, replace(opts, log_offset=log_offset, error_scale="none"))
+
+    return splithalf.with_scale(cal, splithalf.split_half_scale(rec, cal, run_half))
