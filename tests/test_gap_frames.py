@@ -249,3 +249,24 @@ def test_a_sweep_of_lags_counts_the_windows_as_counting_anew() -> None:
             _count_windows(t, pix, p, ft + lags[i], P2, E2)
             np.testing.assert_array_equal(P, P2)
             np.testing.assert_array_equal(E, E2)
+
+
+def test_no_pixel_with_a_fit_leaves_the_lag_by_light_unsaid() -> None:
+    """A measurement in which no pixel has enough events for a fit (a sparse recording:
+    dev1026 of the gap benchmark) has no lag of least residual to start the thirds' search
+    from: the split by light says nothing (``None``) instead of raising, and the bandwidth
+    fitter goes on without it."""
+    from evcal.gap.fitters import fit_bandwidth
+    from evcal.gap.frames import LAG_GRID, _lag_by_light, lag_residuals
+
+    rec, ctx, _base = _fit_setup("none", 97)
+    ev = rec.events
+    _, first = np.unique(ev["y"].astype(np.int64) * rec.sensor.width + ev["x"],
+                         return_index=True)
+    silent = observe(rec.with_events(ev[np.sort(first)]))  # one event a pixel
+    lags = LAG_GRID * 4000.0
+    assert not np.isfinite(lag_residuals(silent, lags)).any()
+    assert _lag_by_light(silent, ctx.sims, lags) is None
+    res = fit_bandwidth(replace(ctx, meas=silent, whole=silent))
+    assert isinstance(res, NoEvidence)
+    assert res.reason

@@ -581,15 +581,20 @@ def _lag_by_light(meas: Observation, sims: list[Observation], lags: np.ndarray
     if not all(np.isfinite(r).all() for r in [rm_all, *rs_all]):
         return None
 
-    def basins(obs: Observation, r: np.ndarray) -> list[int]:
-        # each third's minimum in the basin of the observation's own least residual
-        start = int(np.nanargmin(lag_residuals(obs, lags)))
+    # each third's minimum is sought in the basin of the observation's own least residual
+    # (none on a recording too sparse for any lag to explain part of a window's change)
+    whole = [lag_residuals(o, lags) for o in [meas, *sims]]
+    if not all(np.isfinite(r).any() for r in whole):
+        return None
+
+    def basins(whole_r: np.ndarray, r: np.ndarray) -> list[int]:
+        start = int(np.nanargmin(whole_r))
         return [_basin_minimum(r[:, j], start) for j in range(LIGHT_BINS)]
 
-    sim_lags = np.array([[_lag_minimum(lags, r[:, j], i) for j, i in enumerate(basins(s, r))]
-                         for s, r in zip(sims, rs_all, strict=True)])
+    sim_lags = np.array([[_lag_minimum(lags, r[:, j], i) for j, i in enumerate(basins(w, r))]
+                         for w, r in zip(whole[1:], rs_all, strict=True)])
     out = []
-    for j, i in enumerate(basins(meas, rm_all)):
+    for j, i in enumerate(basins(whole[0], rm_all)):
         if i == 0 or i == lags.size - 1:
             # beyond the grid's reach: later (inf) or earlier (-inf) than it goes
             out.append(float(np.inf) if i else -float(np.inf))
