@@ -139,3 +139,6 @@ def test_the_cli_writes_the_scale_into_the_file(tmp_path, sim):
     assert main(["calibrate", str(src), "--method", "onei", "--out", str(out2),
                  "--error-scale", "none"]) == 0
     assert "error_scale" not in load_calibration(out2).diagnostics.extra
+    # OffEI corrected by a gap model: the halves would need the correction too; refused
+    assert main(["calibrate", str(src), "--out", str(tmp_path / "c3.npz"), "--model",
+                 str(tmp_path / "report.json"), "--error-scale", "split-half"]) == 2

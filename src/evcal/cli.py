@@ -159,6 +159,10 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
             print("evcal calibrate: --model corrects OffEI: use it with --method offei",
                   file=sys.stderr)
             return 2
+        if args.error_scale == "split-half":
+            print("evcal calibrate: --error-scale split-half is not applied with --model (the "
+                  "halves would each need the model's correction)", file=sys.stderr)
+            return 2
         from .gap.correct import CorrectionConfig, load_model_effects, model_corrected  # noqa: PLC0415
         from .offline import OffEIConfig  # noqa: PLC0415
 
