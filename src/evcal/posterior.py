@@ -28,7 +28,8 @@ evidence and keep their raw estimates; they and the invalid pixels are not in th
 population. Nor is a valid pixel without a stated error (infinite or NaN: OnEI's pixels
 whose solves had no residual freedom): there is nothing to weigh its estimate by, so it
 keeps it. Only estimators whose errors are calibrated get posterior maps: OffEI's and
-OnEI's (:mod:`evcal.onei.stderr`); OffE states none for ``c``, and shrinking by errors that
+OnEI's (:mod:`evcal.onei.stderr`; offline also checked on the recording's two halves,
+:mod:`evcal.splithalf`); OffE states none for ``c``, and shrinking by errors that
 are not calibrated would pull too hard or not at all. The raw estimate is always there: it
 is what the estimator returns, and :func:`posterior_maps` returns a new calibration saying it
 holds the posterior (``diagnostics.extra["estimate"]``).
