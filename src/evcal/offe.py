@@ -112,13 +112,17 @@ def offe_from_sums(s: dict[str, np.ndarray], n_steps: int, n_events: np.ndarray,
     valid = reason == 0
     c = np.where(valid, c, DEFAULT_CONTRAST)
     b = np.where(valid, b, DEFAULT_BIAS)
-    # A standard error for b from the slope's regression; c's relative scale has none that
-    # is meaningful without frames, so it is reported as unknown (inf).
+    # No stated errors (inf): c's scale has none that is meaningful without frames (it is
+    # the pixel's own light excursion against the typical pixel's, and c0), and b = -c m
+    # carries it; c times the slope's regression error, stated as b's before, was 19-28x
+    # too small against the truth (docs/notes/errors-splithalf-2026-11-30.md). The slope
+    # itself (b / c) is measured: its error judges warm and cool pixels, as before.
     with np.errstate(divide="ignore", invalid="ignore"):
         se_slope = np.sqrt(np.where(see > 0, rss / max(m_steps - 2, 1) / see, np.inf))
-    se_b = np.where(valid, c * se_slope, np.inf)
+    se_ratio = np.where(valid, c * se_slope, np.inf)
     se_c = np.full(n, np.inf)
-    special = classify(c, b, np.where(valid, 0.0, np.inf), se_b, valid)
+    se_b = np.full(n, np.inf)
+    special = classify(c, b, np.where(valid, 0.0, np.inf), se_ratio, valid)
     shape = sensor.shape
     return Calibration(
         contrast=c.reshape(shape), bias=b.reshape(shape), valid=valid.reshape(shape),

@@ -29,7 +29,7 @@ population. Nor is a valid pixel without a stated error (infinite or NaN: OnEI's
 whose solves had no residual freedom): there is nothing to weigh its estimate by, so it
 keeps it. Only estimators whose errors are calibrated get posterior maps: OffEI's and
 OnEI's (:mod:`evcal.onei.stderr`; offline also checked on the recording's two halves,
-:mod:`evcal.splithalf`); OffE states none for ``c``, and shrinking by errors that
+:mod:`evcal.splithalf`); OffE states none, and shrinking by errors that
 are not calibrated would pull too hard or not at all. The raw estimate is always there: it
 is what the estimator returns, and :func:`posterior_maps` returns a new calibration saying it
 holds the posterior (``diagnostics.extra["estimate"]``).
