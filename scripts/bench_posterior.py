@@ -166,6 +166,8 @@ def score_real(name: str, rec: Recording, error_scale: str = "auto") -> dict[str
             special = (m.special != Special.NORMAL) & (m.special != Special.UNOBSERVED)
             row[key] = {"valid": float(m.valid.mean()), "special": int(special.sum()),
                         "psnr": psnr(rec, m)}
+        if "error_scale" in cal.diagnostics.extra:
+            row[method]["error_scale"] = cal.diagnostics.extra["error_scale"]
     return row
 
 

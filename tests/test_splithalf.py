@@ -123,7 +123,7 @@ def test_a_bad_mode_is_refused(sim):
         evcal.calibrate(sim.recording, "onei", error_scale="halves")
 
 
-def test_the_cli_writes_the_scale_into_the_file(tmp_path, sim):
+def test_the_cli_writes_the_scale_into_the_file(tmp_path, sim, capsys):
     from evcal.cli import main
     from evcal.io.npz import write_npz
 
@@ -131,10 +131,12 @@ def test_the_cli_writes_the_scale_into_the_file(tmp_path, sim):
     write_npz(sim.recording, src)
     out = tmp_path / "cal.npz"
     assert main(["calibrate", str(src), "--method", "onei", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
     cal = load_calibration(out)
     info = cal.diagnostics.extra["error_scale"]
     assert info["method"] == "split-half"
     assert info["pixels"] >= MIN_PIXELS
+    assert f"scaled by c {info['contrast']:.3f}" in printed  # the user is told
     out2 = tmp_path / "cal2.npz"
     assert main(["calibrate", str(src), "--method", "onei", "--out", str(out2),
                  "--error-scale", "none"]) == 0

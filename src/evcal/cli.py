@@ -217,6 +217,12 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         print(f"bias          median {s['bias_median']:+.4f}  "
               f"[p5 {s['bias_p05']:+.4f}, p95 {s['bias_p95']:+.4f}]")
     print("special       " + ", ".join(f"{k} {v}" for k, v in s["special_counts"].items()))
+    es = cal.diagnostics.extra.get("error_scale")
+    if isinstance(es, dict):
+        print("errors        " + (
+            f"scaled by c {es['contrast']:.3f}, b {es['bias']:.3f} (the recording's two "
+            f"halves, {es['pixels']} pixels)" if es.get("applied") else
+            f"as the estimator states them (split-half check not applied: {es.get('reason')})"))
     mc = getattr(cal.diagnostics, "model_correction", None)
     if mc:
         names = ", ".join(f"{k}({', '.join(f'{p}={v}' for p, v in ps.items())})"
