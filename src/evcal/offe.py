@@ -114,9 +114,8 @@ def offe_from_sums(s: dict[str, np.ndarray], n_steps: int, n_events: np.ndarray,
     b = np.where(valid, b, DEFAULT_BIAS)
     # No stated errors (inf): c's scale has none that is meaningful without frames (it is
     # the pixel's own light excursion against the typical pixel's, and c0), and b = -c m
-    # carries it; c times the slope's regression error, stated as b's before, was 19-28x
-    # too small against the truth (docs/notes/errors-splithalf-2026-11-30.md). The slope
-    # itself (b / c) is measured: its error judges warm and cool pixels, as before.
+    # carries it, so c times the slope's regression error would state far too little. The
+    # slope itself (b / c) is measured: its error judges warm and cool pixels.
     with np.errstate(divide="ignore", invalid="ignore"):
         se_slope = np.sqrt(np.where(see > 0, rss / max(m_steps - 2, 1) / see, np.inf))
     se_ratio = np.where(valid, c * se_slope, np.inf)

@@ -141,6 +141,15 @@ class Recording:
     def with_events(self, events: np.ndarray) -> Recording:
         return Recording(self.sensor, events, self.frames, dict(self.metadata))
 
+    def frame_window(self, k0: int, k1: int, *, copy: bool = False) -> Recording:
+        """Frames ``k0`` to ``k1`` (both kept) and the events from the first's time to the
+        last's (included): a view of the events, or a copy that does not keep the whole
+        recording's alive."""
+        fr = self.frames.select(slice(k0, k1 + 1))
+        events = self.events_between(int(fr.t_us[0]), int(fr.t_us[-1]) + 1)
+        return Recording(self.sensor, events.copy() if copy else events, fr,
+                         dict(self.metadata))
+
 
 def concat_events(chunks: list[np.ndarray]) -> np.ndarray:
     """Concatenate event chunks; an empty list gives an empty array."""

@@ -37,7 +37,9 @@ from .recording import Recording
 MIN_PIXELS = 100
 # a scale outside this says the halves disagree for a reason other than noise
 SCALE_RANGE = (0.2, 5.0)
-_CHI2_1_MEDIAN = 0.454936
+# the median of a chi-square with one degree of freedom: a z-score's square with the right
+# standard error has this median
+CHI2_1_MEDIAN = 0.454936
 
 
 @dataclass(frozen=True)
@@ -66,12 +68,7 @@ def halves(rec: Recording) -> tuple[Recording, Recording]:
     k = len(rec.frames)
     if k < 4:
         raise CalibrationError(f"{k} frames: two halves need at least 4")
-    out = []
-    for sel in (slice(0, k // 2 + 1), slice(k // 2, k)):
-        fr = rec.frames.select(sel)
-        ev = rec.events_between(int(fr.t_us[0]), int(fr.t_us[-1]) + 1)
-        out.append(replace(rec.with_events(ev), frames=fr))
-    return out[0], out[1]
+    return rec.frame_window(0, k // 2), rec.frame_window(k // 2, k - 1)
 
 
 def _scale(a: Calibration, b: Calibration, name: str, both: np.ndarray) -> tuple[float, int]:
@@ -83,7 +80,7 @@ def _scale(a: Calibration, b: Calibration, name: str, both: np.ndarray) -> tuple
         return float("nan"), 0
     d = getattr(a, name)[ok].astype(np.float64) - getattr(b, name)[ok].astype(np.float64)
     z2 = d * d / (sa[ok] ** 2 + sb[ok] ** 2)
-    return float(np.sqrt(np.median(z2) / _CHI2_1_MEDIAN)), n
+    return float(np.sqrt(np.median(z2) / CHI2_1_MEDIAN)), n
 
 
 def scale_of(first: Calibration, second: Calibration) -> SplitHalfScale:

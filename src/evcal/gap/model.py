@@ -35,6 +35,7 @@ from ..sim.effects import Effect, Exposure
 from ..sim.ideal import SimConfig
 from ..sim.nonideal import simulate
 from ..sim.sources import FrameInterpolator
+from ..splithalf import CHI2_1_MEDIAN
 from .pixelfit import MIN_FIT_EVENTS
 from .render import RenderCache, frames_key
 from .stats import NOMINAL_LOG_OFFSET_DN, Observation, _fit, block_fit, observe
@@ -132,9 +133,6 @@ def estimate_read_noise(frames: Frames) -> float:
     return float(1.4826 * np.median(np.abs(d - np.median(d))) / np.sqrt(2))
 
 
-# the median of a chi-square with one degree of freedom: a z-score's square with the right
-# standard error has this median
-_CHI2_1_MEDIAN = 0.454936
 # below this many pixels fitted in the simulations the stated errors are taken as they are
 MIN_SCALE_PIXELS = 200
 # the factors are clamped here (beyond, the simulations say more about themselves than about
@@ -198,7 +196,7 @@ def noise_scale(rec: Recording, config: OffEIConfig, cal: Calibration, model: Mo
         return NoiseScale(n_pixels=n, reason=f"{n} pixels fitted in the simulations")
 
     def factor(z: list[np.ndarray]) -> float:
-        f = np.median(np.concatenate(z) ** 2) / _CHI2_1_MEDIAN
+        f = np.median(np.concatenate(z) ** 2) / CHI2_1_MEDIAN
         return float(np.clip(f, *NOISE_SCALE_RANGE))
 
     return NoiseScale(contrast=factor(zc), bias=factor(zb), n_pixels=n)

@@ -263,11 +263,9 @@ def working_window(rec: Recording, max_pixel_steps: int, internal_rate_hz: float
     counts = at[last] - at[idx]
     k0 = int(np.argmax(counts))
     k1 = int(last[k0])
-    sub = fr.select(slice(k0, k1 + 1))
-    events = rec.events_between(int(t[k0]), int(t[k1]) + 1)
-    cut = Recording(rec.sensor, events.copy(), sub, dict(rec.metadata))
+    cut = rec.frame_window(k0, k1, copy=True)
     info.update({"first_frame_us": int(t[k0]), "last_frame_us": int(t[k1]),
-                 "frames": k1 - k0 + 1, "cut": True, "events": int(events.size)})
+                 "frames": k1 - k0 + 1, "cut": True, "events": cut.n_events})
     return cut, info
 
 
