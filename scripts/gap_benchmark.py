@@ -1341,7 +1341,7 @@ def cmd_oracle(args: argparse.Namespace) -> int:
     cases = [c for c in select(manifest["cases"], "dev", args.only, args.limit, None)
              if c["truth"] is not None]
     add = tuple(a for a in (args.add or "").split(",") if a)
-    cfg = GapConfig(n_seeds=args.seeds)
+    cfg = GapConfig(n_seeds=args.seeds, subframe_motion=args.subframe_motion)
     tally: dict[str, list[int]] = {}
     for c in cases:
         npz, _ = case_paths(data, c)
@@ -1465,6 +1465,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--no-v2e-reset", dest="v2e_reset", action="store_false",
                    help="do not add start_reset to v2e cases (v2e starts every pixel's "
                         "reference at its first frame; added by default)")
+    p.add_argument("--no-subframe-motion", dest="subframe_motion", action="store_false",
+                   help="drive the simulations by the flow's straight path between frames")
     p.add_argument("--top", type=int, default=3, help="statistics shown per model (3)")
     p.add_argument("--results", default=None,
                    help="JSON lines, appended: per case the truth's gap and per hidden "

@@ -43,6 +43,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--interpolation", choices=("flow", "linear"), default="flow",
                    help="latent intensity between frames: motion-compensated (flow, default) "
                         "or a linear blend")
+    p.add_argument("--no-subframe-motion", action="store_true",
+                   help="drive the simulations by the flow's straight path between frames "
+                        "(default: the image's shake between frames read from the events)")
     p.add_argument("--max-events", type=float, default=4e6,
                    help="analyse at most this many events: a longer recording is cut to its "
                         "busiest frames that hold them (default %(default).0e; 0: no limit)")
@@ -83,6 +86,7 @@ def run(args: argparse.Namespace) -> int:
         cands = tuple(c.strip() for c in args.candidates.split(",") if c.strip())
         cfg = GapConfig(max_effects=args.max_effects, seed=args.seed, n_seeds=args.n_seeds,
                         interpolation=args.interpolation,
+                        subframe_motion=not args.no_subframe_motion,
                         internal_rate_hz=args.internal_rate_hz, candidates=cands,
                         max_pixel_steps=int(args.max_pixel_steps), workers=args.workers,
                         max_events=int(args.max_events) or None,

@@ -37,6 +37,7 @@ import numpy as np
 from ..errors import ConfigError
 from ..recording import Frames
 from ..sim.sources import FrameInterpolator
+from .motion import SubframeShift
 
 _FLOW_CACHE: OrderedDict[bytes, tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = \
     OrderedDict()
@@ -118,8 +119,11 @@ class FlowInterpolator(FrameInterpolator):
 
     def __init__(self, frames: Frames, shape: tuple[int, int] | None = None, *,
                  t_origin_us: int | None = None, gain: float = 1.0,
-                 flow_images: np.ndarray | None = None, min_size: int = 192):
+                 flow_images: np.ndarray | None = None, min_size: int = 192,
+                 shift: SubframeShift | None = None):
         super().__init__(frames, shape, t_origin_us=t_origin_us, gain=gain)
+        # the image's motion between frames off the straight path (evcal.gap.motion)
+        self.shift = shift
         src = self.images if flow_images is None else np.asarray(flow_images)
         if src.shape != self.images.shape:
             raise ConfigError(f"flow_images have shape {src.shape}, the frames "
@@ -142,7 +146,12 @@ class FlowInterpolator(FrameInterpolator):
         self._rows = slice(y0, y1)
         return self
 
-    def _between(self, k: int, tau: float) -> np.ndarray:
+    def between(self, k: int, tau: float, shift: np.ndarray | None = None) -> np.ndarray:
+        """Frame interval ``k`` at ``tau`` (0..1) of the way, the image sampled ``shift``
+        (pixels, x then y) away from the straight path."""
+        return self._between(k, tau, shift)
+
+    def _between(self, k: int, tau: float, shift: np.ndarray | None = None) -> np.ndarray:
         cv2 = _cv2()
         r = self._rows  # the output's rows; the warps sample the whole frames
         a, b = self.images[k][r], self.images[k + 1][r]
@@ -151,6 +160,13 @@ class FlowInterpolator(FrameInterpolator):
         t = np.float32(tau)
         ft0 = -(1 - t) * t * f01 + t * t * f10
         ft1 = (1 - t) * (1 - t) * f01 - t * (1 - t) * f10
+        if shift is not None and np.any(shift):
+            sh = np.asarray(shift, np.float32)
+            ft0 = ft0 + sh
+            ft1 = ft1 + sh
+            # the blend that stands in where the flow fails moves with the image too
+            a, b = (cv2.remap(self.images[i], gx + sh[0], gy + sh[1], cv2.INTER_LINEAR,
+                              borderMode=cv2.BORDER_REPLICATE) for i in (k, k + 1))
         w0 = self._warp(k, 0, ft0)
         w1 = self._warp(k, 1, ft1)
         # visibility: the consistency of each frame's flow, sampled where the pixel comes from
@@ -214,12 +230,15 @@ class FlowInterpolator(FrameInterpolator):
             raise ConfigError(f"out has shape {out.shape} and dtype {out.dtype}; expected "
                              f"float32 {shape}")
         ks, ws = self._locate(ts)
+        shifts = None if self.shift is None else \
+            self.shift.at(self.t_origin_us + np.rint(ts * 1e6))
         for j in range(ts.size):  # one warp per requested time, vectorised over pixels
             k, tau = int(ks[j]), float(ws[j])
             if k < 0:
                 out[j] = self.images[0 if k == -1 else -1][r]
             else:
-                out[j] = self.images[k][r] if tau <= 0 else self._between(k, tau)
+                out[j] = self.images[k][r] if tau <= 0 else \
+                    self._between(k, tau, None if shifts is None else shifts[j])
         return out
 
 

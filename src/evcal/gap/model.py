@@ -36,6 +36,7 @@ from ..sim.ideal import SimConfig
 from ..sim.nonideal import simulate
 from ..sim.sources import FrameInterpolator
 from ..splithalf import CHI2_1_MEDIAN
+from .motion import SubframeShift, estimate_shift
 from .pixelfit import MIN_FIT_EVENTS
 from .render import RenderCache, frames_key
 from .stats import NOMINAL_LOG_OFFSET_DN, Observation, _fit, block_fit, observe
@@ -116,6 +117,9 @@ class SimSettings:
     # the latent intensity between frames: "linear" blend or "flow" (motion-compensated,
     # evcal.gap.flow; needs OpenCV)
     interpolation: str = "linear"
+    # the image's motion off the straight path between frames, read from the measured
+    # events (evcal.gap.motion; flow interpolation only); None: the straight path
+    shift: SubframeShift | None = None
 
     def __post_init__(self) -> None:
         if self.interpolation not in ("linear", "flow"):
@@ -531,11 +535,14 @@ def simulate_model(model: Model, rec: Recording, seed: int, settings: SimSetting
             flow_images = fr.images.astype(np.float32)
             latent = Frames(latent.t_us, deblurred(latent.images, fr.t_us, fr.exposure_us,
                                                    flow_images), latent.exposure_us)
-            return FlowInterpolator(latent, shape, t_origin_us=t0, flow_images=flow_images)
+            return FlowInterpolator(latent, shape, t_origin_us=t0, flow_images=flow_images,
+                                    shift=settings.shift)
         return FrameInterpolator(latent, shape, t_origin_us=t0)
 
     cache = render if render is not None else RenderCache(max_bytes=0)
     key = frames_key(drive, settings.interpolation, times)
+    if settings.shift is not None and settings.interpolation == "flow":
+        key += settings.shift.digest()
     src = cache.source(key, times, shape, make_source, add,
                        rows=None if band is None else band.rows, lag_s=lag_us * 1e-6)
     dur = max(times[-1] * 1e-6, 1e-3)
@@ -549,6 +556,45 @@ def simulate_model(model: Model, rec: Recording, seed: int, settings: SimSetting
                        frames=fr if band is None else band.rec.frames, times_us=times,
                        t_origin_us=t0, expected_events=expected, threads=threads)
     return res.recording
+
+
+# OffEI's valid pixels that the sensor's typical thresholds are read from (fewer: the
+# population of the per-window fit)
+SHIFT_MIN_VALID = 200
+
+
+def subframe_shift(rec: Recording, settings: SimSettings, population: tuple[float, float]
+                   ) -> tuple[SubframeShift, dict[str, float]]:
+    """The image's motion between the frames off the flow interpolation's straight path,
+    read from ``rec``'s events (:mod:`evcal.gap.motion`) with the sensor's typical
+    thresholds: the median of OffEI's valid pixels at the nominal offset (the base model's
+    fit, in the log intensity the shift is read in), or ``population`` (the statistics'
+    fit) where OffEI has fewer than :data:`SHIFT_MIN_VALID`; on the latent frames every
+    model's light starts from."""
+    from .flow import FlowInterpolator, deblurred  # noqa: PLC0415
+
+    fr = rec.frames
+    assert fr is not None
+    contrast, bias = population
+    try:
+        cal = offei(rec, OffEIConfig(window_frames=max(1, min(5, len(fr) // 4)),
+                                     log_offset=NOMINAL_LOG_OFFSET_DN))
+        if int(cal.valid.sum()) >= SHIFT_MIN_VALID:
+            contrast = float(np.median(cal.contrast[cal.valid]))
+            bias = float(np.median(cal.bias[cal.valid]))
+    except CalibrationError:
+        pass
+    if not (np.isfinite(contrast) and contrast > 0 and np.isfinite(bias)):
+        # no pixel fits: nothing to read the events' steps in
+        return SubframeShift(np.zeros(0, np.int64), np.zeros((0, 2), np.float32)), {}
+    flow_images = fr.images.astype(np.float32)
+    latent = deblurred(latent_frames(fr, settings.read_noise_dn), fr.t_us, fr.exposure_us,
+                       flow_images)
+    interp = FlowInterpolator(Frames(fr.t_us, latent, fr.exposure_us), rec.sensor.shape,
+                              t_origin_us=int(fr.t_us[0]), flow_images=flow_images)
+    ev = rec.events
+    return estimate_shift(interp, ev["t_us"], ev["x"], ev["y"], ev["p"], contrast=contrast,
+                          bias=bias, log_offset=NOMINAL_LOG_OFFSET_DN)
 
 
 def population(obs: Observation) -> tuple[float, float]:

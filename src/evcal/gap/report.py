@@ -87,6 +87,12 @@ def write_markdown(result: GapResult, out_dir: Path, *, plots: bool = True) -> P
         lines += [f"Analysed: its busiest {win['frames']} of {win['of_frames']} frames "
                   f"({win['events']} of {win['of_events']} events; `--max-events`, "
                   "`--max-pixel-steps`).", ""]
+    motion = info.get("subframe_motion")
+    if motion:
+        lines += [f"Motion between frames read from the events (the light off the flow's "
+                  f"straight path, `--no-subframe-motion` to leave it): in "
+                  f"{motion['kept']:.0f} of {motion['intervals']:.0f} frame intervals, "
+                  f"{motion['rms_px']:.2f} px RMS.", ""]
     named = result.named_effects
     lines += [f"**Named effects** (in the order added): {', '.join(named) if named else 'none'}",
               "", f"Gap (mean standardised discrepancy, about 1 when the model explains the "

@@ -41,6 +41,7 @@ from .model import (
     fit_base,
     population,
     simulate_model,
+    subframe_shift,
 )
 from .render import RenderCache
 from .stats import GapError, Observation, StatValue, observe, rows_of, summarise
@@ -53,6 +54,9 @@ class GapConfig:
     n_seeds: int = 3
     internal_rate_hz: float = 1000.0
     interpolation: str = "flow"  # between frames: "flow" (evcal.gap.flow) or "linear"
+    # the image's motion between frames off the straight path read from the events
+    # (evcal.gap.motion; with "flow" only)
+    subframe_motion: bool = True
     # timing statistics only in windows whose flow is consistent and at most this many pixels
     # (evcal.gap.flow.trusted_windows) and whose frames are not clipped at full scale
     # (unclipped_windows); None: every window
@@ -234,6 +238,10 @@ class Evaluator:
         self.settings = SimSettings(internal_rate_hz=cfg.internal_rate_hz,
                                     read_noise_dn=estimate_read_noise(rec.frames),
                                     interpolation=cfg.interpolation)
+        self.shift_info: dict[str, float] = {}
+        if cfg.subframe_motion and cfg.interpolation == "flow":
+            shift, self.shift_info = subframe_shift(rec, self.settings, self.meas_pop)
+            self.settings = replace(self.settings, shift=shift)
         # the recording's median frame value (DN): where light-dependent laws are read
         self.light_dn = float(np.median(rec.frames.images))
         self.seeds = [cfg.seed * 1000 + k for k in range(cfg.n_seeds)]

@@ -802,7 +802,8 @@ class GapRun:
                 "screen_band_rows": None if ev.band is None else
                 [ev.band.rows.start, ev.band.rows.stop],
                 "simulations": ev.simulations,
-                "median_light_dn": ev.light_dn}
+                "median_light_dn": ev.light_dn,
+                "subframe_motion": dict(ev.shift_info) if ev.shift_info else None}
         settings = {"seed": cfg.seed, "n_seeds": cfg.n_seeds,
                     "internal_rate_hz": cfg.internal_rate_hz,
                     "read_noise_dn": ev.settings.read_noise_dn,
