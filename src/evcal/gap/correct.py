@@ -61,6 +61,7 @@ from .model import (
     estimate_read_noise,
     noise_scale,
     simulate_model,
+    subframe_shift,
 )
 from .render import RenderCache
 from .stats import NOMINAL_LOG_OFFSET_DN
@@ -241,6 +242,11 @@ def model_corrected(rec: Recording, effects: Mapping[str, Effect] | list[Effect]
     settings = SimSettings(internal_rate_hz=cfg.internal_rate_hz,
                            read_noise_dn=estimate_read_noise(rec.frames),
                            interpolation=cfg.interpolation)
+    if cfg.interpolation == "flow":
+        # the light the gap workflow fitted the effects in: shaken between frames as the
+        # events say (evcal.gap.motion)
+        settings = replace(settings, shift=subframe_shift(rec, settings,
+                                                          (float("nan"), float("nan")))[0])
     # the interpolated frames, rendered once (on every core) for every simulation
     render = RenderCache(workers=usable_cores())
     valid = cal_m.valid.ravel()

@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import hashlib
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
@@ -57,6 +58,8 @@ SHIFT_PRIOR = 0.02
 SHIFT_SMOOTH = 0.02
 # an interval needs this many pairs of events of one pixel
 MIN_PAIRS = 200
+# knots of the common change per knot of the shift
+COMMON_PER_KNOT = 4
 # and uses at most this many (evenly through them)
 MAX_PAIRS = 50_000
 # a shift larger than this (pixels) is not a shake the straight path missed
@@ -66,6 +69,11 @@ MAX_SHIFT_PX = 6.0
 MIN_EXPLAINED = 0.3
 # and the F statistic of the shift's columns at the straight path at least this
 MIN_F = 30.0
+# and the shift must reach this far (pixels) somewhere in the interval: below, what the
+# straight path misses in a scene of sharp edges (a blur the frames' deblurring left, a
+# flicker) passes both tests as a shift of a few tenths that jitters edges back and forth,
+# firing short intervals the sensor did not (a shake's swing is larger)
+MIN_SHIFT_PX = 0.5
 
 
 @dataclass(frozen=True, eq=False)
@@ -109,6 +117,17 @@ class SubframeShift:
             if self.t_us.size else 0.0
 
 
+class ShiftableInterpolator(Protocol):
+    """What the estimate needs of :class:`evcal.gap.flow.FlowInterpolator`: the frames, their
+    times, the flow forward from each and a render of an interval along a shift."""
+
+    images: np.ndarray
+    t_us: np.ndarray
+    fwd: np.ndarray
+
+    def between(self, k: int, tau: float, shift: np.ndarray | None = None) -> np.ndarray: ...
+
+
 def _log(img: np.ndarray, offset: float) -> np.ndarray:
     out: np.ndarray = np.log(np.maximum(img, 0.0) + np.float32(offset))
     return out
@@ -130,7 +149,7 @@ def _hat(u: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
     return j, (u - j).astype(np.float64)
 
 
-def estimate_shift(interp: object, event_t_us: np.ndarray, event_x: np.ndarray,
+def estimate_shift(interp: ShiftableInterpolator, event_t_us: np.ndarray, event_x: np.ndarray,
                    event_y: np.ndarray, event_p: np.ndarray, *, contrast: float, bias: float,
                    log_offset: float, full_scale_dn: float = 255.0,
                    steps: int = STEPS_PER_INTERVAL, iterations: int = ITERATIONS
@@ -178,9 +197,15 @@ def estimate_shift(interp: object, event_t_us: np.ndarray, event_x: np.ndarray,
         j2, w2 = _hat((p_t2 - t0) * (n / span), n)
         target = contrast * p_pol + bias
         n_free = n - 1  # the interior knots; the frames hold the ends
-        # columns: x and y shift at each interior knot, the common log change there and the
-        # events' lag
-        n_col = 3 * n_free + 1
+        # the common change on a finer grid (a mains flicker of 100-120 Hz has periods of a
+        # quarter of a 25 Hz interval; on the shift's knots it would alias into the shift),
+        # held at zero at the interval's start (only its changes are seen)
+        n_m = COMMON_PER_KNOT * n
+        m1, mw1 = _hat((p_t1 - t0) * (n_m / span), n_m)
+        m2, mw2 = _hat((p_t2 - t0) * (n_m / span), n_m)
+        # columns: x and y shift at each interior knot, the common log change at each of
+        # its knots but the first, and the events' lag
+        n_col = 2 * n_free + n_m + 1
         # second differences of the shift over the knots (the ends held at zero)
         d2 = (np.eye(n + 1, k=0)[:-2] - 2 * np.eye(n + 1, k=1)[:-2] + np.eye(n + 1, k=2)[:-2]
               )[:, 1:n]
@@ -219,11 +244,14 @@ def estimate_shift(interp: object, event_t_us: np.ndarray, event_x: np.ndarray,
                 for knot, wk in ((jj, 1 - wt), (jj + 1, wt)):
                     inner = (knot >= 1) & (knot <= n_free)
                     r_in, c0 = rows[inner], knot[inner] - 1
-                    for comp in range(3):
-                        v = sign * wk[inner] * (grads[knot[inner], comp, p_pix[inner]]
-                                                if comp < 2 else 1.0)
+                    for comp in range(2):
                         flat.append(r_in * n_col + c0 + comp * n_free)
-                        vals.append(v)
+                        vals.append(sign * wk[inner] * grads[knot[inner], comp, p_pix[inner]])
+            for mj, mw, sign in ((m1, mw1, -1.0), (m2, mw2, 1.0)):
+                for knot, wk in ((mj, 1 - mw), (mj + 1, mw)):
+                    on = knot >= 1
+                    flat.append(rows[on] * n_col + 2 * n_free + knot[on] - 1)
+                    vals.append(sign * wk[on])
             cols = np.bincount(np.concatenate(flat), weights=np.concatenate(vals),
                                minlength=p_pix.size * n_col).reshape(p_pix.size, n_col)
             cw = cols * wgt[:, None]
@@ -274,7 +302,7 @@ def estimate_shift(interp: object, event_t_us: np.ndarray, event_x: np.ndarray,
         # the share of what the lag and a common change leave that the shift explains
         share = 1.0 - rss / rss_r0 if rss_r0 > 0 else 0.0
         explained.append(share)
-        if share < MIN_EXPLAINED:
+        if share < MIN_EXPLAINED or np.abs(s).max() < MIN_SHIFT_PX:
             continue
         knots_t.append(t0 + np.rint(span * np.arange(n + 1) / n).astype(np.int64))
         knots_s.append(s.astype(np.float32))
