@@ -149,9 +149,6 @@ class FlowInterpolator(FrameInterpolator):
     def between(self, k: int, tau: float, shift: np.ndarray | None = None) -> np.ndarray:
         """Frame interval ``k`` at ``tau`` (0..1) of the way, the image sampled ``shift``
         (pixels, x then y) away from the straight path."""
-        return self._between(k, tau, shift)
-
-    def _between(self, k: int, tau: float, shift: np.ndarray | None = None) -> np.ndarray:
         cv2 = _cv2()
         r = self._rows  # the output's rows; the warps sample the whole frames
         a, b = self.images[k][r], self.images[k + 1][r]
@@ -238,7 +235,7 @@ class FlowInterpolator(FrameInterpolator):
                 out[j] = self.images[0 if k == -1 else -1][r]
             else:
                 out[j] = self.images[k][r] if tau <= 0 else \
-                    self._between(k, tau, None if shifts is None else shifts[j])
+                    self.between(k, tau, None if shifts is None else shifts[j])
         return out
 
 

@@ -22,6 +22,7 @@ from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -40,6 +41,9 @@ from .motion import SubframeShift, estimate_shift
 from .pixelfit import MIN_FIT_EVENTS
 from .render import RenderCache, frames_key
 from .stats import NOMINAL_LOG_OFFSET_DN, Observation, _fit, block_fit, observe
+
+if TYPE_CHECKING:
+    from .flow import FlowInterpolator
 
 _log = logging.getLogger("evcal.gap")
 
@@ -487,6 +491,23 @@ def _cores_free() -> Iterator[int]:
             _running -= 1
 
 
+def flow_source(drive: Frames, measured: Frames, settings: SimSettings,
+                shape: tuple[int, int], shift: SubframeShift | None) -> FlowInterpolator:
+    """The light between the frames ``drive`` (a model's frames of the ``measured`` ones)
+    along the optical flow. The motion is the scene's: the flow of the measured frames
+    serves every model (a dark-offset map subtracted from the frames would otherwise cost a
+    flow of its own per candidate, for the same motion); the frames' exposure blur along it
+    is taken out, as the events saw the light sharp."""
+    from .flow import FlowInterpolator, deblurred  # noqa: PLC0415
+
+    flow_images = measured.images.astype(np.float32)
+    latent = deblurred(latent_frames(drive, settings.read_noise_dn), measured.t_us,
+                       measured.exposure_us, flow_images)
+    return FlowInterpolator(Frames(drive.t_us, latent, drive.exposure_us), shape,
+                            t_origin_us=int(measured.t_us[0]), flow_images=flow_images,
+                            shift=shift)
+
+
 def simulate_model(model: Model, rec: Recording, seed: int, settings: SimSettings,
                    render: RenderCache | None = None, band: Band | None = None) -> Recording:
     """A re-simulation of ``rec`` (same frames, same time base) under ``model``.
@@ -523,20 +544,10 @@ def simulate_model(model: Model, rec: Recording, seed: int, settings: SimSetting
     shape = rec.sensor.shape
 
     def make_source() -> FrameInterpolator:
+        if settings.interpolation == "flow":
+            return flow_source(drive, fr, settings, shape, settings.shift)
         latent = Frames(drive.t_us, latent_frames(drive, settings.read_noise_dn),
                         drive.exposure_us)
-        if settings.interpolation == "flow":
-            from .flow import FlowInterpolator, deblurred  # noqa: PLC0415
-
-            # the motion is the scene's: the flow of the measured frames serves every model
-            # (a dark-offset map subtracted from the frames would otherwise cost a flow of
-            # its own per candidate, for the same motion); the frames' exposure blur along
-            # it is taken out, as the events saw the light sharp
-            flow_images = fr.images.astype(np.float32)
-            latent = Frames(latent.t_us, deblurred(latent.images, fr.t_us, fr.exposure_us,
-                                                   flow_images), latent.exposure_us)
-            return FlowInterpolator(latent, shape, t_origin_us=t0, flow_images=flow_images,
-                                    shift=settings.shift)
         return FrameInterpolator(latent, shape, t_origin_us=t0)
 
     cache = render if render is not None else RenderCache(max_bytes=0)
@@ -571,8 +582,6 @@ def subframe_shift(rec: Recording, settings: SimSettings, population: tuple[floa
     fit, in the log intensity the shift is read in), or ``population`` (the statistics'
     fit) where OffEI has fewer than :data:`SHIFT_MIN_VALID`; on the latent frames every
     model's light starts from."""
-    from .flow import FlowInterpolator, deblurred  # noqa: PLC0415
-
     fr = rec.frames
     assert fr is not None
     contrast, bias = population
@@ -587,11 +596,7 @@ def subframe_shift(rec: Recording, settings: SimSettings, population: tuple[floa
     if not (np.isfinite(contrast) and contrast > 0 and np.isfinite(bias)):
         # no pixel fits: nothing to read the events' steps in
         return SubframeShift(np.zeros(0, np.int64), np.zeros((0, 2), np.float32)), {}
-    flow_images = fr.images.astype(np.float32)
-    latent = deblurred(latent_frames(fr, settings.read_noise_dn), fr.t_us, fr.exposure_us,
-                       flow_images)
-    interp = FlowInterpolator(Frames(fr.t_us, latent, fr.exposure_us), rec.sensor.shape,
-                              t_origin_us=int(fr.t_us[0]), flow_images=flow_images)
+    interp = flow_source(fr, fr, settings, rec.sensor.shape, None)
     ev = rec.events
     return estimate_shift(interp, ev["t_us"], ev["x"], ev["y"], ev["p"], contrast=contrast,
                           bias=bias, log_offset=NOMINAL_LOG_OFFSET_DN)
