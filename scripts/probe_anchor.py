@@ -37,6 +37,9 @@ from evcal.gap.runner import Evaluator, GapConfig
 from evcal.gap.stats import Observation, _iei, block_fit, observe
 from evcal.io import open_recording
 
+sys.path.insert(0, str(Path(__file__).parent))
+import gap_benchmark as gb  # noqa: E402  (the benchmark's truth models, beside this script)
+
 GRID_US = np.array([100, 200, 300, 500, 700, 1000, 1500, 2000, 3000, 5000])
 N_BINS = 6  # the anchor's default
 
@@ -56,9 +59,6 @@ def _short_intervals(obs: Observation, keep: np.ndarray, n_ref: int | None
 
 
 def probe(npz: Path, case: dict[str, Any]) -> None:
-    sys.path.insert(0, str(Path(__file__).parent))
-    import gap_benchmark as gb
-
     rec = open_recording(npz)
     ev = Evaluator(rec, GapConfig(), tick=lambda _s: None)
     truth = gb.truth_model(npz, case["truth"], backend=case["backend"],
@@ -79,8 +79,8 @@ def probe(npz: Path, case: dict[str, Any]) -> None:
         cells = [_ratio(a, b, ok & (bins == j)) for j in range(N_BINS)]
         print(f"  {label:24s} " + " ".join(f"{x:5.2f}" for x in cells) +
               f" | quiet {_ratio(a, b, quiet):.2f} other {_ratio(a, b, other):.2f}")
-    keep = np.bincount(meas.pix, minlength=meas.n_pixels)
-    keep = keep <= np.quantile(keep, 0.99)
+    count = np.bincount(meas.pix, minlength=meas.n_pixels)
+    keep = count <= np.quantile(count, 0.99)
     n_meas, n_ref = _short_intervals(meas, keep, None)
     lines = [f"  {'intervals below (us)':24s} " + " ".join(f"{g:>7d}" for g in GRID_US),
              f"  {'measured':24s} " + " ".join(f"{x:7.0f}" for x in n_meas) + f"  N {n_ref}"]
