@@ -95,18 +95,9 @@ def frame_flows(images: np.ndarray, *, min_size: int = 192, preset: str = "mediu
           else _to_u8(im) for im in images]
     fwd = np.zeros((max(k - 1, 0), h, w, 2), np.float32)
     bwd = np.zeros_like(fwd)
-    # each pair's search is offered the previous pair's flow (the first pair: no motion) as
-    # a candidate that a patch keeps where it matches better (DIS's temporal candidates):
-    # on a periodic texture (a checkerboard) the search alone can lock onto a motion one
-    # period off, consistent both ways and wrong, whose light then fires bursts the sensor
-    # never did. The candidate is always passed, so that no search depends on what the
-    # searcher was given before.
-    prev = {"fwd": np.zeros((size[1], size[0], 2), np.float32)}
-    prev["bwd"] = prev["fwd"].copy()
     for i in range(k - 1):  # one flow per frame pair (not per pixel)
-        for name, out, a, b in (("fwd", fwd, up[i], up[i + 1]), ("bwd", bwd, up[i + 1], up[i])):
-            f = dis.calc(a, b, prev[name].copy())
-            prev[name] = f
+        for out, a, b in ((fwd, up[i], up[i + 1]), (bwd, up[i + 1], up[i])):
+            f = dis.calc(a, b, None)
             if scale > 1:
                 f = cv2.resize(f, (w, h), interpolation=cv2.INTER_AREA) / np.float32(scale)
             out[i] = f
@@ -257,14 +248,10 @@ DEBLUR_ITERATIONS = 8
 
 def _box_along(cv2: Any, x: np.ndarray, gx: np.ndarray, gy: np.ndarray, blur: np.ndarray,
                steps: np.ndarray) -> np.ndarray:
-    """``x`` averaged along each pixel's blur segment (``steps`` points of it), each point
-    sampled bicubic: a bilinear sample between pixels is a low-pass of its own (half a pixel
-    off, it averages two neighbours), so a blur made of bilinear samples is wider than the
-    exposure's, and the deblurring undoes the difference too: edges sharper than the light
-    the sensor saw, whose events then come in bursts the sensor never fired."""
+    """``x`` averaged along each pixel's blur segment (``steps`` points of it)."""
     acc = np.zeros(x.shape, np.float32)
     for f in steps:
-        acc += cv2.remap(x, gx + f * blur[..., 0], gy + f * blur[..., 1], cv2.INTER_CUBIC,
+        acc += cv2.remap(x, gx + f * blur[..., 0], gy + f * blur[..., 1], cv2.INTER_LINEAR,
                          borderMode=cv2.BORDER_REPLICATE)
     acc /= np.float32(steps.size)
     return acc
