@@ -22,7 +22,6 @@ of its light.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -55,10 +54,8 @@ def probe(npz: Path, case: dict[str, Any]) -> dict[str, Any]:
     fr = rec.frames
     assert fr is not None
     ev = Evaluator(rec, GapConfig(), tick=lambda _s: None)
-    truth = gb.truth_model(npz, case["truth"], backend="sim",
-                           illumination=case["illumination"])
-    maps = dataclasses.replace(gm.fit_base(rec), contrast=truth.contrast, bias=truth.bias,
-                               log_offset=truth.log_offset, effects={})
+    # the true maps and log offset, no effect (a flicker is left out by the caller)
+    truth = gb.truth_model(npz, case["truth"], effects=False, backend="sim")
     times = gm._times(fr, case["input_rate_hz"])
     h, w = rec.sensor.shape
     cfg = SimConfig(height=h, width=w, duration_s=times[-1] * 1e-6, frame_rate_hz=1.0,
@@ -66,7 +63,7 @@ def probe(npz: Path, case: dict[str, Any]) -> dict[str, Any]:
                     seed=3)
     scene = simulate(cfg, {}, source=gs.build_scene(case), maps=(truth.contrast, truth.bias),
                      frames=fr, times_us=times, t_origin_us=int(fr.t_us[0])).recording
-    workflow = gm.simulate_model(maps, rec, 0, ev.settings, None)
+    workflow = gm.simulate_model(truth, rec, 0, ev.settings, None)
     n_s, n_w = short_intervals(scene, ev.trusted), short_intervals(workflow, ev.trusted)
     return {"id": case["id"], "events_scene": int(scene.n_events),
             "events_workflow": int(workflow.n_events), "grid_us": GRID_US.tolist(),
@@ -84,9 +81,11 @@ def main() -> None:
     print("recording  events wf/scene | intervals below " +
           " ".join(f"{g:>6d}" for g in GRID_US) + " us: scene, wf/scene")
     for cid in args.only.split(","):
-        case = man[cid]
         if not cid.startswith("dev"):
             raise SystemExit(f"{cid}: only the benchmark's dev recordings may be read here")
+        if cid not in man:
+            raise SystemExit(f"{cid}: not in {data / 'manifest.json'}")
+        case = man[cid]
         if case["backend"] != "sim" or case["illumination"]["kind"] == "flicker":
             print(f"{cid}: skipped ({case['backend']}, {case['illumination']['kind']} light)")
             continue
