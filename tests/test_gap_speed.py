@@ -276,6 +276,11 @@ def test_one_pass_window_sums_give_the_per_pixel_fit_and_residual() -> None:
                                rtol=1e-6, atol=1e-12)
     c2, b2, _ = fit_from_sums(*sums[:6])
     np.testing.assert_array_equal(c, c2)
+    # arrays in column order (pixels taken from an observation with an index) are summed
+    # through their transposes, in the same order: the very same figures
+    cols = [np.asfortranarray(a) for a in (P, E, dL, w)]
+    np.testing.assert_array_equal(window_sums(*cols), sums)
+    np.testing.assert_array_equal(window_sums(*cols, split=12), halves)
 
 
 def test_observations_of_the_same_frames_share_their_frame_arrays() -> None:

@@ -26,6 +26,18 @@ from ..solver import NormalEquations, SolveLimits, solve_pixels
 MIN_FIT_EVENTS = 10
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _add(out: Any, h: int, i: int, wi: float, p: float, e: float, y: float
+         ) -> None:  # pragma: no cover - compiled
+    out[h, 0, i] += wi * p * p
+    out[h, 1, i] += wi * p * e
+    out[h, 2, i] += wi * e * e
+    out[h, 3, i] += wi * p * y
+    out[h, 4, i] += wi * e * y
+    out[h, 5, i] += wi * e
+    out[h, 6, i] += wi * y * y
+
+
 @numba.njit(cache=True, nogil=True)
 def _window_sums(P: np.ndarray, E: np.ndarray, dL: np.ndarray, w: np.ndarray, split: int
                  ) -> Any:  # pragma: no cover - compiled
@@ -39,26 +51,44 @@ def _window_sums(P: np.ndarray, E: np.ndarray, dL: np.ndarray, w: np.ndarray, sp
             wi = np.float64(w[k, i])
             if wi == 0.0:
                 continue
-            p = np.float64(P[k, i])
-            e = np.float64(E[k, i])
-            y = np.float64(dL[k, i])
-            out[h, 0, i] += wi * p * p
-            out[h, 1, i] += wi * p * e
-            out[h, 2, i] += wi * e * e
-            out[h, 3, i] += wi * p * y
-            out[h, 4, i] += wi * e * y
-            out[h, 5, i] += wi * e
-            out[h, 6, i] += wi * y * y
+            _add(out, h, i, wi, np.float64(P[k, i]), np.float64(E[k, i]), np.float64(dL[k, i]))
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _window_sums_by_pixel(P: np.ndarray, E: np.ndarray, dL: np.ndarray, w: np.ndarray,
+                          split: int) -> Any:  # pragma: no cover - compiled
+    """:func:`_window_sums` of arrays laid out ``[npix, n_w]`` (a pixel's windows adjacent),
+    summed in the same order (each pixel's windows in turn): the same figures."""
+    npix, n_w = P.shape
+    out = np.zeros((2, 7, npix))
+    for i in range(npix):
+        for k in range(n_w):
+            h = 0 if k < split else 1
+            wi = np.float64(w[i, k])
+            if wi == 0.0:
+                continue
+            _add(out, h, i, wi, np.float64(P[i, k]), np.float64(E[i, k]), np.float64(dL[i, k]))
     return out
 
 
 def window_sums(P: np.ndarray, E: np.ndarray, dL: np.ndarray, wgt: np.ndarray,
                 split: int | None = None) -> np.ndarray:
     """Per-pixel weighted sums ``[7, npix]`` of P P, P E, E E, P dL, E dL, E, dL dL over the
-    windows (``[2, 7, npix]``: before and from window ``split``, when given)."""
-    arrs = [np.ascontiguousarray(a) for a in (P, E, dL, wgt)]
+    windows (``[2, 7, npix]``: before and from window ``split``, when given).
+
+    ``[windows, pixels]`` arrays in column order (the observations' columns of pixels taken
+    with an index keep it) are summed through their transposes, which are in row order: a
+    copy of each into row order would cost more than the sums."""
+    arrs = [np.asarray(a) for a in (P, E, dL, wgt)]
     n_w = arrs[0].shape[0]
-    out: np.ndarray = _window_sums(*arrs, n_w if split is None else int(split))
+    at = n_w if split is None else int(split)
+    by_column = sum(a.flags.f_contiguous and not a.flags.c_contiguous for a in arrs)
+    if by_column >= 2:
+        out: np.ndarray = _window_sums_by_pixel(
+            *[np.ascontiguousarray(a.T) for a in arrs], at)
+    else:
+        out = _window_sums(*[np.ascontiguousarray(a) for a in arrs], at)
     return out[0] if split is None else out
 
 
