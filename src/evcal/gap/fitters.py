@@ -365,9 +365,6 @@ def _filter_fit_error(obs: Observation, cutoff_hz: float, offset: float) -> floa
 
 # the lag grid widened by these factors, in turn, while the events' lag lies beyond it
 BANDWIDTH_LAG_REACH = (2.0, 4.0)
-# a low-pass's lag must exceed this many times its noise (the grid's step or the seeds'
-# spread): the simulations driven by interpolated frames leave the events a step or two late
-BANDWIDTH_MIN_LAG_NOISE = 2.0
 
 
 def fit_bandwidth(ctx: FitContext) -> FitResult:
@@ -389,7 +386,10 @@ def fit_bandwidth(ctx: FitContext) -> FitResult:
     the darkest and the brightest third of the cells (window, pixel) by their light
     (:func:`evcal.gap.frames._lag_by_light`) and is shorter in the dark by twice its noise,
     there is no evidence of a low-pass; nor without a lag of the events behind the frames'
-    changes, or with a lag within twice its noise. Thirds alike do not refuse it (a window's
+    changes, or with a lag within its noise (:func:`evcal.gap.frames.lag_noise_us`: the
+    test the frame lag passes too, so that neither of the two is named for evidence the
+    other was refused; the lag-by-light difference's own, larger noise judges only the
+    order of the thirds). Thirds alike do not refuse it (a window's
     light mixes the dark and bright moments of a moving scene, which dilutes the difference):
     the simulations of the low-pass and of the frame lag, compared on every statistic,
     decide.
@@ -413,6 +413,13 @@ def fit_bandwidth(ctx: FitContext) -> FitResult:
         den = y[0] - 2 * y[1] + y[2]
         if den > 0:
             f = float(np.exp(x[1] + 0.5 * (x[1] - x[0]) * (y[0] - y[2]) / den))
+    frame_rate_hz = 1e6 / float(np.median(np.diff(meas.frame_t_us)))
+    if f >= frame_rate_hz:
+        # a low-pass the frames see is slower than they are sampled; a faster one's lag is
+        # what a frame's timing, or the light between the frames, leaves as well
+        return NoEvidence(f"the low-pass of the frames that explains the events best "
+                          f"({f:.3g} Hz) is faster than the frames ({frame_rate_hz:.3g} Hz) "
+                          "can tell")
     found = _frames.event_lag(meas, sims, rec)
     for reach in BANDWIDTH_LAG_REACH:
         # beyond the frame timing's grid: a low-pass in the dark delays its events longer
@@ -426,11 +433,11 @@ def fit_bandwidth(ctx: FitContext) -> FitResult:
     lag, lags = found
     detail["lag_us"] = lag
     by_light = _frames._lag_by_light(meas, sims, lags)
-    noise_us = float(lags[1] - lags[0]) if by_light is None else by_light.noise_us
-    if lag <= BANDWIDTH_MIN_LAG_NOISE * noise_us:
+    noise_us = _frames.lag_noise_us(sims, lags)
+    if lag <= _frames.LAG_MIN_NOISE * noise_us:
         return NoEvidence(f"the events lag the frames' changes by {lag:.0f} us beyond the "
-                          f"model's, within {BANDWIDTH_MIN_LAG_NOISE:g} times its noise "
-                          f"({noise_us:.0f} us): the interpolated frames leave as much")
+                          f"model's, within {_frames.LAG_MIN_NOISE:g} times its noise "
+                          f"({noise_us:.0f} us)")
     if by_light is not None:
         detail["lag_by_light_us"] = by_light.lags_us
         detail["noise_us"] = by_light.noise_us
@@ -451,11 +458,6 @@ def fit_bandwidth(ctx: FitContext) -> FitResult:
                                                     3)), detail)
     # later than the lag grid reaches: the frame-rate filter's cutoff (several times low; the
     # bias correction makes up part of it)
-    frame_rate_hz = 1e6 / float(np.median(np.diff(meas.frame_t_us)))
-    if f >= frame_rate_hz:
-        return NoEvidence(f"the events lag the frames beyond the grid's reach, but the "
-                          f"low-pass that explains them best ({f:.3g} Hz) is faster than the "
-                          "frames can tell")
     return Fitted(Bandwidth(cutoff_hz=round(f, 3)), detail)
 
 

@@ -455,17 +455,36 @@ def event_lag(meas: Observation, sims: list[Observation], rec: Recording, reach:
     return lag, lags
 
 
+# the events' lag behind the frames must exceed this many times its noise to be a frame's
+# timing or a photoreceptor's delay (the same test for both: the two are told apart by the
+# light, and by their simulations, not by how much evidence each is asked for)
+LAG_MIN_NOISE = 1.0
+
+
+def lag_noise_us(sims: list[Observation], lags: np.ndarray) -> float:
+    """The noise of :func:`event_lag`'s difference: the larger of the grid's step and the
+    spread of the simulations' own lags (the measurement's as noisy as one of them, less
+    their mean of ``n``: ``sd sqrt(1 + 1/n)``)."""
+    step = float(lags[1] - lags[0])
+    ls = [_lag_minimum(lags, r) for r in (lag_residuals(s, lags) for s in sims)
+          if np.isfinite(r).any()]
+    if len(ls) < 2:
+        return step
+    return max(step, float(np.std(ls, ddof=1)) * float(np.sqrt(1 + 1 / len(ls))))
+
+
 def fit_exposure(ctx: FitContext) -> FitResult:
     """Where the frames' exposure lies: the lag of the frame times at which the measured
     events best match the frames' changes (:func:`lag_residuals`, a grid of +-1.5 times the
     larger of the exposure and a quarter of the frame interval), less the same on the
     simulations (driven by the frames at their stamps, they show what the interpolation
     alone puts there). The exposure time is the recording's (median of
-    ``Frames.exposure_us``). ``None`` when the lag is within one grid step of the
-    simulations', when the measurement's least residual lies at an end of the grid (a
-    minimum the grid does not bracket is no estimate: a delay longer than a frame's timing
-    is taken to explain, as a slow photoreceptor's in the dark), or when it differs between
-    dark and bright pixels (:data:`LAG_LIGHT_RATIO`)."""
+    ``Frames.exposure_us``). ``None`` when the lag is within its noise
+    (:func:`lag_noise_us`, the test a photoreceptor's delay passes too), when the
+    measurement's least residual lies at an end of the grid (a minimum the grid does not
+    bracket is no estimate: a delay longer than a frame's timing is taken to explain, as a
+    slow photoreceptor's in the dark), or when it differs between dark and bright pixels
+    (:class:`LagByLight`)."""
     meas, sims, rec = ctx.meas, ctx.sims, ctx.rec
     found = event_lag(meas, sims, rec)
     if found is None:
@@ -475,6 +494,11 @@ def fit_exposure(ctx: FitContext) -> FitResult:
     if not np.isfinite(lag):
         return NoEvidence(f"the events lag the frames' changes by more than "
                           f"{lags[-1] / 1000:.3g} ms: later than any frame timing")
+    noise_us = lag_noise_us(sims, lags)
+    if abs(lag) <= LAG_MIN_NOISE * noise_us:
+        return NoEvidence(f"the events lag the frames' changes by {lag:.0f} us beyond the "
+                          f"model's, within {LAG_MIN_NOISE:g} times its noise "
+                          f"({noise_us:.0f} us)")
     # a frame's timing moves every pixel's events alike; a slow photoreceptor (bandwidth)
     # delays the events of dark moments most: the lag must be the same at every light
     by_light = _lag_by_light(meas, sims, lags)
