@@ -419,6 +419,12 @@ def _exposure_us(rec: Recording) -> float:
     return float(np.median(rec.frames.exposure_us)) if len(rec.frames) else 0.0
 
 
+def _sim_lags(sims: list[Observation], lags: np.ndarray) -> list[float]:
+    """Each simulation's own lag (the minimum of its :func:`lag_residuals` on ``lags``)."""
+    return [_lag_minimum(lags, r) for r in (lag_residuals(s, lags) for s in sims)
+            if np.isfinite(r).any()]
+
+
 def event_lag(meas: Observation, sims: list[Observation], rec: Recording, reach: float = 1.0
               ) -> tuple[float, np.ndarray] | None:
     """How much later than the frames' stamps the measured events follow the frames'
@@ -445,8 +451,7 @@ def event_lag(meas: Observation, sims: list[Observation], rec: Recording, reach:
         # than it reaches, nothing a frame or a photoreceptor does
         return (float(np.inf), lags) if int(np.nanargmin(rm)) == rm.size - 1 else None
     lm = _lag_minimum(lags, rm)
-    ls = [_lag_minimum(lags, r) for r in (lag_residuals(s, lags) for s in sims)
-          if np.isfinite(r).any()]
+    ls = _sim_lags(sims, lags)
     if not ls:
         return None
     lag = lm - float(np.mean(ls))
@@ -466,8 +471,7 @@ def lag_noise_us(sims: list[Observation], lags: np.ndarray) -> float:
     spread of the simulations' own lags (the measurement's as noisy as one of them, less
     their mean of ``n``: ``sd sqrt(1 + 1/n)``)."""
     step = float(lags[1] - lags[0])
-    ls = [_lag_minimum(lags, r) for r in (lag_residuals(s, lags) for s in sims)
-          if np.isfinite(r).any()]
+    ls = _sim_lags(sims, lags)
     if len(ls) < 2:
         return step
     return max(step, float(np.std(ls, ddof=1)) * float(np.sqrt(1 + 1 / len(ls))))
