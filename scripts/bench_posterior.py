@@ -5,11 +5,14 @@ scenes and seeds (some with planted hot, cold, warm and cool pixels), and, with 
 the benchmark's dev recordings (``scripts/gap_benchmark.py``; v2e's own thresholds and
 evcal's simulator; test-split recordings are refused: they are for reporting the gap
 workflow, not for tuning anything). Per recording and method (OffEI and OnEI raw and
-posterior, OffE): the share of valid pixels, the RMSE of ``c`` and ``b`` over the valid pixels the
-truth calls normal, the spread of the z-scores ``(estimate - truth) / stderr`` (1 when the
-stated errors are calibrated; OffE states none for ``c``), the special pixels' precision and
-recall against the truth's own classes, and the reconstruction PSNR (``evcal.evaluate``,
-standard dB) with the maps and with the true maps. ``--real`` recordings (no truth): the
+posterior, OffE and the paper's OffE, ``offe_paper``): the share of valid pixels, the RMSE
+of ``c`` and ``b`` over the valid pixels the truth calls normal, the spread of the z-scores
+``(estimate - truth) / stderr`` (1 when the stated errors are calibrated), the special
+pixels' precision and recall against the truth's own classes, and the reconstruction PSNR
+(``evcal.evaluate``, standard dB) with the maps and with the true maps. OffE, which has no
+absolute scale without frames, is anchored at the truth's median contrast
+(``OffEConfig.c0``) and log offset: its figures are those of its maps relative to the
+population. ``--real`` recordings (no truth): the
 valid share, the special pixels found and the PSNR, raw and posterior.
 
     python scripts/bench_posterior.py                       # simulated, about 3 min
@@ -36,6 +39,7 @@ import evcal
 from evcal.calibration import Calibration, Special
 from evcal.errors import CalibrationError
 from evcal.estimators import ERROR_SCALES
+from evcal.offe import OffEConfig, offe
 from evcal.posterior import POSTERIOR_METHODS, posterior_maps
 from evcal.recording import Recording
 from evcal.sim.ideal import SimConfig, draw_maps, simulate_ideal
@@ -44,7 +48,7 @@ from evcal.special import classify
 SCENES = ("astronaut", "coffee", "chelsea", "camera")
 SEEDS = (31, 32)
 PLANT_SHARE = 0.01  # of the pixels, per special class, in the planted recordings
-METHODS = ("offei", "onei", "offe")
+METHODS = ("offei", "onei", "offe", "offe_paper")
 
 
 def planted_maps(cfg: SimConfig, rng: np.random.Generator
@@ -133,7 +137,13 @@ def score(name: str, rec: Recording, c: np.ndarray, b: np.ndarray, offset: float
     for method in METHODS:
         t0 = time.perf_counter()
         try:
-            cal = evcal.calibrate(rec, method, error_scale=error_scale)
+            if method in ("offe", "offe_paper"):  # anchored at the truth's median and log offset
+                # (offe_paper: the population's median r, not the neighbours')
+                k = 0 if method == "offe_paper" else OffEConfig.neighbourhood_px
+                cal = offe(rec, OffEConfig(c0=float(np.median(c[normal])),
+                                           neighbourhood_px=k)).replace(log_offset=offset)
+            else:
+                cal = evcal.calibrate(rec, method, error_scale=error_scale)
         except CalibrationError as e:  # too few events for this method: said, not fatal
             row[method] = {"error": str(e)}
             if method in POSTERIOR_METHODS:
@@ -143,8 +153,7 @@ def score(name: str, rec: Recording, c: np.ndarray, b: np.ndarray, offset: float
                        "seconds": time.perf_counter() - t0}
         if "error_scale" in cal.diagnostics.extra:
             row[method]["error_scale"] = cal.diagnostics.extra["error_scale"]
-        if method != "offe":  # OffE's c has no absolute scale: its PSNR says little
-            row[method]["psnr"] = psnr(rec, cal)
+        row[method]["psnr"] = psnr(rec, cal)
         if method in POSTERIOR_METHODS:
             post = posterior_maps(cal)
             row[f"{method}_posterior"] = {**map_scores(post, c, b, normal),
@@ -190,7 +199,8 @@ def print_row(row: dict[str, Any]) -> None:
           f"{row['psnr_truth']:.2f} dB)")
     print(f"  {'method':16s} {'valid':>6s} {'c RMSE':>8s} {'std z':>6s} {'b RMSE':>8s} "
           f"{'std z':>6s} {'PSNR dB':>8s} {'special P':>9s} {'R':>5s}")
-    for key in ("offei", "offei_posterior", "onei", "onei_posterior", "offe"):
+    for key in ("offei", "offei_posterior", "onei", "onei_posterior", "offe",
+                "offe_posterior", "offe_paper"):
         if key not in row:
             continue
         r = row[key]

@@ -272,22 +272,56 @@ def test_offe_and_brandli_beat_di(sim, offei_cal):
     assert di < res["brandli"]["calibrated"]["psnr"] < res["offei"]["calibrated"]["psnr"]
 
 
-def test_offe_states_no_error_it_cannot_stand_behind(sim):
-    """OffE's c has no absolute scale without frames and b = -c m carries it: a stated
-    error of b from the slope's regression alone was 19-28x too small against the truth.
-    Both are stated unknown (inf); the slope (b / c) is measured, and warm and cool pixels
-    are still judged by its error."""
-    cal = offe(sim.recording)
-    assert cal.valid.mean() > 0.5
-    assert np.isinf(cal.stderr_contrast).all()
-    assert np.isinf(cal.stderr_bias).all()
-    # what OffE does measure is the slope: b / c follows the truth (measured here: RMSE
-    # 0.41x the true ratio's spread, correlation 0.93), where b itself does not (RMSE 1.19x
-    # its true spread, correlation 0.64: c's scale error is in it)
+def _offe_scores(cal: Calibration, truth: dict) -> dict[str, float]:
     v = cal.valid
-    ratio = cal.bias[v] / cal.contrast[v]
-    true_ratio = sim.truth["bias"][v] / sim.truth["contrast"][v]
-    assert np.sqrt(np.mean((ratio - true_ratio) ** 2)) < 0.5 * true_ratio.std()
-    assert np.corrcoef(ratio, true_ratio)[0, 1] > 0.85
-    assert np.sqrt(np.mean((cal.bias[v] - sim.truth["bias"][v]) ** 2)) > \
-        0.8 * sim.truth["bias"][v].std()
+    c, b = truth["contrast"][v], truth["bias"][v]
+    err_c, err_b = cal.contrast[v] - c, cal.bias[v] - b
+    return {"c_rmse": float(np.sqrt(np.mean(err_c ** 2))),
+            "b_rmse": float(np.sqrt(np.mean(err_b ** 2))),
+            "c_z": float(np.std(err_c / cal.stderr_contrast[v])),
+            "b_z": float(np.std(err_b / cal.stderr_bias[v]))}
+
+
+def test_offe_against_its_neighbours_beats_the_population_reference(sim):
+    """The paper's OffE compares each pixel's light excursion in events with the whole
+    population's, so the pixels' own light (sky against texture) lands in ``c``; against its
+    neighbours' (which see nearly the same light) it does not. Both anchored at the true
+    median contrast: the neighbours' reference has 0.09x the paper's ``c`` RMSE and 0.20x
+    its ``b`` RMSE here (15 other recordings, simulated and v2e: 0.14-0.65x and 0.18-0.87x);
+    asserted at 0.5x."""
+    from evcal.offe import OffEConfig
+
+    c0 = float(np.median(sim.truth["contrast"]))
+    local = _offe_scores(offe(sim.recording, OffEConfig(c0=c0)), sim.truth)
+    paper = _offe_scores(offe(sim.recording, OffEConfig(c0=c0, neighbourhood_px=0)),
+                         sim.truth)
+    assert local["c_rmse"] < 0.5 * paper["c_rmse"]
+    assert local["b_rmse"] < 0.5 * paper["b_rmse"]
+    # and near what the frames give (here 0.012 / 0.003; OffEI about 0.01 / 0.003)
+    assert local["c_rmse"] < 0.02
+    assert local["b_rmse"] < 0.006
+
+
+def test_offe_states_errors_from_its_two_halves():
+    """OffE's stated errors come from the recording's halves in time, fitted apart: the
+    z-scores (estimate - truth) / stderr spread about 1 (here 0.90 for ``c``, 1.21 for
+    ``b``; 0.81-1.38 and 0.53-1.56 on 14 other recordings, simulated and v2e: they are
+    read on the halves, not on the truth). A motion that repeats within the recording puts
+    the same light, so the same error, in both halves, which the halves cannot see: 1.28
+    and 2.11 on this scene's 10 s (the ``sim`` fixture), whose halves' errors correlate
+    0.35. The live stream's OffE has no halves and states none."""
+    from evcal.offe import OffEConfig, StreamingOffE
+
+    sim = simulate_ideal(SimConfig(height=180, width=240, duration_s=4.0, seed=7))
+    cal = offe(sim.recording, OffEConfig(c0=float(np.median(sim.truth["contrast"]))))
+    assert cal.valid.mean() > 0.5
+    assert np.isfinite(cal.stderr_contrast[cal.valid]).all()
+    halves = cal.diagnostics.extra["error_halves"]
+    assert halves["pixels"] > 1000
+    assert "reason" not in halves
+    sc = _offe_scores(cal, sim.truth)
+    assert 0.6 < sc["c_z"] < 1.4
+    assert 0.6 < sc["b_z"] < 1.4
+    live = StreamingOffE(sim.recording.sensor)
+    live.feed_events(sim.recording.events)
+    assert np.isinf(live.calibration().stderr_contrast).all()

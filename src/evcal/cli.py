@@ -181,8 +181,9 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         from .posterior import POSTERIOR_METHODS, posterior_maps  # noqa: PLC0415
 
         if cal.method not in POSTERIOR_METHODS:
-            raise CliError(f"--posterior needs calibrated standard errors: "
-                           f"--method {' or '.join(POSTERIOR_METHODS)}")
+            raise CliError(f"--posterior is offered for --method "
+                           f"{' or '.join(POSTERIOR_METHODS)} (calibrated errors and a pull "
+                           f"that pays: docs/MEASUREMENTS.md)")
         cal = posterior_maps(cal)
     for warning in cal.warnings:
         _note(args, "calibrate", f"warning: {warning}")

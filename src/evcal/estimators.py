@@ -112,7 +112,8 @@ ESTIMATORS: Mapping[str, Estimator] = MappingProxyType({e.name: e for e in (
               "log-intensity change, overlapping windows, residual correction", _run_offei),
     Estimator("onei", True, "OffEI streamed: event-count-driven large buffer split into "
               "overlapping small ones, low-pass updated (what the service runs)", _run_onei),
-    Estimator("offe", False, "events only: cumulative polarity regressed on cumulative count",
+    Estimator("offe", False, "events only: cumulative polarity regressed on cumulative count, "
+              "each pixel against its neighbours",
               _run_offe),
     Estimator("brandli", True, "baseline of Brandli et al. 2014: ON/OFF gains corrected by "
               "the integration error at each frame", _run_brandli),

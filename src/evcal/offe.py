@@ -4,9 +4,31 @@ Over a long recording the log intensity at a pixel stays bounded while events pi
 ``c * P(t) + b * E(t) ≈ L(t) - L(0)`` stays small: cumulative polarity ``P`` regressed on
 cumulative count ``E`` (with intercept) at regular time steps has slope ``m ≈ -b / c``, and
 its residual RMS ``r`` is the log-intensity excursion measured in events, ``≈ σ_L / c``. With a
-population scale ``c0`` (the median contrast, by default the DI value 0.1)::
+population scale ``c0`` (the median contrast, by default the DI value 0.1, and the value of
+the pixels left uncalibrated)::
 
-    c = median(c0 * r) / r,     b = -c * m
+    c ∝ ref / r  (median c0),     b = -c * m
+
+The paper's ``ref`` is one for all pixels (``neighbourhood_px=0``): every pixel is assumed to
+see the same light excursion ``σ_L``. A moving scene gives each pixel its own (a pixel that
+stays on sky sees less than one crossing texture), and that spread, not the thresholds, is
+most of what the paper's ratio measures. Neighbouring pixels see nearly the same light while
+their thresholds are independent, so by default ``ref`` is the geometric mean of the ``r`` of
+the pixel's neighbours (a ``neighbourhood_px`` square, the pixel left out): ``c`` is each
+pixel's threshold against its neighbours'. The slope's error is mostly the light's drift
+against the count over the recording, which neighbours share too: each pixel's ``m`` is
+taken less its neighbours' mean, the population's median added back. What this cannot see is
+a threshold or bias structure smoother than the neighbourhood (a gradient across the
+sensor): it is flattened, where the paper's ratio could not tell it from the light either.
+
+Stated errors (:func:`offe`, not the live :class:`StreamingOffE`): the recording's two halves
+in time are fitted apart, from the same pass, and their differences, read per bin of the
+pixels' event counts ``n``, give the whole run's variance as a sum of terms in ``1 / n``
+(:data:`LOG_C_TERMS`, :data:`SLOPE_TERMS`: what each term is and how it scales from a half
+to the whole); ``se_c = c`` times ``log c``'s root, ``b``'s combines ``c``'s and ``m``'s.
+What the halves cannot see is an error both share: a motion that repeats within the
+recording shows each pixel the same light in both, and the errors come out too small
+(tests/test_recovery.py measures both cases).
 
 Pixels with too few events, no spread in ``E`` or an unrealistic result keep the defaults.
 """
@@ -15,7 +37,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import Any
 
 import numba
@@ -33,23 +55,38 @@ from .stream import frame_cuts
 @dataclass(frozen=True, kw_only=True)
 class OffEConfig:
     """``step_us``: sampling period of the cumulative sums; ``c0``: population median
-    contrast the relative scale is anchored to."""
+    contrast the relative scale is anchored to; ``neighbourhood_px``: the side of the square
+    of neighbours each pixel is compared with (odd, at least 3), or 0 for the population (the
+    paper's OffE); ``min_neighbours``: a pixel with fewer neighbours that have enough events
+    is not calibrated (``TOO_FEW_EVENTS``: too few around it to compare it with)."""
 
     step_us: int = 10_000
     c0: float = DEFAULT_CONTRAST
     min_events: int = 20
     min_steps: int = 10
     max_ratio: float = 5.0  # c outside [median/ratio, median*ratio] is unrealistic
+    neighbourhood_px: int = 5
+    min_neighbours: int = 8
 
     def __post_init__(self) -> None:
         if self.step_us <= 0:
             raise ConfigError(f"step_us={self.step_us} must be > 0")
         if not self.c0 > 0:
             raise ConfigError(f"c0={self.c0} must be > 0")
+        k = self.neighbourhood_px
+        if k != 0 and (k < 3 or k % 2 == 0):
+            raise ConfigError(f"neighbourhood_px={k} must be 0 or odd and >= 3")
+        if k and not 1 <= self.min_neighbours <= k * k - 1:
+            raise ConfigError(f"min_neighbours={self.min_neighbours} must be in "
+                              f"1..{k * k - 1} for neighbourhood_px={k}")
+
+
+_SUMS = ("e", "p", "ee", "ep", "pp")  # the sums, and the columns of StreamingOffE's
 
 
 def offe(rec: Recording, config: OffEConfig | None = None) -> Calibration:
-    """Events-only per-pixel ``c``, ``b`` (frames, if any, are not used)."""
+    """Events-only per-pixel ``c``, ``b`` (frames, if any, are not used), with stated
+    errors from the recording's two halves in time (the module's docstring)."""
     cfg = config or OffEConfig()
     if rec.n_events == 0:
         raise CalibrationError("OffE needs events: the recording has none")
@@ -59,31 +96,56 @@ def offe(rec: Recording, config: OffEConfig | None = None) -> Calibration:
     steps = np.arange(t0 + cfg.step_us, t1 + cfg.step_us, cfg.step_us, dtype=np.int64)
     n = rec.sensor.n_pixels
     acc = Accumulator(rec.sensor)
-    s = {k: np.zeros(n) for k in ("e", "p", "ee", "ep", "pp")}
+    # the two halves' sums, split at the middle step: within a half, the cumulative counts
+    # from the recording's start differ from the half's own by a constant per pixel, which
+    # the regression's intercept absorbs
+    half = len(steps) // 2
+    sums = [{k: np.zeros(n) for k in _SUMS} for _ in range(2)]
+    n_first = np.zeros(n, np.int64)
     pos = 0
     cuts = frame_cuts(t, steps)  # steps cut the stream as frames do
-    for cut in cuts:  # loop over time steps, vectorised over pixels
+    for i, cut in enumerate(cuts):  # loop over time steps, vectorised over pixels
         if cut > pos:
             acc.add(rec.events[pos:cut])
             pos = int(cut)
         e = (acc.on + acc.off).astype(np.float64)
         p = (acc.on - acc.off).astype(np.float64)
+        s = sums[int(i >= half)]
         s["e"] += e
         s["p"] += p
         s["ee"] += e * e
         s["ep"] += e * p
         s["pp"] += p * p
+        if i == half - 1:
+            n_first = (acc.on + acc.off).astype(np.int64)
     n_events = (acc.on + acc.off).astype(np.int64)
-    return offe_from_sums(s, len(steps), n_events, rec.sensor, cfg)
+    whole = {k: sums[0][k] + sums[1][k] for k in _SUMS}
+    halves = ((sums[0], half, n_first), (sums[1], len(steps) - half, n_events - n_first))
+    return offe_from_sums(whole, len(steps), n_events, rec.sensor, cfg, halves=halves)
 
 
-def offe_from_sums(s: dict[str, np.ndarray], n_steps: int, n_events: np.ndarray,
-                   sensor: SensorSize, cfg: OffEConfig, *,
-                   extra: dict[str, Any] | None = None) -> Calibration:
-    """The OffE maps from the per-pixel sums over the time steps of ``E`` (``e``), ``P``
-    (``p``), ``E²`` (``ee``), ``E·P`` (``ep``) and ``P²`` (``pp``), flat float64 arrays of one
-    value per pixel; raises :class:`~evcal.errors.CalibrationError` when no pixel has enough
-    events."""
+# pixels valid in both halves below which no error is stated (as evcal.splithalf)
+MIN_HALF_PIXELS = 100
+# the halves' differences are read in up to this many bins of the pixels' event counts, each
+# of at least MIN_BIN_PIXELS pixels
+HALF_BINS = 8
+MIN_BIN_PIXELS = 200  # the median of a chi-square with one degree of freedom
+
+_Sums = dict[str, np.ndarray]
+
+
+@dataclass(frozen=True)
+class _Fit:
+    c: np.ndarray
+    b: np.ndarray
+    slope: np.ndarray
+    valid: np.ndarray
+    reason: np.ndarray
+    scale: float
+
+
+def _fit(s: _Sums, n_steps: int, n_events: np.ndarray, sensor: SensorSize,
+         cfg: OffEConfig) -> _Fit:
     n = sensor.n_pixels
     m_steps = float(n_steps)
     n_events = np.asarray(n_events, np.int64).reshape(n)
@@ -102,42 +164,196 @@ def offe_from_sums(s: dict[str, np.ndarray], n_steps: int, n_events: np.ndarray,
     cand = reason == 0
     if not cand.any():
         raise CalibrationError("OffE: no pixel has enough events for a regression")
+    r_med = float(np.median(r[cand]))
+    scale = cfg.c0 * r_med
+    ref = np.full(n, r_med)
+    if cfg.neighbourhood_px:
+        ref, slope, enough = _against_neighbours(r, slope, cand, sensor, cfg)
+        # too few neighbours to compare with: the population's reference gave such pixels
+        # several times the errors of the population's median (they sit in quiet regions,
+        # where a handful of events decide r)
+        reason[cand & ~enough] = Reason.TOO_FEW_EVENTS
+        cand &= enough
+        if not cand.any():
+            raise CalibrationError(f"OffE: no pixel has {cfg.min_neighbours} neighbours with "
+                                   f"enough events to compare it with (neighbourhood_px=0 "
+                                   f"compares with the whole population)")
     with np.errstate(divide="ignore", invalid="ignore"):
-        scale = float(np.median(cfg.c0 * r[cand]))
-        c = np.where(cand, scale / np.where(cand, r, 1.0), DEFAULT_CONTRAST)
-        b = np.where(cand, -c * slope, DEFAULT_BIAS)
-    med = float(np.median(c[cand]))
+        c = np.where(cand, ref / np.where(cand, r, 1.0), cfg.c0)
+    c = np.where(cand, c * (cfg.c0 / float(np.median(c[cand]))), c)  # median c0
+    b = np.where(cand, -c * slope, DEFAULT_BIAS)
+    med = cfg.c0
     bad = cand & ((c < med / cfg.max_ratio) | (c > med * cfg.max_ratio) | (np.abs(b) >= 0.95 * c))
     reason[bad] = Reason.OUT_OF_RANGE
     valid = reason == 0
-    c = np.where(valid, c, DEFAULT_CONTRAST)
-    b = np.where(valid, b, DEFAULT_BIAS)
-    # No stated errors (inf): c's scale has none that is meaningful without frames (it is
-    # the pixel's own light excursion against the typical pixel's, and c0), and b = -c m
-    # carries it, so c times the slope's regression error would state far too little. The
-    # slope itself (b / c) is measured: its error judges warm and cool pixels.
-    with np.errstate(divide="ignore", invalid="ignore"):
-        se_slope = np.sqrt(np.where(see > 0, rss / max(m_steps - 2, 1) / see, np.inf))
-    se_ratio = np.where(valid, c * se_slope, np.inf)
+    # the pixels not calibrated take the population's median contrast: c0, not the DI value
+    return _Fit(c=np.where(valid, c, cfg.c0), b=np.where(valid, b, DEFAULT_BIAS),
+                slope=slope, valid=valid, reason=reason, scale=scale)
+
+
+def _box_sum(x: np.ndarray, k: int) -> np.ndarray:
+    """Sums of ``x`` over the ``k`` x ``k`` square about each pixel (zero beyond the
+    edges), by cumulative sums: a few passes over the map whatever ``k``."""
+    h, w = x.shape
+    c = np.zeros((h + k, w + k))
+    c[1:, 1:] = np.pad(x, k // 2).cumsum(0).cumsum(1)
+    out: np.ndarray = c[k:, k:] - c[:h, k:] - c[k:, :w] + c[:h, :w]
+    return out
+
+
+def _against_neighbours(r: np.ndarray, slope: np.ndarray, cand: np.ndarray,
+                        sensor: SensorSize, cfg: OffEConfig
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each pixel's reference ``r`` (the geometric mean of its candidate neighbours', itself
+    left out) and its slope less its neighbours' mean, the population's median added back
+    (the slope's error is mostly the light's drift against the count, which neighbours
+    share), and whether the pixel has at least ``min_neighbours`` such neighbours (where not,
+    the first two are the population's). Neighbours' values are clipped to the population's
+    central band first (a hot pixel beside a normal one must not move it). A mean,
+    not a median: the reference's own noise is the error's larger part, and a mean of about
+    24 values has two thirds of a median's variance."""
+    k = cfg.neighbourhood_px
+    shape = sensor.shape
+    ok = cand.reshape(shape)
+    w = ok.astype(np.float64)
+    count = _box_sum(w, k) - w
+    out = []
+    for x in (np.log(np.where(cand, r, 1.0)), slope):
+        med = float(np.median(x[cand]))
+        spread = 1.4826 * float(np.median(np.abs(x[cand] - med)))
+        xc = np.where(cand, np.clip(x, med - 3 * spread, med + 3 * spread), 0.0).reshape(shape)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            mean = (_box_sum(xc, k) - xc) / count
+        out.append((mean.ravel(), med))
+    enough = (count >= cfg.min_neighbours).ravel()
+    (log_ref, log_med), (m_ref, m_med) = out
+    ref = np.exp(np.where(enough, log_ref, log_med))
+    return ref, np.where(enough, slope - m_ref + m_med, slope), enough
+
+
+def _spread(d: np.ndarray) -> float:
+    """The standard deviation of ``d`` without its outliers (beyond five robust spreads:
+    a special pixel's halves, one of them fitted on a handful of events)."""
+    med = float(np.median(d))
+    rsd = 1.4826 * float(np.median(np.abs(d - med)))
+    keep = np.abs(d - med) <= 5.0 * rsd if rsd > 0 else np.ones(d.size, bool)
+    return float(np.std(d[keep]))
+
+
+# The variance models of the whole run's estimates at n events, as (power of 1/n, how much
+# larger that term is in the halves' difference). log c: the light's sampling by the
+# pixel's path (a constant: two independent halves average it, the difference has 2 x 2v)
+# and the counting (a / n: each half has n / 2 events, 2 x 2a / n). The slope: the
+# counting, and the light's bounded excursion against the count (q / n^2: a drift
+# estimated over n events, 2 x 4q / n^2).
+LOG_C_TERMS = ((0, 4.0), (1, 4.0))
+SLOPE_TERMS = ((1, 4.0), (2, 8.0))
+
+
+def _variance(d: np.ndarray, n: np.ndarray, terms: tuple[tuple[int, float], ...]
+              ) -> tuple[float, ...]:
+    """The coefficients of the whole run's variance ``sum_k w_k / n^p_k`` (``terms``: the
+    ``p_k`` and how much larger each term is in the halves' difference) from the halves'
+    differences ``d`` of pixels with ``n`` events in all: ``d``'s variance read per bin of
+    ``n`` (at least :data:`MIN_BIN_PIXELS` each), fitted by least squares with every
+    ``w_k >= 0`` (the best of the terms' subsets)."""
+    order = np.argsort(n, kind="stable")
+    bins = np.array_split(order, max(1, min(HALF_BINS, n.size // MIN_BIN_PIXELS)))
+    var = np.array([_spread(d[i]) ** 2 for i in bins])
+    inv_n = np.array([1.0 / float(np.median(n[i])) for i in bins])
+    cols = np.column_stack([f * inv_n ** p for p, f in terms])
+    best: tuple[float, np.ndarray] = (math.inf, np.zeros(len(terms)))
+    for mask in range(1, 2 ** len(terms)):
+        use = [k for k in range(len(terms)) if mask >> k & 1]
+        if len(use) > len(bins):
+            continue
+        w_use = np.linalg.lstsq(cols[:, use], var, rcond=None)[0]
+        if (w_use < 0).any():
+            continue
+        cost = float(np.sum((cols[:, use] @ w_use - var) ** 2))
+        if cost < best[0]:
+            w = np.zeros(len(terms))
+            w[use] = w_use
+            best = (cost, w)
+    return tuple(float(x) for x in best[1])
+
+
+def _variance_at(w: tuple[float, ...], terms: tuple[tuple[int, float], ...],
+                 n: np.ndarray) -> np.ndarray:
+    out: np.ndarray = sum((wk * n ** -float(p) for wk, (p, _) in zip(w, terms, strict=True)),
+                          start=np.zeros(n.shape))
+    return out
+
+
+def _half_errors(halves: tuple[tuple[_Sums, int, np.ndarray], ...], sensor: SensorSize,
+                 cfg: OffEConfig
+                 ) -> tuple[tuple[float, ...], tuple[float, ...], int, str]:
+    """The whole run's variance models (:func:`_variance`) of ``log c`` and of the slope,
+    read on the two halves (module docstring); ``inf`` and a reason when they cannot be."""
+    inf = (math.inf, math.inf)
+    # a half has half the events: the whole run's pixels of min_events have half as many
+    # in each (the variance model carries the counts)
+    half_cfg = replace(cfg, min_events=max(cfg.min_events // 2, 2))
+    try:
+        a, b = (_fit(s, m, n, sensor, half_cfg) for s, m, n in halves)
+    except CalibrationError as e:
+        return inf, inf, 0, f"a half has no pixel to fit: {e}"
+    both = a.valid & b.valid
+    k = int(both.sum())
+    if k < MIN_HALF_PIXELS:
+        return inf, inf, k, f"{k} pixels valid in both halves (fewer than {MIN_HALF_PIXELS})"
+    n_all = (np.asarray(halves[0][2]) + np.asarray(halves[1][2]))[both].astype(np.float64)
+    return (_variance(np.log(a.c[both] / b.c[both]), n_all, LOG_C_TERMS),
+            _variance(a.slope[both] - b.slope[both], n_all, SLOPE_TERMS), k, "")
+
+
+def offe_from_sums(s: _Sums, n_steps: int, n_events: np.ndarray,
+                   sensor: SensorSize, cfg: OffEConfig, *,
+                   extra: dict[str, Any] | None = None,
+                   halves: tuple[tuple[_Sums, int, np.ndarray], ...] | None = None
+                   ) -> Calibration:
+    """The OffE maps from the per-pixel sums over the time steps of ``E`` (``e``), ``P``
+    (``p``), ``E²`` (``ee``), ``E·P`` (``ep``) and ``P²`` (``pp``), flat float64 arrays of one
+    value per pixel; raises :class:`~evcal.errors.CalibrationError` when no pixel has enough
+    events. ``halves``: the same sums, step count and events per pixel of the run's two
+    halves in time, from which the errors are stated (without them they are ``inf``)."""
+    n = sensor.n_pixels
+    fit = _fit(s, n_steps, n_events, sensor, cfg)
+    c, b, valid = fit.c, fit.b, fit.valid
+    extra = dict(extra or {})
     se_c = np.full(n, np.inf)
     se_b = np.full(n, np.inf)
-    special = classify(c, b, np.where(valid, 0.0, np.inf), se_ratio, valid)
+    if halves is not None:
+        w_c, w_m, k_pix, why = _half_errors(halves, sensor, cfg)
+        extra["error_halves"] = {"pixels": k_pix, "log_contrast": list(w_c),
+                                 "slope": list(w_m), **({"reason": why} if why else {})}
+        if not why:
+            n_ev = np.maximum(np.asarray(n_events, np.float64).reshape(n), 1.0)
+            se_log_c = np.sqrt(_variance_at(w_c, LOG_C_TERMS, n_ev))
+            se_c = np.where(valid, c * se_log_c, np.inf)
+            # b = -c m: the errors of c and m, taken as independent
+            se_m = np.sqrt(_variance_at(w_m, SLOPE_TERMS, n_ev))
+            se_b = np.where(valid, np.hypot(b * se_log_c, c * se_m), np.inf)
+    else:
+        extra.setdefault("error_halves", {"pixels": 0, "reason": "no halves: a live "
+                                          "stream's OffE states no errors"})
+    # without stated errors, every pixel beyond the population's band is special
+    special = classify(c, b, np.where(np.isfinite(se_c), se_c, 0.0),
+                       np.where(np.isfinite(se_b), se_b, 0.0), valid)
     shape = sensor.shape
     return Calibration(
         contrast=c.reshape(shape), bias=b.reshape(shape), valid=valid.reshape(shape),
-        reason=reason.reshape(shape), stderr_contrast=se_c.reshape(shape),
+        reason=fit.reason.reshape(shape), stderr_contrast=se_c.reshape(shape),
         stderr_bias=se_b.reshape(shape), special=special.reshape(shape), log_offset=math.nan,
-        method="offe", n_events=n_events.reshape(shape),
-        diagnostics=OffEDiagnostics(step_us=cfg.step_us, c0=cfg.c0, scale=float(scale),
-                                    n_steps=int(m_steps), extra=extra or {}),
+        method="offe", n_events=np.asarray(n_events, np.int64).reshape(shape),
+        diagnostics=OffEDiagnostics(step_us=cfg.step_us, c0=cfg.c0, scale=float(fit.scale),
+                                    n_steps=int(n_steps), extra=extra),
     )
 
 
-_SUMS = ("e", "p", "ee", "ep", "pp")  # the columns of StreamingOffE's sums
 STREAMING_FORMAT = "evcal.offe.streaming.v1"
 
 
-# (untyped decorator: evcal.offe is not yet in pyproject's list of numba modules)
 @numba.njit(cache=True, nogil=True)
 def _fold(t: Any, x: Any, y: Any, p: Any, width: int, t0: int, step: int, sums: Any,
           counts: Any) -> None:  # pragma: no cover - compiled
