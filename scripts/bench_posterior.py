@@ -39,6 +39,7 @@ import evcal
 from evcal.calibration import Calibration, Special
 from evcal.errors import CalibrationError
 from evcal.estimators import ERROR_SCALES
+from evcal.fusion import with_event_timing
 from evcal.offe import OffEConfig, offe
 from evcal.posterior import POSTERIOR_METHODS, posterior_maps
 from evcal.recording import Recording
@@ -155,6 +156,12 @@ def score(name: str, rec: Recording, c: np.ndarray, b: np.ndarray, offset: float
             row[method]["error_scale"] = cal.diagnostics.extra["error_scale"]
         row[method]["psnr"] = psnr(rec, cal)
         if method in POSTERIOR_METHODS:
+            # the frames' maps fused with OffE's (evcal.fusion), raw and posterior
+            fused = with_event_timing(rec, cal)
+            for key, m in ((f"{method}_timing", fused),
+                           (f"{method}_timing_posterior", posterior_maps(fused))):
+                row[key] = {**map_scores(m, c, b, normal), **special_scores(m, truth_cls),
+                            "psnr": psnr(rec, m), **m.diagnostics.extra.get("fusion", {})}
             post = posterior_maps(cal)
             row[f"{method}_posterior"] = {**map_scores(post, c, b, normal),
                                           **special_scores(post, truth_cls),
@@ -199,8 +206,9 @@ def print_row(row: dict[str, Any]) -> None:
           f"{row['psnr_truth']:.2f} dB)")
     print(f"  {'method':16s} {'valid':>6s} {'c RMSE':>8s} {'std z':>6s} {'b RMSE':>8s} "
           f"{'std z':>6s} {'PSNR dB':>8s} {'special P':>9s} {'R':>5s}")
-    for key in ("offei", "offei_posterior", "onei", "onei_posterior", "offe",
-                "offe_posterior", "offe_paper"):
+    for key in ("offei", "offei_posterior", "offei_timing", "offei_timing_posterior", "onei",
+                "onei_posterior", "onei_timing", "onei_timing_posterior", "offe",
+                "offe_paper"):
         if key not in row:
             continue
         r = row[key]
@@ -256,18 +264,18 @@ def main(argv: list[str] | None = None) -> int:
             with args.json.open("a") as f:
                 f.write(json.dumps(row) + "\n")
         sys.stdout.flush()
-    for method in POSTERIOR_METHODS:
+    for method, post in [(m, f"{m}{v}") for m in POSTERIOR_METHODS
+                         for v in ("_posterior", "_timing", "_timing_posterior")]:
         done = [r for r in rows if "error" not in r[method]]
         if not done:
             continue
-        post = f"{method}_posterior"
         ratio_c = [r[post]["c_rmse"] / r[method]["c_rmse"] for r in done]
         ratio_b = [r[post]["b_rmse"] / r[method]["b_rmse"] for r in done]
         d_psnr = [r[post]["psnr"] - r[method]["psnr"] for r in done]
-        print(f"\n{len(done)} recordings: posterior / raw {method} RMSE, median (range): c "
+        print(f"\n{len(done)} recordings: {post} / raw {method} RMSE, median (range): c "
               f"{np.median(ratio_c):.2f} ({min(ratio_c):.2f}-{max(ratio_c):.2f}), b "
               f"{np.median(ratio_b):.2f} ({min(ratio_b):.2f}-{max(ratio_b):.2f}); PSNR "
-              f"posterior - raw {np.median(d_psnr):+.3f} dB ({min(d_psnr):+.3f} to "
+              f"{post} - raw {np.median(d_psnr):+.3f} dB ({min(d_psnr):+.3f} to "
               f"{max(d_psnr):+.3f})")
     return 0
 

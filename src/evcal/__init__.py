@@ -41,6 +41,7 @@ from .errors import (
 )
 from .estimators import ESTIMATORS, calibrate
 from .events import EVENTS_DTYPE, EventError, SensorSize, empty_events, make_events, validate_events
+from .fusion import with_event_timing
 from .gap.workflow import GapConfig, run_gap
 from .io import (
     CalibrationFileError,
@@ -121,5 +122,6 @@ __all__ = [
     "simulate",
     "simulate_ideal",
     "validate_events",
+    "with_event_timing",
     "write_recording",
 ]

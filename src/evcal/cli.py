@@ -159,6 +159,10 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
             print("evcal calibrate: --model corrects OffEI: use it with --method offei",
                   file=sys.stderr)
             return 2
+        if args.event_timing:
+            print("evcal calibrate: --event-timing is not fused with --model (OffE would need "
+                  "the model's correction too)", file=sys.stderr)
+            return 2
         if args.error_scale == "split-half":
             print("evcal calibrate: --error-scale split-half is not applied with --model (the "
                   "halves would each need the model's correction)", file=sys.stderr)
@@ -177,6 +181,15 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
                         window_frames=args.window_frames, n_small=args.n_small,
                         n_large=args.n_large, smoothing=args.smoothing,
                         error_scale=args.error_scale)
+    if args.event_timing:
+        from .fusion import FUSABLE, with_event_timing  # noqa: PLC0415
+
+        if cal.method not in FUSABLE:
+            raise CliError(f"--event-timing fuses OffE into --method {' or '.join(FUSABLE)}")
+        cal = with_event_timing(rec, cal)
+        fused = cal.diagnostics.extra["fusion"]
+        if "reason" in fused:
+            _note(args, "calibrate", f"--event-timing: {fused['reason']}")
     if args.posterior:
         from .posterior import POSTERIOR_METHODS, posterior_maps  # noqa: PLC0415
 
@@ -202,6 +215,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         if args.json == "-":
             return 0
     print(f"method        {cal.method}"
+          + (" + event timing" if args.event_timing else "")
           + (" (posterior maps)" if args.posterior else ""))
     print(f"sensor        {rec.sensor}")
     print(f"log_offset    {cal.log_offset:.3f}"
@@ -241,10 +255,11 @@ def _calibrate_stream(args: argparse.Namespace) -> int:
     from .io import save_calibration, sniff, write_csv  # noqa: PLC0415
     from .offline import OffEIConfig, offei_file  # noqa: PLC0415
 
-    if args.method != "offei" or args.model or args.rrd or args.error_scale == "split-half":
+    if (args.method != "offei" or args.model or args.rrd or args.error_scale == "split-half"
+            or args.event_timing):
         raise CliError("--stream is OffEI alone: no --method other than offei, no --model, "
-                       "no --rrd, no --error-scale split-half (the halves need the "
-                       "recording in memory)")
+                       "no --rrd, no --error-scale split-half, no --event-timing (the halves "
+                       "need the recording in memory)")
     if sniff(args.recording) != "mcap":
         raise CliError(f"--stream reads evcal's .mcap recordings; {args.recording} is not one "
                        "(convert it with evcal simulate/record, or drop --stream)")
@@ -551,6 +566,12 @@ def build_parser() -> argparse.ArgumentParser:
                          "reconstruction PSNR by up to 1 dB; on some v2e recordings OffEI's "
                          "error rises and its stated errors are too small; compare with "
                          "'evaluate'")
+    sp.add_argument("--event-timing", action="store_true",
+                    help="OffEI and OnEI: fuse each pixel's estimate with the events-only "
+                         "one (OffE: when its events fall, against its neighbours'), weighted "
+                         "by their errors; before --posterior. On simulated and v2e "
+                         "recordings c's error falls by 0-28 %%, b's by 0-30 %% (the file's "
+                         "diagnostics say how much was fused)")
     sp.add_argument("--stream", action="store_true",
                     help="OffEI of an evcal .mcap read message by message, for recordings "
                          "larger than memory (a progress bar on stderr; with --log-offset "
