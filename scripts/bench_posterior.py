@@ -178,7 +178,10 @@ def score_real(name: str, rec: Recording, error_scale: str = "auto") -> dict[str
         except CalibrationError as e:
             row[method] = {"error": str(e)}
             continue
-        for key, m in ((method, cal), (f"{method}_posterior", posterior_maps(cal))):
+        fused = with_event_timing(rec, cal)
+        for key, m in ((method, cal), (f"{method}_posterior", posterior_maps(cal)),
+                       (f"{method}_timing", fused),
+                       (f"{method}_timing_posterior", posterior_maps(fused))):
             special = (m.special != Special.NORMAL) & (m.special != Special.UNOBSERVED)
             row[key] = {"valid": float(m.valid.mean()), "special": int(special.sum()),
                         "psnr": psnr(rec, m)}
@@ -190,7 +193,8 @@ def score_real(name: str, rec: Recording, error_scale: str = "auto") -> dict[str
 def print_real(row: dict[str, Any]) -> None:
     print(f"\n{row['recording']}  ({row['n_events'] / 1e6:.2f} M events, no truth)")
     print(f"  {'method':16s} {'valid':>6s} {'special':>8s} {'PSNR dB':>8s}")
-    for key in ("offei", "offei_posterior", "onei", "onei_posterior"):
+    for key in ("offei", "offei_posterior", "offei_timing", "offei_timing_posterior", "onei",
+                "onei_posterior", "onei_timing", "onei_timing_posterior"):
         r = row.get(key)
         if r is None:
             continue
