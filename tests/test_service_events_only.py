@@ -82,6 +82,32 @@ def test_streaming_equals_offline_offe_in_chunks(n_chunks: int) -> None:
     assert st.n_events == ev.size
 
 
+@pytest.mark.parametrize("step_us", [10_000, 7_000])
+def test_offline_sums_event_by_event_equal_the_step_definition(step_us: int) -> None:
+    """offe() folds the events (each half from its own start, the whole from the halves);
+    the sums' definition goes step by step over all pixels. The whole's sums are the same
+    integers; a half's regression the same (its sums differ by the counts before it, which
+    the intercept absorbs), to rounding."""
+    from evcal.offe import _sums_by_events, _sums_by_steps  # noqa: PLC0415
+
+    sensor = SensorSize(height=20, width=30)
+    rec = Recording(sensor, biased_events(sensor, 60_000, 2_345_678, seed=4), None)
+    cfg = OffEConfig(step_us=step_us)
+    ref, fold = _sums_by_steps(rec, cfg), _sums_by_events(rec, cfg)
+    assert ref[1] == fold[1]
+    for k in ref[0]:
+        np.testing.assert_array_equal(ref[0][k], fold[0][k], err_msg=k)
+    np.testing.assert_array_equal(ref[2], fold[2])
+    for (sa, ma, na), (sb, mb, nb) in zip(ref[3], fold[3], strict=True):
+        assert ma == mb
+        np.testing.assert_array_equal(na, nb)
+        for x, y in (("ee", "e"), ("pp", "p")):
+            np.testing.assert_allclose(sa[x] - sa[y] ** 2 / ma, sb[x] - sb[y] ** 2 / mb,
+                                       rtol=1e-9, atol=1e-6)
+        np.testing.assert_allclose(sa["ep"] - sa["e"] * sa["p"] / ma,
+                                   sb["ep"] - sb["e"] * sb["p"] / mb, rtol=1e-9, atol=1e-6)
+
+
 def test_streaming_equals_offline_on_real_events() -> None:
     path = DATA / "davis346_road" / "road.aedat4"
     if not path.exists():

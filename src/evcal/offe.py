@@ -84,27 +84,44 @@ class OffEConfig:
 _SUMS = ("e", "p", "ee", "ep", "pp")  # the sums, and the columns of StreamingOffE's
 
 
+_Halves = tuple[tuple[dict[str, np.ndarray], int, np.ndarray], ...]
+
+
 def offe(rec: Recording, config: OffEConfig | None = None) -> Calibration:
     """Events-only per-pixel ``c``, ``b`` (frames, if any, are not used), with stated
     errors from the recording's two halves in time (the module's docstring)."""
     cfg = config or OffEConfig()
     if rec.n_events == 0:
         raise CalibrationError("OffE needs events: the recording has none")
-    # (the loop below is the definition; StreamingOffE computes the same sums per event)
+    whole, m, n_events, halves = _sums_by_events(rec, cfg)
+    return offe_from_sums(whole, m, n_events, rec.sensor, cfg, halves=halves)
+
+
+def _n_steps(rec: Recording, cfg: OffEConfig) -> int:
+    """``M``: the steps ``t0 + k step_us``, ``k = 1..M``, the last at or after the last
+    event."""
     t = rec.events["t_us"]
-    t0, t1 = int(t[0]), int(t[-1])
-    steps = np.arange(t0 + cfg.step_us, t1 + cfg.step_us, cfg.step_us, dtype=np.int64)
+    return -(-(int(t[-1]) - int(t[0])) // cfg.step_us)
+
+
+def _sums_by_steps(rec: Recording, cfg: OffEConfig
+                   ) -> tuple[dict[str, np.ndarray], int, np.ndarray, _Halves]:
+    """The sums' definition, one step at a time over all pixels (what :func:`offe`
+    computes event by event; kept as the reference the tests compare with). The two
+    halves' sums are split at the middle step: within a half, the cumulative counts from
+    the recording's start differ from the half's own by a constant per pixel, which the
+    regression's intercept absorbs."""
+    t = rec.events["t_us"]
+    t0 = int(t[0])
+    m = _n_steps(rec, cfg)
+    steps = t0 + cfg.step_us * np.arange(1, m + 1, dtype=np.int64)
     n = rec.sensor.n_pixels
     acc = Accumulator(rec.sensor)
-    # the two halves' sums, split at the middle step: within a half, the cumulative counts
-    # from the recording's start differ from the half's own by a constant per pixel, which
-    # the regression's intercept absorbs
-    half = len(steps) // 2
+    half = m // 2
     sums = [{k: np.zeros(n) for k in _SUMS} for _ in range(2)]
     n_first = np.zeros(n, np.int64)
     pos = 0
-    cuts = frame_cuts(t, steps)  # steps cut the stream as frames do
-    for i, cut in enumerate(cuts):  # loop over time steps, vectorised over pixels
+    for i, cut in enumerate(frame_cuts(t, steps)):  # steps cut the stream as frames do
         if cut > pos:
             acc.add(rec.events[pos:cut])
             pos = int(cut)
@@ -120,8 +137,57 @@ def offe(rec: Recording, config: OffEConfig | None = None) -> Calibration:
             n_first = (acc.on + acc.off).astype(np.int64)
     n_events = (acc.on + acc.off).astype(np.int64)
     whole = {k: sums[0][k] + sums[1][k] for k in _SUMS}
-    halves = ((sums[0], half, n_first), (sums[1], len(steps) - half, n_events - n_first))
-    return offe_from_sums(whole, len(steps), n_events, rec.sensor, cfg, halves=halves)
+    return whole, m, n_events, ((sums[0], half, n_first), (sums[1], m - half,
+                                                          n_events - n_first))
+
+
+def _folded(events: np.ndarray, width: int, n: int, t0: int, step: int, m: int
+            ) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray]:
+    """The sums over steps ``1..m`` after ``t0`` of ``events`` (all at or after ``t0``), by
+    :class:`StreamingOffE`'s per-event fold; with each pixel's count and polarity sum over
+    all of them (``E``, ``P`` at the end) and its events before step ``m``."""
+    sums = np.zeros((n, len(_SUMS)))
+    counts = np.zeros((n, 4), np.int64)
+    counts[:, 2] = -1
+    if events.size:
+        _fold(events["t_us"], events["x"], events["y"], events["p"], width, t0, step, sums,
+              counts)
+    return _from_fold(sums, counts, m)
+
+
+def _from_fold(sums: np.ndarray, counts: np.ndarray, m: int
+               ) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray]:
+    # each sum is A M - B (StreamingOffE's docstring); events at step m are in no sum
+    e, q = counts[:, 0].astype(np.float64), counts[:, 1].astype(np.float64)
+    a = {"e": e, "p": q, "ee": e * e, "ep": e * q, "pp": q * q}
+    s = {k: a[k] * m - sums[:, i] for i, k in enumerate(_SUMS)}
+    before_m = counts[:, 0] - np.where(counts[:, 2] == m, counts[:, 3], 0)
+    return s, counts[:, :2], before_m
+
+
+def _sums_by_events(rec: Recording, cfg: OffEConfig
+                    ) -> tuple[dict[str, np.ndarray], int, np.ndarray, _Halves]:
+    """:func:`_sums_by_steps`' sums in one pass over the events (each half folded from its
+    own start, the whole's from the halves: ``E -> E + E0`` in the second half's sums)."""
+    t = rec.events["t_us"]
+    t0 = int(t[0])
+    step = cfg.step_us
+    m = _n_steps(rec, cfg)
+    half = m // 2
+    cut = int(np.searchsorted(t, t0 + half * step, side="left"))
+    n, w = rec.sensor.n_pixels, rec.sensor.width
+    s1, end1, n1 = _folded(rec.events[:cut], w, n, t0, step, half)
+    s2, _, n2 = _folded(rec.events[cut:], w, n, t0 + half * step, step, m - half)
+    e0, p0 = (end1[:, i].astype(np.float64) for i in (0, 1))
+    m2 = float(m - half)
+    whole = {
+        "e": s1["e"] + s2["e"] + m2 * e0,
+        "p": s1["p"] + s2["p"] + m2 * p0,
+        "ee": s1["ee"] + s2["ee"] + 2 * e0 * s2["e"] + m2 * e0 * e0,
+        "ep": s1["ep"] + s2["ep"] + e0 * s2["p"] + p0 * s2["e"] + m2 * e0 * p0,
+        "pp": s1["pp"] + s2["pp"] + 2 * p0 * s2["p"] + m2 * p0 * p0,
+    }
+    return whole, m, n1 + n2, ((s1, half, n1), (s2, m - half, n2))
 
 
 # pixels valid in both halves below which no error is stated (as evcal.splithalf)
@@ -129,7 +195,7 @@ MIN_HALF_PIXELS = 100
 # the halves' differences are read in up to this many bins of the pixels' event counts, each
 # of at least MIN_BIN_PIXELS pixels
 HALF_BINS = 8
-MIN_BIN_PIXELS = 200  # the median of a chi-square with one degree of freedom
+MIN_BIN_PIXELS = 200
 
 _Sums = dict[str, np.ndarray]
 
@@ -285,7 +351,7 @@ def _variance_at(w: tuple[float, ...], terms: tuple[tuple[int, float], ...],
     return out
 
 
-def _half_errors(halves: tuple[tuple[_Sums, int, np.ndarray], ...], sensor: SensorSize,
+def _half_errors(halves: _Halves, sensor: SensorSize,
                  cfg: OffEConfig
                  ) -> tuple[tuple[float, ...], tuple[float, ...], int, str]:
     """The whole run's variance models (:func:`_variance`) of ``log c`` and of the slope,
@@ -310,7 +376,7 @@ def _half_errors(halves: tuple[tuple[_Sums, int, np.ndarray], ...], sensor: Sens
 def offe_from_sums(s: _Sums, n_steps: int, n_events: np.ndarray,
                    sensor: SensorSize, cfg: OffEConfig, *,
                    extra: dict[str, Any] | None = None,
-                   halves: tuple[tuple[_Sums, int, np.ndarray], ...] | None = None
+                   halves: _Halves | None = None
                    ) -> Calibration:
     """The OffE maps from the per-pixel sums over the time steps of ``E`` (``e``), ``P``
     (``p``), ``E²`` (``ee``), ``E·P`` (``ep``) and ``P²`` (``pp``), flat float64 arrays of one
@@ -451,11 +517,8 @@ class StreamingOffE:
         assert self.t0_us is not None
         assert self.last_t_us is not None
         m = self.n_steps
-        n, q = self._counts[:, 0].astype(np.float64), self._counts[:, 1].astype(np.float64)
-        a = {"e": n, "p": q, "ee": n * n, "ep": n * q, "pp": q * q}
-        s = {k: a[k] * m - self._sums[:, i] for i, k in enumerate(_SUMS)}
-        n_events = self._counts[:, 0] - np.where(self._counts[:, 2] == m,
-                                                 self._counts[:, 3], 0)
+        s, _, n_events = _from_fold(self._sums, self._counts, m)
+        n = self._counts[:, 0]
         span_s = max(self.last_t_us - self.t0_us, 1) / 1e6
         return offe_from_sums(s, m, n_events, self.sensor, self.config,
                               extra={"streaming": True, "t0_us": self.t0_us,
