@@ -316,6 +316,7 @@ def test_offe_states_errors_from_its_two_halves():
     cal = offe(sim.recording, OffEConfig(c0=float(np.median(sim.truth["contrast"]))))
     assert cal.valid.mean() > 0.5
     assert np.isfinite(cal.stderr_contrast[cal.valid]).all()
+    assert np.isfinite(cal.stderr_bias[cal.valid]).all()
     halves = cal.diagnostics.extra["error_halves"]
     assert halves["pixels"] > 1000
     assert "reason" not in halves

@@ -87,12 +87,28 @@ def test_offline_sums_event_by_event_equal_the_step_definition(step_us: int) -> 
     """offe() folds the events (each half from its own start, the whole from the halves);
     the sums' definition goes step by step over all pixels. The whole's sums are the same
     integers; a half's regression the same (its sums differ by the counts before it, which
-    the intercept absorbs), to rounding."""
+    the intercept absorbs), to rounding. Events on the grid (on the middle step too), a
+    short recording, a second half of one event."""
+    sensor = SensorSize(height=20, width=30)
+    ev = biased_events(sensor, 60_000, 2_345_678, seed=4)
+    t0 = int(ev["t_us"][0])
+    ev["t_us"][100:200] = t0 + step_us * 3  # on the grid
+    ev.sort(order="t_us", kind="stable")
+    m = -(-(int(ev["t_us"][-1]) - t0) // step_us)
+    ev["t_us"][ev.size // 2: ev.size // 2 + 50] = t0 + step_us * (m // 2)  # the middle step
+    ev.sort(order="t_us", kind="stable")
+    recs = [Recording(sensor, ev, None),
+            Recording(sensor, ev[ev["t_us"] < t0 + step_us * (m // 3)], None)]  # a short one
+    first_only = ev[ev["t_us"] < t0 + step_us * (m // 2)].copy()
+    first_only[-1]["t_us"] = t0 + step_us * m  # one late event: a second half of one event
+    recs.append(Recording(sensor, first_only, None))
+    for rec in recs:
+        _check_sums(rec, OffEConfig(step_us=step_us))
+
+
+def _check_sums(rec: Recording, cfg: OffEConfig) -> None:
     from evcal.offe import _sums_by_events, _sums_by_steps  # noqa: PLC0415
 
-    sensor = SensorSize(height=20, width=30)
-    rec = Recording(sensor, biased_events(sensor, 60_000, 2_345_678, seed=4), None)
-    cfg = OffEConfig(step_us=step_us)
     ref, fold = _sums_by_steps(rec, cfg), _sums_by_events(rec, cfg)
     assert ref[1] == fold[1]
     for k in ref[0]:

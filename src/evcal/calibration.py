@@ -32,6 +32,7 @@ class Reason(IntEnum):
     SATURATED = 4  # the frames at this pixel are clipped at 0 or full scale
     CONSTANT = 5  # the frames never change at this pixel
     OUT_OF_RANGE = 6  # the solution is not physical (c <= 0 or |b| >= c or c too large)
+    FEW_NEIGHBOURS = 7  # OffE: too few neighbours with enough events to compare it with
 
 
 class Special(IntEnum):
@@ -263,7 +264,9 @@ class OnEIDiagnostics(Diagnostics):
 
 @dataclass(frozen=True, kw_only=True)
 class OffEDiagnostics(Diagnostics):
-    """OffE (:func:`evcal.offe.offe`)."""
+    """OffE (:func:`evcal.offe.offe`). ``scale``: ``c0`` times the population's median
+    residual ``r`` (the paper's ``c = scale / r``; with neighbours each pixel's own
+    reference takes its place)."""
 
     method: ClassVar[str] = "offe"
     step_us: int = 0

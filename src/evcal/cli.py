@@ -570,7 +570,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="OffEI and OnEI: fuse each pixel's estimate with the events-only "
                          "one (OffE: when its events fall, against its neighbours'), weighted "
                          "by their errors; before --posterior. On simulated and v2e "
-                         "recordings c's error falls by 0-28 %%, b's by 0-30 %% (the file's "
+                         "recordings c's error falls by 0-27 %%, b's by 0-30 %% (the file's "
                          "diagnostics say how much was fused)")
     sp.add_argument("--stream", action="store_true",
                     help="OffEI of an evcal .mcap read message by message, for recordings "

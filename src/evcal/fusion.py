@@ -12,8 +12,10 @@ The two sets of stated errors are checked against each other first: for the pixe
 both, ``d = x_frames - x_offe`` should spread as ``sqrt(s_frames^2 + s_offe^2)``. The frame
 estimators' errors are the calibrated ones (OffEI's from its residuals, OnEI's checked on
 the recording's halves), so what the differences show beyond them is put on OffE's: its
-errors are rescaled so that the differences' robust z-scale is 1 (within
-:data:`OFFE_SCALE_RANGE`). A pixel without an OffE estimate or error keeps the frames'.
+errors are widened by one factor so that the differences' robust z-scale is 1 (within
+:data:`OFFE_SCALE_RANGE`: never narrowed). A pixel without an OffE estimate or error keeps
+the frames'; where OffE cannot run at all (too short, too few events) the frames' maps are
+kept and the diagnostics say why.
 
 Pure numpy; :func:`with_event_timing` runs OffE itself.
 """
@@ -27,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from .calibration import Calibration
-from .errors import ConfigError
+from .errors import CalibrationError, ConfigError
 from .offe import OffEConfig, offe
 from .recording import Recording
 from .special import classify
@@ -54,20 +56,39 @@ def with_event_timing(rec: Recording, cal: Calibration,
     cfg = config or OffEConfig()
     if frames_c0 is not None and frames_c0 > 0:
         cfg = replace(cfg, c0=frames_c0)
-    return fuse(cal, offe(rec, cfg))
+    try:
+        events_only = offe(rec, cfg)
+    except CalibrationError as e:  # too short, too few events: the frames' maps, and why
+        return _kept(cal, {"pixels": 0, "valid": int(cal.valid.sum())}, f"no OffE: {e}")
+    return fuse(cal, events_only)
 
 
-def _rescale(d: np.ndarray, s_frames: np.ndarray, s_offe: np.ndarray) -> tuple[np.ndarray,
-                                                                               float]:
-    """OffE's errors rescaled so that the differences ``d`` have a robust z-scale of 1 with
-    the frames' errors as they are; and that z-scale before."""
-    z2 = d ** 2 / (s_frames ** 2 + s_offe ** 2)
-    k2 = float(np.median(z2)) / CHI2_1_MEDIAN
-    # the share of the differences' variance beyond the frames' own, on OffE's errors
-    excess = k2 * (s_frames ** 2 + s_offe ** 2) - s_frames ** 2
+def _kept(cal: Calibration, info: dict[str, Any], why: str) -> Calibration:
+    diag = cal.diagnostics.updated(extra={**cal.diagnostics.extra,
+                                          "fusion": {**info, "reason": why}})
+    return cal.replace(diagnostics=diag)
+
+
+def _rescale(d: np.ndarray, s_frames: np.ndarray, s_offe: np.ndarray) -> tuple[float, float]:
+    """The factor ``alpha`` in :data:`OFFE_SCALE_RANGE` on OffE's errors for which the
+    differences ``d`` have a robust z-scale of 1 with the frames' errors as they are (one
+    factor for all pixels, found by bisection: the z-scale falls as it grows); and the
+    z-scale with the errors as stated."""
+
+    def z_scale(alpha: float) -> float:
+        z2 = d ** 2 / (s_frames ** 2 + (alpha * s_offe) ** 2)
+        return math.sqrt(float(np.median(z2)) / CHI2_1_MEDIAN)
+
     lo, hi = OFFE_SCALE_RANGE
-    out: np.ndarray = np.sqrt(np.clip(excess, (lo * s_offe) ** 2, (hi * s_offe) ** 2))
-    return out, math.sqrt(k2)
+    k = z_scale(1.0)
+    if z_scale(lo) <= 1.0:
+        return lo, k
+    if z_scale(hi) >= 1.0:
+        return hi, k
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if z_scale(mid) > 1.0 else (lo, mid)
+    return 0.5 * (lo + hi), k
 
 
 def fuse(cal: Calibration, events_only: Calibration) -> Calibration:
@@ -89,19 +110,19 @@ def fuse(cal: Calibration, events_only: Calibration) -> Calibration:
     n_both = int(both.sum())
     info: dict[str, Any] = {"pixels": n_both, "valid": int(cal.valid.sum())}
     if n_both < MIN_PIXELS:
-        why = (f"{n_both} pixels valid with stated errors in both (fewer than {MIN_PIXELS}): "
-               f"the frames' maps kept")
-        diag = cal.diagnostics.updated(extra={**cal.diagnostics.extra,
-                                              "fusion": {**info, "reason": why}})
-        return cal.replace(diagnostics=diag)
+        return _kept(cal, info, f"{n_both} pixels valid with stated errors in both (fewer "
+                                f"than {MIN_PIXELS}): the frames' maps kept")
     # OffE's scale and level from the frames
     scale = float(np.median(fc[both]) / np.median(ec[both]))
     ec, esc = ec * scale, esc * scale
     eb, esb = eb * scale, esb * scale
+    # an error of OffE's c moves its b by b / c = -m times it: the slope before the shift
+    b_per_c = np.where(both, eb / np.where(both, ec, 1.0), 0.0)
     shift = float(np.median(fb[both] - eb[both]))
     eb = eb + shift
-    esc_r, k_c = _rescale((fc - ec)[both], fsc[both], esc[both])
-    esb_r, k_b = _rescale((fb - eb)[both], fsb[both], esb[both])
+    alpha_c, k_c = _rescale((fc - ec)[both], fsc[both], esc[both])
+    alpha_b, k_b = _rescale((fb - eb)[both], fsb[both], esb[both])
+    esc_r, esb_r = alpha_c * esc[both], alpha_b * esb[both]
     wc = np.zeros(cal.shape)
     wb = np.zeros(cal.shape)
     wc[both] = esc_r ** 2 / (esc_r ** 2 + fsc[both] ** 2)  # the frames' weight
@@ -121,11 +142,11 @@ def fuse(cal: Calibration, events_only: Calibration) -> Calibration:
     e_sc_full = np.zeros(cal.shape)
     e_sc_full[both] = esc_r
     with np.errstate(divide="ignore", invalid="ignore"):
-        cov = (wc * wb * rho_f * fsc * fsb
-               + (1 - wc) * (1 - wb) * np.where(both, eb / ec, 0.0) * e_sc_full ** 2)
+        cov = wc * wb * rho_f * fsc * fsb + (1 - wc) * (1 - wb) * b_per_c * e_sc_full ** 2
         rho = np.where(both, np.clip(cov / (se_c * se_b), -0.99, 0.99), rho_f)
     info.update({"offe_contrast_scale": scale, "offe_bias_shift": shift,
                  "z_scale_contrast": k_c, "z_scale_bias": k_b,
+                 "offe_error_factor_contrast": alpha_c, "offe_error_factor_bias": alpha_b,
                  "frames_weight_contrast": float(np.median(wc[both])),
                  "frames_weight_bias": float(np.median(wb[both]))})
     if hasattr(diag, "error_correlation"):

@@ -58,7 +58,7 @@ class OffEConfig:
     contrast the relative scale is anchored to; ``neighbourhood_px``: the side of the square
     of neighbours each pixel is compared with (odd, at least 3), or 0 for the population (the
     paper's OffE); ``min_neighbours``: a pixel with fewer neighbours that have enough events
-    is not calibrated (``TOO_FEW_EVENTS``: too few around it to compare it with)."""
+    is not calibrated (``FEW_NEIGHBOURS``: too few around it to compare it with)."""
 
     step_us: int = 10_000
     c0: float = DEFAULT_CONTRAST
@@ -238,7 +238,7 @@ def _fit(s: _Sums, n_steps: int, n_events: np.ndarray, sensor: SensorSize,
         # too few neighbours to compare with: the population's reference gave such pixels
         # several times the errors of the population's median (they sit in quiet regions,
         # where a handful of events decide r)
-        reason[cand & ~enough] = Reason.TOO_FEW_EVENTS
+        reason[cand & ~enough] = Reason.FEW_NEIGHBOURS
         cand &= enough
         if not cand.any():
             raise CalibrationError(f"OffE: no pixel has {cfg.min_neighbours} neighbours with "
@@ -274,7 +274,8 @@ def _against_neighbours(r: np.ndarray, slope: np.ndarray, cand: np.ndarray,
     left out) and its slope less its neighbours' mean, the population's median added back
     (the slope's error is mostly the light's drift against the count, which neighbours
     share), and whether the pixel has at least ``min_neighbours`` such neighbours (where not,
-    the first two are the population's). Neighbours' values are clipped to the population's
+    the reference is the population's and the slope the pixel's own: such pixels are not
+    calibrated). Neighbours' values are clipped to the population's
     central band first (a hot pixel beside a normal one must not move it). A mean,
     not a median: the reference's own noise is the error's larger part, and a mean of about
     24 values has two thirds of a median's variance."""
@@ -322,7 +323,8 @@ def _variance(d: np.ndarray, n: np.ndarray, terms: tuple[tuple[int, float], ...]
     ``p_k`` and how much larger each term is in the halves' difference) from the halves'
     differences ``d`` of pixels with ``n`` events in all: ``d``'s variance read per bin of
     ``n`` (at least :data:`MIN_BIN_PIXELS` each), fitted by least squares with every
-    ``w_k >= 0`` (the best of the terms' subsets)."""
+    ``w_k >= 0`` (the best of the terms' subsets; with one bin every one-term model fits it
+    exactly and the first term is kept)."""
     order = np.argsort(n, kind="stable")
     bins = np.array_split(order, max(1, min(HALF_BINS, n.size // MIN_BIN_PIXELS)))
     var = np.array([_spread(d[i]) ** 2 for i in bins])
@@ -357,13 +359,15 @@ def _half_errors(halves: _Halves, sensor: SensorSize,
     """The whole run's variance models (:func:`_variance`) of ``log c`` and of the slope,
     read on the two halves (module docstring); ``inf`` and a reason when they cannot be."""
     inf = (math.inf, math.inf)
-    # a half has half the events: the whole run's pixels of min_events have half as many
-    # in each (the variance model carries the counts)
-    half_cfg = replace(cfg, min_events=max(cfg.min_events // 2, 2))
+    # a half has half the events and steps: the whole run's pixels of min_events have half
+    # as many in each (the variance model carries the counts)
+    half_cfg = replace(cfg, min_events=max(cfg.min_events // 2, 2),
+                       min_steps=max(cfg.min_steps // 2, 3))
     try:
         a, b = (_fit(s, m, n, sensor, half_cfg) for s, m, n in halves)
     except CalibrationError as e:
-        return inf, inf, 0, f"a half has no pixel to fit: {e}"
+        steps = ", ".join(str(m) for _, m, _ in halves)
+        return inf, inf, 0, f"a half ({steps} steps) has no pixel to fit: {e}"
     both = a.valid & b.valid
     k = int(both.sum())
     if k < MIN_HALF_PIXELS:
