@@ -237,3 +237,15 @@ def test_a_low_valid_share_is_explained() -> None:
                                        "a short recording or a dark scene; the others keep "
                                        "c = 0.1, b = 0)")
     assert invalid_reasons(cal) == low_valid_headline(cal) == ""  # all valid: nothing to say
+
+
+def test_calibrate_offe_takes_its_scale(small_sim, tmp_path):
+    """--c0 sets OffE's median contrast (no frames, no absolute scale); other methods
+    refuse it rather than ignore it."""
+    out = tmp_path / "cal.npz"
+    assert main(["calibrate", str(small_sim), "--method", "offe", "--c0", "0.2", "--out",
+                 str(out), "--quiet"]) == 0
+    cal = load_calibration(out)
+    assert abs(float(np.median(cal.contrast[cal.valid])) - 0.2) < 1e-6
+    assert main(["calibrate", str(small_sim), "--method", "offei", "--c0", "0.2", "--out",
+                 str(out), "--quiet"]) == 2

@@ -151,6 +151,9 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
     if args.stream:
         return _calibrate_stream(args)
+    if args.c0 is not None and args.method != "offe":
+        raise CliError("--c0 is OffE's scale: use it with --method offe (the frames give the "
+                       "other methods theirs)")
     rec = _open(args.recording, args.sensor_size, args)
     from .estimators import calibrate  # noqa: PLC0415
 
@@ -179,7 +182,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     else:
         cal = calibrate(rec, args.method, log_offset=args.log_offset,
                         window_frames=args.window_frames, n_small=args.n_small,
-                        n_large=args.n_large, smoothing=args.smoothing,
+                        n_large=args.n_large, smoothing=args.smoothing, c0=args.c0,
                         error_scale=args.error_scale)
     if args.event_timing:
         from .fusion import FUSABLE, with_event_timing  # noqa: PLC0415
@@ -547,6 +550,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="OnEI events in the large buffer (default: 1.7 M, scaled likewise)")
     sp.add_argument("--smoothing", type=float, default=None,
                     help="OnEI low-pass factor in (0, 1] (default 0.1)")
+    sp.add_argument("--c0", type=float, default=None,
+                    help="OffE's scale, the population's median contrast (default 0.1: "
+                         "without frames there is no absolute scale; give a known one)")
     sp.add_argument("--error-scale", choices=list(ERROR_SCALES), default="auto",
                     help="check the stated standard errors on the recording's two halves in "
                          "time and rescale them ('auto': OnEI only, about twice its time; "

@@ -29,6 +29,7 @@ class CalibrateOptions:
     n_small: int | None = None  # OnEI's small buffer (events)
     n_large: int | None = None  # OnEI's large buffer (events)
     smoothing: float | None = None  # OnEI's low-pass factor
+    c0: float | None = None  # OffE's scale: the population's median contrast
     # the stated errors checked on the recording's two halves (evcal.splithalf):
     # "split-half", "none", or "auto" (split-half for OnEI, whose error model the frames'
     # noise decides; OffEI's errors come from its own residuals and stay as they are)
@@ -87,9 +88,9 @@ def _run_onei(rec: Recording, opts: CalibrateOptions) -> Calibration:
 
 
 def _run_offe(rec: Recording, opts: CalibrateOptions) -> Calibration:
-    from .offe import offe  # noqa: PLC0415
+    from .offe import OffEConfig, offe  # noqa: PLC0415
 
-    return offe(rec)
+    return offe(rec, OffEConfig() if opts.c0 is None else OffEConfig(c0=opts.c0))
 
 
 def _run_brandli(rec: Recording, opts: CalibrateOptions) -> Calibration:
@@ -126,7 +127,8 @@ def calibrate(rec: Recording, method: str = "offei", **options: Any) -> Calibrat
     """Calibrate ``rec`` with ``method`` (a key of :data:`ESTIMATORS`).
 
     ``options`` are the fields of :class:`CalibrateOptions`: ``log_offset`` (DN or ``"auto"``),
-    ``window_frames`` (OffEI), ``n_small``, ``n_large``, ``smoothing`` (OnEI), ``error_scale``
+    ``window_frames`` (OffEI), ``n_small``, ``n_large``, ``smoothing`` (OnEI), ``c0`` (OffE's
+    scale), ``error_scale``
     (the stated errors checked on the recording's two halves: :mod:`evcal.splithalf`; by
     default for OnEI, at about twice its cost).
 
