@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from evcal.bench import random_events
+from evcal.calibration import Special
 from evcal.errors import CalibrationError, StateError
 from evcal.events import SensorSize
 from evcal.io.wire import (
@@ -35,8 +36,8 @@ from evcal.sim.ideal import SimConfig, simulate_ideal
 # as the shared_data fixture (conftest.py), but needed at collection for the EVT 3.0 files
 DATA = Path(os.environ.get("EVCAL_SHARED_DATA")
             or Path(__file__).resolve().parents[2] / "shared" / "data")
-# the maps a stream gives as the offline OffE does; the offline one also states errors (from
-# the recording's two halves, which a stream has not) and judges special pixels with them
+# the maps a stream gives as the offline OffE does; the errors (and the special pixels judged
+# with them) come from the run's parts, halves offline, the stream's mark live
 MAPS = ("contrast", "bias", "valid", "reason", "n_events")
 
 
@@ -57,8 +58,6 @@ def assert_same_maps(a, b) -> None:
                                    err_msg=k)
     assert a.method == b.method == "offe"
     assert a.diagnostics.n_steps == b.diagnostics.n_steps
-    assert np.isinf(a.stderr_contrast).all()
-    assert np.isinf(a.stderr_bias).all()
 
 
 # ----------------------------------------------------------------------------- the estimator
@@ -124,6 +123,54 @@ def _check_sums(rec: Recording, cfg: OffEConfig) -> None:
                                    sb["ep"] - sb["e"] * sb["p"] / mb, rtol=1e-9, atol=1e-6)
 
 
+def test_streaming_states_errors_from_its_mark() -> None:
+    """A live OffE asked for maps every 0.25 s of sensor time: the first maps state no
+    errors (no parts yet), later ones do, read on the run before and after the mark (or,
+    while the part after it is short, the model read last); against the truth they spread
+    as the offline errors do (4 s, 160x120) and are of the offline size."""
+    from evcal.special import classify  # noqa: PLC0415
+
+    sim = simulate_ideal(SimConfig(height=120, width=160, duration_s=4.0, seed=21,
+                                   scene="coffee"))
+    rec = sim.recording
+    c0 = float(np.median(sim.truth["contrast"]))
+    st = StreamingOffE(rec.sensor, OffEConfig(c0=c0))
+    t = rec.events["t_us"]
+    cuts = np.searchsorted(t, np.arange(250_000, int(t[-1]) + 250_000, 250_000))
+    cals, pos = [], 0
+    for cut in cuts:
+        st.feed_events(rec.events[pos:cut])
+        pos = int(cut)
+        try:
+            cals.append(st.calibration())
+        except CalibrationError:  # too early: no pixel has enough events yet
+            continue
+    assert np.isinf(cals[0].stderr_contrast).all()
+    stated = [bool(np.isfinite(c.stderr_contrast[c.valid]).any()) for c in cals]
+    assert stated[-1]
+    assert stated.index(True) <= len(cals) // 2
+    assert all(stated[stated.index(True):])  # once read, always stated (the kept model)
+    last = cals[-1]
+    truth_cls = classify(sim.truth["contrast"], sim.truth["bias"],
+                         np.zeros(rec.sensor.shape), np.zeros(rec.sensor.shape),
+                         np.ones(rec.sensor.shape, bool))
+    m = last.valid & (truth_cls == Special.NORMAL)
+    off = offe(rec, OffEConfig(c0=c0))
+
+    def z_spread(cal, key):
+        return float(np.std((getattr(cal, key) - sim.truth[key])[m]
+                            / getattr(cal, f"stderr_{key}")[m]))
+
+    # here live 0.91 / 1.52, offline 0.93 / 1.57 (this scene's b errors are stated too small
+    # offline as well: 0.84-1.56 over the benchmark's scenes)
+    for key in ("contrast", "bias"):
+        live, offline = z_spread(last, key), z_spread(off, key)
+        assert 0.6 < live < 1.8, key
+        assert 0.75 < live / offline < 1.33, key
+    ratio = np.median(last.stderr_contrast[m]) / np.median(off.stderr_contrast[m])
+    assert 0.6 < ratio < 1.6
+
+
 def test_streaming_equals_offline_on_real_events() -> None:
     path = DATA / "davis346_road" / "road.aedat4"
     if not path.exists():
@@ -154,6 +201,37 @@ def test_streaming_state_round_trip_and_refusals() -> None:
         StreamingOffE.from_state(bad)
     with pytest.raises(CalibrationError, match="none yet"):
         StreamingOffE(sensor).calibration()
+
+
+def test_streaming_state_keeps_the_mark_and_reads_a_v1_state() -> None:
+    """The mark and the errors' model survive a round trip (the resumed stream states the
+    same errors); a state of before the mark (v1: no mark arrays) resumes without one."""
+    import json  # noqa: PLC0415
+
+    sim = simulate_ideal(SimConfig(height=48, width=64, duration_s=3.0, seed=8))
+    ev = sim.recording.events
+    t = ev["t_us"]
+    a = StreamingOffE(sim.recording.sensor)
+    for cut in np.searchsorted(t, [1_000_000, 2_000_000]):
+        a.feed_events(ev[: int(cut)] if a.n_events == 0 else ev[a.n_events: int(cut)])
+        a.calibration()  # sets the mark
+    state = {k: v.copy() for k, v in a.state_dict().items()}
+    b = StreamingOffE.from_state(state)
+    a.feed_events(ev[a.n_events:])
+    b.feed_events(ev[b.n_events:])
+    ca, cb = a.calibration(), b.calibration()
+    assert np.isfinite(ca.stderr_contrast[ca.valid]).any()
+    np.testing.assert_array_equal(ca.stderr_contrast, cb.stderr_contrast)
+    v1 = {k: v for k, v in state.items() if not k.startswith("mark_")}
+    sc = json.loads(str(v1["scalars"]))
+    sc["format"] = "evcal.offe.streaming.v1"
+    del sc["mark_k"], sc["error_model"]
+    v1["scalars"] = np.array(json.dumps(sc))
+    c = StreamingOffE.from_state(v1)
+    c.feed_events(ev[c.n_events:])
+    first = c.calibration()
+    assert np.isinf(first.stderr_contrast).all()  # no mark yet: set now
+    np.testing.assert_array_equal(first.contrast, ca.contrast)
 
 
 # ----------------------------------------------------------------------------- the camera

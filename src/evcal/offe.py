@@ -21,14 +21,14 @@ taken less its neighbours' mean, the population's median added back. What this c
 a threshold or bias structure smoother than the neighbourhood (a gradient across the
 sensor): it is flattened, where the paper's ratio could not tell it from the light either.
 
-Stated errors (:func:`offe`, not the live :class:`StreamingOffE`): the recording's two halves
-in time are fitted apart, from the same pass, and their differences, read per bin of the
-pixels' event counts ``n``, give the whole run's variance as a sum of terms in ``1 / n``
-(:data:`LOG_C_TERMS`, :data:`SLOPE_TERMS`: what each term is and how it scales from a half
-to the whole); ``se_c = c`` times ``log c``'s root, ``b``'s combines ``c``'s and ``m``'s.
-What the halves cannot see is an error both share: a motion that repeats within the
-recording shows each pixel the same light in both, and the errors come out too small
-(tests/test_recovery.py measures both cases).
+Stated errors: the recording's two halves in time (:func:`offe`; a live
+:class:`StreamingOffE` its run before and after a mark) are fitted apart, and their
+differences, read per bin of the pixels' event counts ``n``, give the whole run's variance as
+a sum of terms in ``1 / n`` (:data:`LOG_C_TERMS`, :data:`SLOPE_TERMS`: what each term is and
+how it scales from a part to the whole); ``se_c = c`` times ``log c``'s root, ``b``'s
+combines ``c``'s and ``m``'s. What the parts cannot see is an error both share: a motion
+that repeats within the recording shows each pixel the same light in both, and the errors
+come out too small (tests/test_recovery.py measures both cases).
 
 Pixels with too few events, no spread in ``E`` or an unrealistic result keep the defaults.
 """
@@ -307,29 +307,63 @@ def _spread(d: np.ndarray) -> float:
     return float(np.std(d[keep]))
 
 
-# The variance models of the whole run's estimates at n events, as (power of 1/n, how much
-# larger that term is in the halves' difference). log c: the light's sampling by the
-# pixel's path (a constant: two independent halves average it, the difference has 2 x 2v)
-# and the counting (a / n: each half has n / 2 events, 2 x 2a / n). The slope: the
-# counting, and the light's bounded excursion against the count (q / n^2: a drift
-# estimated over n events, 2 x 4q / n^2).
-LOG_C_TERMS = ((0, 4.0), (1, 4.0))
-SLOPE_TERMS = ((1, 4.0), (2, 8.0))
+# The variance models of the whole run's estimates of a pixel of n events over a span of T,
+# each term ``w / (n^pn T^pt)`` given as ``(pn, pt)``. log c: the light's sampling by the
+# pixel's path (a constant in n, falling as 1/T: independent parts average it) and the
+# counting (1/n). The slope: the counting (1/n) and the light's bounded excursion against the
+# count (1/n^2: a drift estimated over n events). A part of a fraction f of the span (and so
+# of the events) has each term f^-(pn + pt) times larger; the parts' difference the sum of
+# both parts' (at f = 1/2: four times for 1/n and 1/T, eight for 1/n^2).
+LOG_C_TERMS = ((0, 1), (1, 0))
+SLOPE_TERMS = ((1, 0), (2, 0))
 
 
-def _variance(d: np.ndarray, n: np.ndarray, terms: tuple[tuple[int, float], ...]
+@dataclass(frozen=True)
+class ErrorModel:
+    """The variance models of ``log c`` and of the slope (coefficients of
+    :data:`LOG_C_TERMS` and :data:`SLOPE_TERMS`) read on a run of ``n_steps`` steps, and
+    how (the parts' steps, the pixels valid in both)."""
+
+    log_contrast: tuple[float, ...]
+    slope: tuple[float, ...]
+    n_steps: int
+    parts: tuple[int, int]
+    pixels: int
+
+    def variances(self, n_events: np.ndarray, n_steps: int
+                  ) -> tuple[np.ndarray, np.ndarray]:
+        """The variances of ``log c`` and of the slope of pixels of ``n_events`` over a run
+        of ``n_steps`` (the terms in 1/T scaled from the run they were read on)."""
+        n = np.maximum(np.asarray(n_events, np.float64), 1.0)
+        t = self.n_steps / max(n_steps, 1)
+        return (_variance_at(self.log_contrast, LOG_C_TERMS, n, t),
+                _variance_at(self.slope, SLOPE_TERMS, n, t))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"log_contrast": list(self.log_contrast), "slope": list(self.slope),
+                "n_steps": self.n_steps, "parts": list(self.parts), "pixels": self.pixels}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> ErrorModel:
+        return cls(log_contrast=tuple(float(x) for x in d["log_contrast"]),
+                   slope=tuple(float(x) for x in d["slope"]), n_steps=int(d["n_steps"]),
+                   parts=(int(d["parts"][0]), int(d["parts"][1])), pixels=int(d["pixels"]))
+
+
+def _variance(d: np.ndarray, n: np.ndarray, terms: tuple[tuple[int, int], ...], f: float
               ) -> tuple[float, ...]:
-    """The coefficients of the whole run's variance ``sum_k w_k / n^p_k`` (``terms``: the
-    ``p_k`` and how much larger each term is in the halves' difference) from the halves'
-    differences ``d`` of pixels with ``n`` events in all: ``d``'s variance read per bin of
-    ``n`` (at least :data:`MIN_BIN_PIXELS` each), fitted by least squares with every
-    ``w_k >= 0`` (the best of the terms' subsets; with one bin every one-term model fits it
-    exactly and the first term is kept)."""
+    """The coefficients ``w_k`` of the whole run's variance ``sum_k w_k / n^pn_k`` (``terms``,
+    module comment) from the two parts' differences ``d`` of pixels with ``n`` events in
+    all, the first part a fraction ``f`` of the run: ``d``'s variance read per bin of ``n``
+    (at least :data:`MIN_BIN_PIXELS` each), fitted by least squares with every ``w_k >= 0``
+    (the best of the terms' subsets; with one bin every one-term model fits it exactly and
+    the first term is kept)."""
     order = np.argsort(n, kind="stable")
     bins = np.array_split(order, max(1, min(HALF_BINS, n.size // MIN_BIN_PIXELS)))
     var = np.array([_spread(d[i]) ** 2 for i in bins])
     inv_n = np.array([1.0 / float(np.median(n[i])) for i in bins])
-    cols = np.column_stack([f * inv_n ** p for p, f in terms])
+    factor = [f ** -(pn + pt) + (1 - f) ** -(pn + pt) for pn, pt in terms]
+    cols = np.column_stack([g * inv_n ** pn for g, (pn, _) in zip(factor, terms, strict=True)])
     best: tuple[float, np.ndarray] = (math.inf, np.zeros(len(terms)))
     for mask in range(1, 2 ** len(terms)):
         use = [k for k in range(len(terms)) if mask >> k & 1]
@@ -346,68 +380,76 @@ def _variance(d: np.ndarray, n: np.ndarray, terms: tuple[tuple[int, float], ...]
     return tuple(float(x) for x in best[1])
 
 
-def _variance_at(w: tuple[float, ...], terms: tuple[tuple[int, float], ...],
-                 n: np.ndarray) -> np.ndarray:
-    out: np.ndarray = sum((wk * n ** -float(p) for wk, (p, _) in zip(w, terms, strict=True)),
+def _variance_at(w: tuple[float, ...], terms: tuple[tuple[int, int], ...], n: np.ndarray,
+                 t_ratio: float = 1.0) -> np.ndarray:
+    # t_ratio: the span the model was read on over this one's (terms in 1/T scale by it)
+    out: np.ndarray = sum((wk * n ** -float(pn) * t_ratio ** pt
+                           for wk, (pn, pt) in zip(w, terms, strict=True)),
                           start=np.zeros(n.shape))
     return out
 
 
-def _half_errors(halves: _Halves, sensor: SensorSize,
-                 cfg: OffEConfig
-                 ) -> tuple[tuple[float, ...], tuple[float, ...], int, str]:
-    """The whole run's variance models (:func:`_variance`) of ``log c`` and of the slope,
-    read on the two halves (module docstring); ``inf`` and a reason when they cannot be."""
-    inf = (math.inf, math.inf)
-    # a half has half the events and steps: the whole run's pixels of min_events have half
-    # as many in each (the variance model carries the counts)
-    half_cfg = replace(cfg, min_events=max(cfg.min_events // 2, 2),
-                       min_steps=max(cfg.min_steps // 2, 3))
+def _part_errors(parts: _Halves, sensor: SensorSize, cfg: OffEConfig
+                 ) -> tuple[ErrorModel | None, str]:
+    """The whole run's :class:`ErrorModel`, read on its two parts in time (module
+    docstring), or None and why it cannot be."""
+    (_, m1, _), (_, m2, _) = parts
+    m = m1 + m2
+    if m1 <= 0 or m2 <= 0:
+        return None, f"parts of {m1} and {m2} steps"
+    f = m1 / m
+    # a part has a share of the events and steps: the whole run's pixels of min_events have
+    # fewer in each (the variance model carries the counts)
+    short = min(f, 1 - f)
+    part_cfg = replace(cfg, min_events=max(int(cfg.min_events * short), 2),
+                       min_steps=max(int(cfg.min_steps * short), 3))
     try:
-        a, b = (_fit(s, m, n, sensor, half_cfg) for s, m, n in halves)
+        a, b = (_fit(s, ms, n, sensor, part_cfg) for s, ms, n in parts)
     except CalibrationError as e:
-        steps = ", ".join(str(m) for _, m, _ in halves)
-        return inf, inf, 0, f"a half ({steps} steps) has no pixel to fit: {e}"
+        return None, f"a part ({m1}, {m2} steps) has no pixel to fit: {e}"
     both = a.valid & b.valid
     k = int(both.sum())
     if k < MIN_HALF_PIXELS:
-        return inf, inf, k, f"{k} pixels valid in both halves (fewer than {MIN_HALF_PIXELS})"
-    n_all = (np.asarray(halves[0][2]) + np.asarray(halves[1][2]))[both].astype(np.float64)
-    return (_variance(np.log(a.c[both] / b.c[both]), n_all, LOG_C_TERMS),
-            _variance(a.slope[both] - b.slope[both], n_all, SLOPE_TERMS), k, "")
+        return None, f"{k} pixels valid in both parts (fewer than {MIN_HALF_PIXELS})"
+    n_all = (np.asarray(parts[0][2]) + np.asarray(parts[1][2]))[both].astype(np.float64)
+    return ErrorModel(
+        log_contrast=_variance(np.log(a.c[both] / b.c[both]), n_all, LOG_C_TERMS, f),
+        slope=_variance(a.slope[both] - b.slope[both], n_all, SLOPE_TERMS, f),
+        n_steps=m, parts=(m1, m2), pixels=k), ""
 
 
 def offe_from_sums(s: _Sums, n_steps: int, n_events: np.ndarray,
                    sensor: SensorSize, cfg: OffEConfig, *,
                    extra: dict[str, Any] | None = None,
-                   halves: _Halves | None = None
-                   ) -> Calibration:
+                   halves: _Halves | None = None,
+                   error_model: ErrorModel | None = None) -> Calibration:
     """The OffE maps from the per-pixel sums over the time steps of ``E`` (``e``), ``P``
     (``p``), ``E²`` (``ee``), ``E·P`` (``ep``) and ``P²`` (``pp``), flat float64 arrays of one
     value per pixel; raises :class:`~evcal.errors.CalibrationError` when no pixel has enough
     events. ``halves``: the same sums, step count and events per pixel of the run's two
-    halves in time, from which the errors are stated (without them they are ``inf``)."""
+    parts in time (halves, or a first part of at least a third), from which the errors are
+    stated; ``error_model``: the errors' model read earlier (:class:`StreamingOffE`), used
+    when the parts cannot give one. Without either the errors are ``inf``."""
     n = sensor.n_pixels
     fit = _fit(s, n_steps, n_events, sensor, cfg)
     c, b, valid = fit.c, fit.b, fit.valid
     extra = dict(extra or {})
     se_c = np.full(n, np.inf)
     se_b = np.full(n, np.inf)
+    model, why = None, "no parts: a live stream's first estimate states no errors"
     if halves is not None:
-        w_c, w_m, k_pix, why = _half_errors(halves, sensor, cfg)
-        extra["error_halves"] = {"pixels": k_pix, "log_contrast": list(w_c),
-                                 "slope": list(w_m), **({"reason": why} if why else {})}
-        if not why:
-            n_ev = np.maximum(np.asarray(n_events, np.float64).reshape(n), 1.0)
-            se_log_c = np.sqrt(_variance_at(w_c, LOG_C_TERMS, n_ev))
-            se_c = np.where(valid, c * se_log_c, np.inf)
-            # b = -c m: the errors of c and m, taken as independent
-            se_m = np.sqrt(_variance_at(w_m, SLOPE_TERMS, n_ev))
-            se_b = np.where(valid, np.hypot(b * se_log_c, c * se_m), np.inf)
-    else:
-        extra.setdefault("error_halves", {"pixels": 0, "reason": "no halves: a live "
-                                          "stream's OffE states no errors"})
-    # without stated errors, every pixel beyond the population's band is special
+        model, why = _part_errors(halves, sensor, cfg)
+    read_now = model is not None
+    if model is None and error_model is not None:
+        model = error_model
+    extra["errors"] = {**({} if model is None else model.to_dict()),
+                       "read_now": read_now, **({"reason": why} if why else {})}
+    if model is not None:
+        var_log_c, var_m = model.variances(np.asarray(n_events).reshape(n), n_steps)
+        se_log_c = np.sqrt(var_log_c)
+        se_c = np.where(valid, c * se_log_c, np.inf)
+        # b = -c m: the errors of c and m, taken as independent
+        se_b = np.where(valid, np.hypot(b * se_log_c, c * np.sqrt(var_m)), np.inf)
     special = classify(c, b, np.where(np.isfinite(se_c), se_c, 0.0),
                        np.where(np.isfinite(se_b), se_b, 0.0), valid)
     shape = sensor.shape
@@ -421,7 +463,13 @@ def offe_from_sums(s: _Sums, n_steps: int, n_events: np.ndarray,
     )
 
 
-STREAMING_FORMAT = "evcal.offe.streaming.v1"
+STREAMING_FORMAT = "evcal.offe.streaming.v2"
+# v1 (before the mark): read, with no mark and no error model
+_STREAMING_FORMATS = (STREAMING_FORMAT, "evcal.offe.streaming.v1")
+MARK_FIELDS = ("mark_sums", "mark_counts")  # the v2 state's arrays beyond v1's
+# a live OffE reads its errors' model again once the run is this many times the one it was
+# last read on
+REREAD_GROWTH = 1.25
 
 
 @numba.njit(cache=True, nogil=True)
@@ -471,6 +519,17 @@ class StreamingOffE:
     one compiled pass over its events in time order (per-pixel sequential: each event's
     weights need the count before it). ``M`` is fixed only when the maps are asked for
     (:meth:`calibration`, at the latest event seen).
+
+    Stated errors, as :func:`offe` states them, need the run in two parts. The state keeps a
+    copy of itself taken at a step ``K`` (the *mark*, at the latest event's step: every event
+    before it is at or before ``K``): the sums over steps ``1..K`` are the mark's ``A·K -
+    B``, those over ``K+1..M`` the whole's less them (their counts from the run's start
+    differ from the part's own by a constant, which the regression's intercept absorbs).
+    When the second part has grown as long as the first the mark moves to the latest event,
+    so the first part is a third to all of the run; the errors' model read on the two parts
+    (:class:`ErrorModel`) is kept, and used, its terms in ``1/T`` scaled, while the second
+    part is still too short to read one and until the run has grown by
+    :data:`REREAD_GROWTH`. The mark doubles the state: 144 bytes a pixel.
     """
 
     def __init__(self, sensor: SensorSize, config: OffEConfig | None = None) -> None:
@@ -480,6 +539,10 @@ class StreamingOffE:
         self._sums = np.zeros((n, len(_SUMS)))
         self._counts = np.zeros((n, 4), np.int64)  # n, q, latest step index, events at it
         self._counts[:, 2] = -1
+        self._mark_sums = np.zeros_like(self._sums)
+        self._mark_counts = self._counts.copy()
+        self._mark_k = 0  # no mark yet
+        self._error_model: ErrorModel | None = None
         self.t0_us: int | None = None
         self.last_t_us: int | None = None
         self.n_events = 0
@@ -524,10 +587,41 @@ class StreamingOffE:
         s, _, n_events = _from_fold(self._sums, self._counts, m)
         n = self._counts[:, 0]
         span_s = max(self.last_t_us - self.t0_us, 1) / 1e6
-        return offe_from_sums(s, m, n_events, self.sensor, self.config,
-                              extra={"streaming": True, "t0_us": self.t0_us,
-                                     "t_us": self.last_t_us,
-                                     "event_rate_hz_median": float(np.median(n) / span_s)})
+        parts = self._parts(s, m, n_events)
+        cal = offe_from_sums(s, m, n_events, self.sensor, self.config,
+                             extra={"streaming": True, "t0_us": self.t0_us,
+                                    "t_us": self.last_t_us,
+                                    "event_rate_hz_median": float(np.median(n) / span_s)},
+                             halves=parts, error_model=self._error_model)
+        errors = cal.diagnostics.extra["errors"]
+        if errors["read_now"]:
+            self._error_model = ErrorModel.from_dict(errors)
+        if self._mark_k == 0 or m - self._mark_k >= self._mark_k:
+            self._set_mark()
+        return cal
+
+    def _parts(self, whole: dict[str, np.ndarray], m: int, n_events: np.ndarray
+               ) -> _Halves | None:
+        """The sums of steps ``1..K`` (the mark's) and ``K+1..M`` (the whole's less them);
+        None before a mark with steps after it, and while the errors' model read last is of
+        a run not much shorter (reading it costs two more fits: 1.5x the maps' time)."""
+        k = self._mark_k
+        if k <= 0 or m <= k:
+            return None
+        model = self._error_model
+        if model is not None and m < REREAD_GROWTH * model.n_steps:
+            return None  # the kept model, scaled, until the run has grown enough
+        first, _, n_first = _from_fold(self._mark_sums, self._mark_counts, k)
+        second = {key: whole[key] - first[key] for key in _SUMS}
+        n_mark = self._mark_counts[:, 0]
+        return ((first, k, n_first), (second, m - k, n_events - n_mark))
+
+    def _set_mark(self) -> None:
+        assert self.t0_us is not None
+        assert self.last_t_us is not None
+        np.copyto(self._mark_sums, self._sums)
+        np.copyto(self._mark_counts, self._counts)
+        self._mark_k = (self.last_t_us - self.t0_us) // self.config.step_us
 
     def event_rate_hz(self) -> np.ndarray:
         """Per-pixel event rate (events/s over the stream so far, ``[y, x]``): on a still
@@ -543,25 +637,33 @@ class StreamingOffE:
 
     def state_dict(self) -> dict[str, np.ndarray]:
         """Everything to resume: ``sums`` ``(n_pixels, 5)`` float64, ``counts``
-        ``(n_pixels, 4)`` int64 and a JSON ``scalars`` string."""
+        ``(n_pixels, 4)`` int64, the mark's (``mark_sums``, ``mark_counts``) and a JSON
+        ``scalars`` string (the mark's step, the errors' model)."""
         scalars = {"format": STREAMING_FORMAT, "height": self.sensor.height,
                    "width": self.sensor.width, "config": asdict(self.config),
                    "t0_us": self.t0_us, "last_t_us": self.last_t_us,
-                   "n_events": self.n_events}
-        return {"sums": self._sums, "counts": self._counts,
-                "scalars": np.array(json.dumps(scalars))}
+                   "n_events": self.n_events, "mark_k": self._mark_k,
+                   "error_model": (None if self._error_model is None
+                                   else self._error_model.to_dict())}
+        return {"sums": self._sums, "counts": self._counts, "mark_sums": self._mark_sums,
+                "mark_counts": self._mark_counts, "scalars": np.array(json.dumps(scalars))}
 
     @classmethod
     def from_state(cls, state: dict[str, np.ndarray]) -> StreamingOffE:
         """Resume from :meth:`state_dict` (:class:`~evcal.errors.StateError` if it is not
-        one, or its arrays do not fit its sensor)."""
+        one, or its arrays do not fit its sensor); a v1 state (no mark) resumes without a
+        mark, which the next maps set."""
         try:
             sc = json.loads(str(state["scalars"]))
-            if sc.get("format") != STREAMING_FORMAT:
+            if sc.get("format") not in _STREAMING_FORMATS:
                 raise StateError(f"unknown streaming OffE state {sc.get('format')!r}")
+            v1 = sc["format"] != STREAMING_FORMAT
             sensor = SensorSize(width=int(sc["width"]), height=int(sc["height"]))
             self = cls(sensor, OffEConfig(**sc["config"]))
-            for name, arr0 in (("sums", self._sums), ("counts", self._counts)):
+            fields = [("sums", self._sums), ("counts", self._counts)]
+            if not v1:
+                fields += [("mark_sums", self._mark_sums), ("mark_counts", self._mark_counts)]
+            for name, arr0 in fields:
                 arr = np.asarray(state[name])
                 if arr.shape != arr0.shape or arr.dtype != arr0.dtype:
                     raise StateError(f"{name}: {arr.dtype}{arr.shape}, expected "
@@ -570,6 +672,10 @@ class StreamingOffE:
             self.t0_us = None if sc["t0_us"] is None else int(sc["t0_us"])
             self.last_t_us = None if sc["last_t_us"] is None else int(sc["last_t_us"])
             self.n_events = int(sc["n_events"])
+            if not v1:
+                self._mark_k = int(sc["mark_k"])
+                em = sc["error_model"]
+                self._error_model = None if em is None else ErrorModel.from_dict(em)
         except StateError:
             raise
         except Exception as exc:  # noqa: BLE001 - whatever is wrong, it is not such a state

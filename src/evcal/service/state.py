@@ -54,7 +54,7 @@ from ..errors import ErrorReason, StateError
 from ..events import SensorSize
 from ..io._util import load_npz_arrays
 from ..io.wire import FRAME_DTYPES, MAX_SIZE, WireError, decode_calibration
-from ..offe import StreamingOffE
+from ..offe import MARK_FIELDS, StreamingOffE
 from ..online import STATE_FORMAT as ONEI_FORMAT
 from ..online import OnEIConfig, OnlineCalibrator
 from .camera import STATE_FORMAT as CAMERA_FORMAT
@@ -240,10 +240,13 @@ def _check_offe(members: dict[str, _Member], sensor: SensorSize) -> None:
         return
     layout = _offe_layout()
     want = {*layout, "scalars"}
-    if have != want:
+    # a snapshot of before the mark (streaming OffE v1) has no mark arrays
+    if have not in (want, want - set(MARK_FIELDS)):
         raise StateError(f"the snapshot's events-only state has {sorted(have)}, expected "
                          f"{sorted(want)}")
     for k, (dtype, tail) in layout.items():
+        if k not in have:
+            continue
         mem = members[OFFE + k]
         shape = (sensor.n_pixels, *tail)
         if mem.dtype != dtype or tuple(mem.shape) != shape:
