@@ -154,6 +154,10 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     if args.c0 is not None and args.method != "offe":
         raise CliError("--c0 is OffE's scale: use it with --method offe (the frames give the "
                        "other methods theirs)")
+    from .fusion import FUSABLE, with_event_timing  # noqa: PLC0415
+
+    if args.event_timing and args.method not in FUSABLE:
+        raise CliError(f"--event-timing fuses OffE into --method {' or '.join(FUSABLE)}")
     rec = _open(args.recording, args.sensor_size, args)
     from .estimators import calibrate  # noqa: PLC0415
 
@@ -185,10 +189,6 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
                         n_large=args.n_large, smoothing=args.smoothing, c0=args.c0,
                         error_scale=args.error_scale)
     if args.event_timing:
-        from .fusion import FUSABLE, with_event_timing  # noqa: PLC0415
-
-        if cal.method not in FUSABLE:
-            raise CliError(f"--event-timing fuses OffE into --method {' or '.join(FUSABLE)}")
         cal = with_event_timing(rec, cal)
         fused = cal.diagnostics.extra["fusion"]
         if "reason" in fused:

@@ -33,10 +33,10 @@ from .errors import CalibrationError, ConfigError
 from .offe import OffEConfig, offe
 from .recording import Recording
 from .special import classify
+from .splithalf import CHI2_1_MEDIAN
 
-# the median of a chi-square with one degree of freedom (a z-score's square)
-CHI2_1_MEDIAN = 0.454936
-# OffE's stated errors are rescaled by at most this much either way
+# OffE's stated errors are widened by a factor in this range, never narrowed: a z-scale of
+# the differences below 1 is as likely a positive correlation of the two errors
 OFFE_SCALE_RANGE = (1.0, 4.0)
 # fewer pixels valid in both and nothing is fused (a median over them decides the anchors)
 MIN_PIXELS = 100
@@ -81,7 +81,7 @@ def _rescale(d: np.ndarray, s_frames: np.ndarray, s_offe: np.ndarray) -> tuple[f
 
     lo, hi = OFFE_SCALE_RANGE
     k = z_scale(1.0)
-    if z_scale(lo) <= 1.0:
+    if (k if lo == 1.0 else z_scale(lo)) <= 1.0:
         return lo, k
     if z_scale(hi) >= 1.0:
         return hi, k

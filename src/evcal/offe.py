@@ -43,13 +43,12 @@ from typing import Any
 import numba
 import numpy as np
 
-from .accumulate import Accumulator
 from .calibration import DEFAULT_BIAS, DEFAULT_CONTRAST, Calibration, OffEDiagnostics, Reason
 from .errors import CalibrationError, ConfigError, StateError
 from .events import SensorSize
 from .recording import Recording
-from .special import classify
-from .stream import frame_cuts
+from .special import classify, robust_spread
+from .splithalf import MIN_PIXELS as MIN_HALF_PIXELS
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -104,43 +103,6 @@ def _n_steps(rec: Recording, cfg: OffEConfig) -> int:
     return -(-(int(t[-1]) - int(t[0])) // cfg.step_us)
 
 
-def _sums_by_steps(rec: Recording, cfg: OffEConfig
-                   ) -> tuple[dict[str, np.ndarray], int, np.ndarray, _Halves]:
-    """The sums' definition, one step at a time over all pixels (what :func:`offe`
-    computes event by event; kept as the reference the tests compare with). The two
-    halves' sums are split at the middle step: within a half, the cumulative counts from
-    the recording's start differ from the half's own by a constant per pixel, which the
-    regression's intercept absorbs."""
-    t = rec.events["t_us"]
-    t0 = int(t[0])
-    m = _n_steps(rec, cfg)
-    steps = t0 + cfg.step_us * np.arange(1, m + 1, dtype=np.int64)
-    n = rec.sensor.n_pixels
-    acc = Accumulator(rec.sensor)
-    half = m // 2
-    sums = [{k: np.zeros(n) for k in _SUMS} for _ in range(2)]
-    n_first = np.zeros(n, np.int64)
-    pos = 0
-    for i, cut in enumerate(frame_cuts(t, steps)):  # steps cut the stream as frames do
-        if cut > pos:
-            acc.add(rec.events[pos:cut])
-            pos = int(cut)
-        e = (acc.on + acc.off).astype(np.float64)
-        p = (acc.on - acc.off).astype(np.float64)
-        s = sums[int(i >= half)]
-        s["e"] += e
-        s["p"] += p
-        s["ee"] += e * e
-        s["ep"] += e * p
-        s["pp"] += p * p
-        if i == half - 1:
-            n_first = (acc.on + acc.off).astype(np.int64)
-    n_events = (acc.on + acc.off).astype(np.int64)
-    whole = {k: sums[0][k] + sums[1][k] for k in _SUMS}
-    return whole, m, n_events, ((sums[0], half, n_first), (sums[1], m - half,
-                                                          n_events - n_first))
-
-
 def _folded(events: np.ndarray, width: int, n: int, t0: int, step: int, m: int
             ) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray]:
     """The sums over steps ``1..m`` after ``t0`` of ``events`` (all at or after ``t0``), by
@@ -167,8 +129,12 @@ def _from_fold(sums: np.ndarray, counts: np.ndarray, m: int
 
 def _sums_by_events(rec: Recording, cfg: OffEConfig
                     ) -> tuple[dict[str, np.ndarray], int, np.ndarray, _Halves]:
-    """:func:`_sums_by_steps`' sums in one pass over the events (each half folded from its
-    own start, the whole's from the halves: ``E -> E + E0`` in the second half's sums)."""
+    """The sums over the steps of the whole run and of its two halves (split at the middle
+    step) in one pass over the events: each half folded from its own start (within a half,
+    the cumulative counts from the run's start differ from the half's own by a constant per
+    pixel, which the regression's intercept absorbs), the whole's from the halves' (``E ->
+    E + E0`` in the second half's sums). tests/test_service_events_only.py keeps the sums'
+    definition, step by step over all pixels, to compare with."""
     t = rec.events["t_us"]
     t0 = int(t[0])
     step = cfg.step_us
@@ -190,8 +156,6 @@ def _sums_by_events(rec: Recording, cfg: OffEConfig
     return whole, m, n1 + n2, ((s1, half, n1), (s2, m - half, n2))
 
 
-# pixels valid in both halves below which no error is stated (as evcal.splithalf)
-MIN_HALF_PIXELS = 100
 # the halves' differences are read in up to this many bins of the pixels' event counts, each
 # of at least MIN_BIN_PIXELS pixels
 HALF_BINS = 8
@@ -248,8 +212,8 @@ def _fit(s: _Sums, n_steps: int, n_events: np.ndarray, sensor: SensorSize,
         c = np.where(cand, ref / np.where(cand, r, 1.0), cfg.c0)
     c = np.where(cand, c * (cfg.c0 / float(np.median(c[cand]))), c)  # median c0
     b = np.where(cand, -c * slope, DEFAULT_BIAS)
-    med = cfg.c0
-    bad = cand & ((c < med / cfg.max_ratio) | (c > med * cfg.max_ratio) | (np.abs(b) >= 0.95 * c))
+    bad = cand & ((c < cfg.c0 / cfg.max_ratio) | (c > cfg.c0 * cfg.max_ratio)
+                  | (np.abs(b) >= 0.95 * c))
     reason[bad] = Reason.OUT_OF_RANGE
     valid = reason == 0
     # the pixels not calibrated take the population's median contrast: c0, not the DI value
@@ -286,8 +250,7 @@ def _against_neighbours(r: np.ndarray, slope: np.ndarray, cand: np.ndarray,
     count = _box_sum(w, k) - w
     out = []
     for x in (np.log(np.where(cand, r, 1.0)), slope):
-        med = float(np.median(x[cand]))
-        spread = 1.4826 * float(np.median(np.abs(x[cand] - med)))
+        med, spread = robust_spread(x[cand])
         xc = np.where(cand, np.clip(x, med - 3 * spread, med + 3 * spread), 0.0).reshape(shape)
         with np.errstate(divide="ignore", invalid="ignore"):
             mean = (_box_sum(xc, k) - xc) / count
@@ -301,8 +264,7 @@ def _against_neighbours(r: np.ndarray, slope: np.ndarray, cand: np.ndarray,
 def _spread(d: np.ndarray) -> float:
     """The standard deviation of ``d`` without its outliers (beyond five robust spreads:
     a special pixel's halves, one of them fitted on a handful of events)."""
-    med = float(np.median(d))
-    rsd = 1.4826 * float(np.median(np.abs(d - med)))
+    med, rsd = robust_spread(d)
     keep = np.abs(d - med) <= 5.0 * rsd if rsd > 0 else np.ones(d.size, bool)
     return float(np.std(d[keep]))
 
@@ -604,7 +566,7 @@ class StreamingOffE:
                ) -> _Halves | None:
         """The sums of steps ``1..K`` (the mark's) and ``K+1..M`` (the whole's less them);
         None before a mark with steps after it, and while the errors' model read last is of
-        a run not much shorter (reading it costs two more fits: 1.5x the maps' time)."""
+        a run not much shorter (reading it costs two more fits of the maps)."""
         k = self._mark_k
         if k <= 0 or m <= k:
             return None
