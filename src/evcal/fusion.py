@@ -59,11 +59,11 @@ def with_event_timing(rec: Recording, cal: Calibration,
     try:
         events_only = offe(rec, cfg)
     except CalibrationError as e:  # too short, too few events: the frames' maps, and why
-        return _kept(cal, {"pixels": 0, "valid": int(cal.valid.sum())}, f"no OffE: {e}")
+        return kept(cal, {"pixels": 0, "valid": int(cal.valid.sum())}, f"no OffE: {e}")
     return fuse(cal, events_only)
 
 
-def _kept(cal: Calibration, info: dict[str, Any], why: str) -> Calibration:
+def kept(cal: Calibration, info: dict[str, Any], why: str) -> Calibration:
     diag = cal.diagnostics.updated(extra={**cal.diagnostics.extra,
                                           "fusion": {**info, "reason": why}})
     return cal.replace(diagnostics=diag)
@@ -110,7 +110,7 @@ def fuse(cal: Calibration, events_only: Calibration) -> Calibration:
     n_both = int(both.sum())
     info: dict[str, Any] = {"pixels": n_both, "valid": int(cal.valid.sum())}
     if n_both < MIN_PIXELS:
-        return _kept(cal, info, f"{n_both} pixels valid with stated errors in both (fewer "
+        return kept(cal, info, f"{n_both} pixels valid with stated errors in both (fewer "
                                 f"than {MIN_PIXELS}): the frames' maps kept")
     # OffE's scale and level from the frames
     scale = float(np.median(fc[both]) / np.median(ec[both]))

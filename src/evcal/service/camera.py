@@ -25,6 +25,7 @@ import numpy as np
 from ..calibration import Calibration
 from ..errors import CalibrationError, ErrorReason, EvcalError, StateError
 from ..events import SensorSize
+from ..fusion import FUSABLE, fuse, kept
 from ..io.wire import encode_calibration
 from ..offe import OffEConfig, StreamingOffE
 from ..online import OnEIConfig, OnEIExecutor, OnlineCalibrator
@@ -163,7 +164,7 @@ class CameraState:
                  max_pixels: int | None = None, observe: bool = False,
                  offe: OffEConfig | None = None, offe_period_us: int = 1_000_000,
                  executor: OnEIExecutor | None = None,
-                 posterior_refresh_us: int | None = None) -> None:
+                 posterior_refresh_us: int | None = None, event_timing: bool = False) -> None:
         self.id = camera_id
         self.onei = onei or OnEIConfig()
         # OnEI's threads, shared by the service's cameras and closed by the service (None:
@@ -176,6 +177,15 @@ class CameraState:
         self.events_only: StreamingOffE | None = None
         self._offe_next_t_us: int | None = None
         self._offe_pending = False  # events fed since its latest update
+        # event timing (serve --event-timing): a camera with frames keeps OffE's sums of
+        # every event too (the events-only sums go on when its first frame comes), and each
+        # OnEI update is fused with OffE's maps (evcal.fusion), those taken afresh every
+        # offe_period_us of sensor time
+        self.event_timing = bool(event_timing)
+        self.timing: StreamingOffE | None = None
+        self.timing_maps: Calibration | None = None  # OffE's latest maps of self.timing
+        self.timing_maps_t_us: int | None = None  # the sensor time they were taken at
+        self.timing_reason: str | None = None  # why the latest update was not fused
         self.guard = StreamGuard(max_pixels=max_pixels)
         self.calibrator: OnlineCalibrator | None = None
         self.counters = Counters()
@@ -268,6 +278,7 @@ class CameraState:
                                                executor=self.executor)
             self.frame_dtype = None
             self._start_events_only(sensor)
+            self._start_timing(sensor)
             log.info("camera %s: %s sensor", self.id, sensor)
         elif check.new_session:
             self.calibrator.new_session()
@@ -275,6 +286,7 @@ class CameraState:
             if self.events_only is not None:
                 # its step grid is in the old time base
                 self._start_events_only(sensor)
+            self._start_timing(sensor)
             c.restarts[kind] += 1
             log.info("camera %s: a new session of its %s stream (time base changed)", self.id,
                      kind)
@@ -310,6 +322,8 @@ class CameraState:
         out: list[Output] = []
         if self.events_only is None:
             cal.feed_events(ev, checked=True)
+            if self.timing is not None:
+                self.timing.feed_events(ev)
         elif ev.size:
             # no frame yet: OnEI would only hold these events pending (up to
             # max_pending_events, 260 MB) for a first frame that may never come
@@ -331,6 +345,13 @@ class CameraState:
         if self.counters.frames == 0:
             self.events_only = StreamingOffE(sensor, self.offe_config)
             self._offe_next_t_us = None
+
+    def _start_timing(self, sensor: SensorSize) -> None:
+        """Fresh event-timing sums for a camera with frames (with --event-timing); a camera
+        without frames yet has them in its events-only sums, which its first frame hands on."""
+        self.timing = (StreamingOffE(sensor, self.offe_config)
+                       if self.event_timing and self.events_only is None else None)
+        self.timing_maps = self.timing_maps_t_us = None
 
     def _feed_events_only(self, ev: np.ndarray, now_s: float) -> CalibrationUpdate | None:
         """Events of a camera without frames: into the streaming OffE sums; an update once
@@ -386,6 +407,9 @@ class CameraState:
             # frames came: OnEI takes over (its first update replaces the events-only one)
             log.info("camera %s: frames arrived, moving from the events-only estimate to "
                      "OnEI", self.id)
+            if self.event_timing:  # the same sums: every event since the start
+                self.timing, self.timing_maps, self.timing_maps_t_us = (
+                    self.events_only, None, None)
             self.events_only = None
             self._offe_next_t_us = None
         out: list[Output] = []
@@ -418,11 +442,37 @@ class CameraState:
         published message, the query cache and the recorder share it."""
         t_fed = time.monotonic()
         cal = cal_state.calibration()
+        if self.timing is not None and cal.method in FUSABLE:
+            cal = self._fused(cal, t_us)
         raw = None
         if self.live_posterior is not None and cal.method in POSTERIOR_METHODS:
             raw, cal = cal, self.live_posterior.apply(cal, t_us)
         return self._publishable(cal, t_us, t_recv_s, t_start_s, t_fed, from_frame=from_frame,
                                  raw=raw)
+
+    def _fused(self, cal: Calibration, t_us: int) -> Calibration:
+        """OnEI's maps fused with OffE's of the same events (:func:`evcal.fusion.fuse`);
+        OffE's maps taken again once ``offe_period_us`` of sensor time has passed since they
+        were (or when the sensor's time went back), OnEI's kept, and why, while OffE has none."""
+        est = self.timing
+        assert est is not None
+        last = self.timing_maps_t_us
+        if last is None or t_us >= last + self.offe_period_us or t_us < last:
+            try:
+                self.timing_maps = est.calibration()
+                self.timing_reason = None
+            except CalibrationError as exc:  # too few events or steps yet
+                self.timing_maps, self.timing_reason = None, f"no OffE maps yet: {exc}"
+            self.timing_maps_t_us = t_us
+        if self.timing_maps is None:
+            return kept(cal, {"pixels": 0, "valid": int(cal.valid.sum()),
+                              "offe_maps_t_us": None},
+                        self.timing_reason or "no OffE maps yet")
+        out = fuse(cal, self.timing_maps)
+        info = {**out.diagnostics.extra["fusion"], "offe_maps_t_us": self.timing_maps_t_us}
+        self.timing_reason = info.get("reason")
+        return out.replace(diagnostics=out.diagnostics.updated(
+            extra={**out.diagnostics.extra, "fusion": info}))
 
     def _publishable(self, cal: Calibration, t_us: int, t_recv_s: float, t_start_s: float,
                      t_fed: float, *, from_frame: bool,
@@ -548,6 +598,8 @@ class CameraState:
         arrays = {f"est__{k}": v for k, v in self.calibrator.state_dict().items()}
         if self.events_only is not None:
             arrays.update({f"offe__{k}": v for k, v in self.events_only.state_dict().items()})
+        if self.timing is not None:
+            arrays.update({f"timing__{k}": v for k, v in self.timing.state_dict().items()})
         arrays["service_json"] = np.array(json.dumps(meta))
         arrays["calibration_msg"] = np.frombuffer(self.calibration_msg or b"", np.uint8)
         return arrays
@@ -589,6 +641,15 @@ class CameraState:
                                      f"sensor, the camera's is {calibrator.sensor}")
             elif counters.frames == 0:  # snapshots written before the events-only estimate
                 events_only = StreamingOffE(calibrator.sensor, self.offe_config)
+            timing = None
+            if self.event_timing and events_only is None:
+                sums = {k[8:]: v for k, v in arrays.items() if k.startswith("timing__")}
+                # a snapshot of a service without event timing: its sums start here
+                timing = (StreamingOffE.from_state(sums) if sums
+                          else StreamingOffE(calibrator.sensor, self.offe_config))
+                if timing.sensor != calibrator.sensor:
+                    raise StateError(f"the event-timing state is for a {timing.sensor} "
+                                     f"sensor, the camera's is {calibrator.sensor}")
             calibration_seq = int(meta["calibration_seq"])
             calibration_t_us = meta["calibration_t_us"]
             msg = arrays["calibration_msg"].tobytes()
@@ -598,6 +659,7 @@ class CameraState:
             raise StateError(f"not a camera snapshot: {type(exc).__name__}: {exc}") from None
         self.calibrator, self.guard, self.counters = calibrator, guard, counters
         self.events_only, self._offe_next_t_us = events_only, None
+        self.timing, self.timing_maps, self.timing_maps_t_us = timing, None, None
         self.calibration_seq, self.calibration_t_us = calibration_seq, calibration_t_us
         self.calibration_msg = msg or None
         self.calibration = None

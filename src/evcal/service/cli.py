@@ -153,6 +153,11 @@ def build_parser(prog: str = "evcal serve") -> argparse.ArgumentParser:
                    help="with --posterior: seconds of sensor time between two estimates of "
                         "the population's priors (default 1); every update is shrunk with "
                         "the latest")
+    g.add_argument("--event-timing", action="store_true",
+                   help="fuse each OnEI update with OffE's maps of the same events (when "
+                        "they fall: as `evcal calibrate --event-timing`), OffE's maps taken "
+                        "again every second of sensor time; keeps OffE's sums per camera "
+                        "(144 bytes a pixel) and folds every event into them too")
     add_verbosity(p)
     return p
 
@@ -213,6 +218,7 @@ def config_from_args(args: argparse.Namespace) -> ServiceConfig:
         onei=OnEIConfig(**onei),
         posterior=bool(args.posterior),
         posterior_refresh_us=_refresh_us(args.posterior_refresh),
+        event_timing=bool(args.event_timing),
     )
 
 

@@ -135,6 +135,11 @@ class ServiceConfig:
     # below the maps' shared bias (docs/MEASUREMENTS.md)
     posterior: bool = False
     posterior_refresh_us: int = 1_000_000
+    # fuse each OnEI update with OffE's maps of the same events (evcal.fusion: when the
+    # events fall, which the frame sums throw away), OffE's maps taken again every
+    # offe_period_us of sensor time. Off by default: OffE's sums double a camera's work per
+    # event (docs/SERVICE.md)
+    event_timing: bool = False
 
     def __post_init__(self) -> None:
         if self.on_full not in ON_FULL:
@@ -319,7 +324,8 @@ class Service(ServiceReplies):
                             observe=observe, offe=cfg.offe, offe_period_us=cfg.offe_period_us,
                             executor=self.executor,
                             posterior_refresh_us=(cfg.posterior_refresh_us if cfg.posterior
-                                                  else None))
+                                                  else None),
+                            event_timing=cfg.event_timing)
         cam = CameraWorker(state, emit=self._emit, queue_bytes=cfg.queue_bytes,
                      max_message_bytes=cfg.max_message_bytes, block=cfg.on_full == "block")
         cam.limiter = ErrorLimiter(cfg.error_rate_hz)

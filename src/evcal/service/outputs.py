@@ -103,6 +103,11 @@ def camera_status(cam: CameraWorker, *, now_s: float | None = None) -> dict[str,
         "events_only": ({"events": st.events_only.n_events,
                          "steps": st.events_only.n_steps}
                         if st.events_only is not None else None),
+        # serve --event-timing: OffE's sums of a camera with frames, the sensor time of its
+        # latest maps, and why the latest update was not fused (None when it was)
+        "event_timing": ({"events": st.timing.n_events, "steps": st.timing.n_steps,
+                          "maps_t_us": st.timing_maps_t_us, "not_fused": st.timing_reason}
+                         if st.timing is not None else None),
         # ROS 2 input (serve --ros2): messages per topic, events dropped outside the declared
         # size or reordered in a packet, each events topic's encoding
         "ros2": cam.ros.status() if cam.ros is not None else None,

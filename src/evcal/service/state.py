@@ -72,7 +72,11 @@ META_KEY = "service_json"
 EST = "est__"  # the calibrator's state (OnlineCalibrator.state_dict) under this prefix
 # an events-only camera's streaming OffE state (StreamingOffE.state_dict), all or nothing
 OFFE = "offe__"
-OFFE_TEXT = f"{OFFE}scalars"
+# a camera's event-timing sums (serve --event-timing: StreamingOffE.state_dict), the same
+# fields as the events-only ones, all or nothing
+TIMING = "timing__"
+OFFE_PREFIXES = (OFFE, TIMING)
+OFFE_TEXTS = tuple(f"{p}scalars" for p in OFFE_PREFIXES)
 # text read before the sensor is known, so bounded on its own: real ones are a few kB
 TEXT_KEYS = (ID_KEY, META_KEY, f"{EST}format", f"{EST}scalars")
 MAX_TEXT_BYTES = 1 << 20
@@ -232,25 +236,28 @@ def _offe_layout() -> dict[str, tuple[np.dtype[Any], tuple[int, ...]]]:
     return {k: (a.dtype, a.shape[1:]) for k, a in st.items() if a.dtype.kind != "U"}
 
 
-def _check_offe(members: dict[str, _Member], sensor: SensorSize) -> None:
-    """The events-only estimator's fields, when the snapshot has them: every one of them,
-    each ``(n_pixels, ...)`` of its dtype."""
-    have = {k[len(OFFE):] for k in members if k.startswith(OFFE)}
+def _check_offe(members: dict[str, _Member], sensor: SensorSize, prefix: str = OFFE
+                ) -> None:
+    """A streaming OffE's fields under ``prefix`` (the events-only estimator's, the event
+    timing's), when the snapshot has them: every one of them, each ``(n_pixels, ...)`` of
+    its dtype."""
+    have = {k[len(prefix):] for k in members if k.startswith(prefix)}
     if not have:
         return
+    what = "events-only" if prefix == OFFE else "event-timing"
     layout = _offe_layout()
     want = {*layout, "scalars"}
     # a snapshot of before the mark (streaming OffE v1) has no mark arrays
     if have not in (want, want - set(MARK_FIELDS)):
-        raise StateError(f"the snapshot's events-only state has {sorted(have)}, expected "
+        raise StateError(f"the snapshot's {what} state has {sorted(have)}, expected "
                          f"{sorted(want)}")
     for k, (dtype, tail) in layout.items():
         if k not in have:
             continue
-        mem = members[OFFE + k]
+        mem = members[prefix + k]
         shape = (sensor.n_pixels, *tail)
         if mem.dtype != dtype or tuple(mem.shape) != shape:
-            raise StateError(f"{OFFE}{k} is {mem.dtype} {mem.shape}, expected {dtype} "
+            raise StateError(f"{prefix}{k} is {mem.dtype} {mem.shape}, expected {dtype} "
                              f"{shape} for a {sensor} sensor")
 
 
@@ -280,14 +287,15 @@ def _check_layout(members: dict[str, _Member], sensor: SensorSize, config: str,
     n = sensor.n_pixels
     layout = _est_layout(config)
     known = {*TEXT_KEYS, MSG_KEY, *(EST + k for k in layout),
-             *(OFFE + k for k in (*_offe_layout(), "scalars"))}
+             *(p + k for p in OFFE_PREFIXES for k in (*_offe_layout(), "scalars"))}
     unknown = sorted(set(members) - known)
     if unknown:
         raise StateError(f"unknown field(s) {unknown}: not a snapshot of this version")
     missing = sorted(set(layout) - {k[len(EST):] for k in members} - EST_OPTIONAL)
     if missing:
         raise StateError(f"the snapshot lacks {[EST + k for k in missing]}")
-    _check_offe(members, sensor)
+    for prefix in OFFE_PREFIXES:
+        _check_offe(members, sensor, prefix)
     buffered = 0
     for k, (dtypes, dims) in layout.items():
         mem = members.get(EST + k)
@@ -333,7 +341,7 @@ def read_snapshot(f: IO[bytes], *, max_pixels: int | None = None) -> dict[str, n
     with zipfile.ZipFile(f) as zf:
         members = _members(zf)
         arrays: dict[str, np.ndarray] = {}
-        for k in (*TEXT_KEYS, OFFE_TEXT):
+        for k in (*TEXT_KEYS, *OFFE_TEXTS):
             mem = members.get(k)
             if mem is None:
                 continue  # missing fields are named below, the id may be (older files)
