@@ -878,6 +878,12 @@ def cmd_run(args: argparse.Namespace) -> int:
             rec_out["wall_s"] = round(time.time() - t0, 2)
             rec_out["error"] = traceback.format_exc()
             line = "ERROR " + rec_out["error"].strip().splitlines()[-1]
+        # what the case let go of goes back to the system before the next: otherwise its
+        # freed heaps stay in the process and the next case's peak comes on top of them
+        gc.collect()
+        if trim_freed_memory is not None:
+            trim_freed_memory()
+        rec_out["rss_after_mb"] = _rss_mb()
         with open(results_path, "a") as f:
             f.write(json.dumps(_finite(rec_out), allow_nan=False, default=_json_default)
                     + "\n")
@@ -885,6 +891,18 @@ def cmd_run(args: argparse.Namespace) -> int:
               f"{c['category']:6s} {line}  (elapsed {(time.time() - t_all) / 60:.1f} min)",
               flush=True)
     return 0
+
+
+def _rss_mb() -> float | None:
+    """This process's resident memory (MiB), where /proc says it."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmRSS:"):
+                    return round(int(line.split()[1]) / 1024, 1)
+    except OSError:
+        pass
+    return None
 
 
 def _finite(obj: Any, path: str = "") -> Any:

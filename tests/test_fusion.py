@@ -145,3 +145,22 @@ def test_no_offe_keeps_the_frames_maps_and_says_why():
     fused = with_event_timing(short.recording, raw)
     assert fused.diagnostics.extra["fusion"]["reason"].startswith("no OffE:")
     np.testing.assert_array_equal(fused.contrast, raw.contrast)
+
+
+def test_the_widening_factor_of_a_megapixel_from_its_sample(monkeypatch):
+    # above SCALE_SAMPLE pixels the factor is searched on an even sample: OffE's errors
+    # stated at half their size are widened by 2 within the sample's precision
+    import evcal.fusion as fusion
+
+    rng = np.random.default_rng(4)
+    n = 16 * fusion.SCALE_SAMPLE
+    sf = rng.uniform(0.005, 0.02, n)
+    se = rng.uniform(0.005, 0.02, n)
+    d = rng.standard_normal(n) * np.sqrt(sf ** 2 + (2 * se) ** 2)
+    alpha, k = fusion._rescale(d, sf, se)
+    assert alpha == pytest.approx(2.0, abs=0.05)
+    assert k > 1.2  # as stated, the differences spread wider than the errors say
+    # the same search on every pixel lands within the sample's precision of it
+    monkeypatch.setattr(fusion, "SCALE_SAMPLE", n)
+    alpha_all, _ = fusion._rescale(d, sf, se)
+    assert abs(alpha - alpha_all) < 0.03
