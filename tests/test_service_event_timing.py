@@ -13,7 +13,7 @@ from evcal.calibration import Special
 from evcal.fusion import fuse
 from evcal.io.wire import decode_calibration
 from evcal.offe import StreamingOffE
-from evcal.posterior import estimate_of
+from evcal.posterior import estimate_of, posterior_maps
 from evcal.recording import Recording
 from evcal.service.core import Service, ServiceConfig
 from evcal.service.outputs import camera_status
@@ -277,3 +277,19 @@ def test_serve_event_timing_over_zenoh(sim, tmp_path):
         assert info["pixels"] > 1000
         assert 0 < info["offe_maps_t_us"] <= int(sim.recording.events["t_us"][-1])
         assert sp.alive()
+
+
+def test_with_posterior_the_fused_maps_are_pulled_and_raw_is_the_fused(sim):
+    svc, pub = run(sim.recording, event_timing=True, posterior=True, posterior_refresh_us=0)
+    try:
+        published = latest(pub)
+        assert estimate_of(published) == "posterior"
+        (_, payload, _), = svc.query_calibration(KEY, {"estimate": "raw"})
+        raw, _ = decode_calibration(payload)
+        assert estimate_of(raw) == "raw"
+        # the raw maps are the fused ones, before the pull
+        assert "reason" not in raw.diagnostics.extra["fusion"]
+        np.testing.assert_allclose(published.contrast, posterior_maps(raw).contrast,
+                                   rtol=0, atol=1e-7)
+    finally:
+        svc.close()
