@@ -100,6 +100,25 @@ def bench_offei(sensor: SensorSize, n_frames: int, n_events: int) -> dict[str, f
     return {"offei_s": t, "floor_s": t_floor}
 
 
+def bench_event_timing(sensor: SensorSize, n_frames: int, n_events: int) -> dict[str, Any]:
+    """``calibrate --event-timing``'s cost beside OffEI's: OffEI of a random recording, then
+    its fusion with OffE of the same events (:func:`evcal.fusion.with_event_timing`, OffE
+    included), each timed once; and how many pixels were fused (none: the timing is that of
+    OffE failing, not of a fusion)."""
+    from .fusion import with_event_timing  # noqa: PLC0415
+    from .offline import OffEIConfig, offei  # noqa: PLC0415
+
+    rec = random_recording(sensor, n_events, n_frames)
+    cfg = OffEIConfig(log_offset=30.0)
+    t0 = time.perf_counter()
+    cal = offei(rec, cfg)
+    t1 = time.perf_counter()
+    fused = with_event_timing(rec, cal)
+    t2 = time.perf_counter()
+    return {"offei_s": t1 - t0, "fusion_s": t2 - t1,
+            "fused_pixels": int(fused.diagnostics.extra["fusion"]["pixels"])}
+
+
 def bench_onei(sensor: SensorSize, n_frames: int, events_per_frame: int,
                config: OnEIConfig | None = None) -> dict[str, float]:
     """Per-frame cost of :meth:`OnlineCalibrator.feed_frame` at the paper's buffer sizes, and
@@ -215,6 +234,15 @@ def run_bench(*, quick: bool = False, progress: bool = True) -> dict[str, Any]:
     out[f"offei_s_vs_floor (1280x720, {n_frames} frames, {n_ev // 1_000_000}M events)"] = (
         f"{r_off['offei_s']:.2f} / {r_off['floor_s']:.2f} = "
         f"{r_off['offei_s'] / r_off['floor_s']:.1f}")
+    # OffE needs about 20 events a pixel on most pixels (below): 20 M at 1280x720, the quick
+    # run too
+    n_et = 20_000_000
+    say(f"OffEI and calibrate --event-timing at {hd}, {n_frames} frames, {n_et} events")
+    r_et = bench_event_timing(hd, n_frames, n_et)
+    out[f"event_timing_vs_offei (1280x720, {n_frames} frames, {n_et // 1_000_000}M events)"] = (
+        f"({r_et['offei_s']:.2f} + {r_et['fusion_s']:.2f}) / {r_et['offei_s']:.2f} = "
+        f"{(r_et['offei_s'] + r_et['fusion_s']) / r_et['offei_s']:.2f}x, "
+        f"{r_et['fused_pixels']} pixels fused")
     for sensor in (davis, hd):
         # a busy scene: each pixel fires about 2 events per frame interval
         epf = 2 * sensor.n_pixels
