@@ -59,6 +59,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import psutil
 
 SCRIPTS = Path(__file__).resolve().parent
 sys.path.insert(0, str(SCRIPTS))
@@ -883,7 +884,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         gc.collect()
         if trim_freed_memory is not None:
             trim_freed_memory()
-        rec_out["rss_after_mb"] = _rss_mb()
+        rec_out["rss_after_mb"] = round(psutil.Process().memory_info().rss / 2**20, 1)
         with open(results_path, "a") as f:
             f.write(json.dumps(_finite(rec_out), allow_nan=False, default=_json_default)
                     + "\n")
@@ -891,18 +892,6 @@ def cmd_run(args: argparse.Namespace) -> int:
               f"{c['category']:6s} {line}  (elapsed {(time.time() - t_all) / 60:.1f} min)",
               flush=True)
     return 0
-
-
-def _rss_mb() -> float | None:
-    """This process's resident memory (MiB), where /proc says it."""
-    try:
-        with open("/proc/self/status") as f:
-            for line in f:
-                if line.startswith("VmRSS:"):
-                    return round(int(line.split()[1]) / 1024, 1)
-    except OSError:
-        pass
-    return None
 
 
 def _finite(obj: Any, path: str = "") -> Any:

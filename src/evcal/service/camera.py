@@ -349,9 +349,13 @@ class CameraState:
     def _start_timing(self, sensor: SensorSize) -> None:
         """Fresh event-timing sums for a camera with frames (with --event-timing); a camera
         without frames yet has them in its events-only sums, which its first frame hands on."""
-        self.timing = (StreamingOffE(sensor, self.offe_config)
-                       if self.event_timing and self.events_only is None else None)
-        self.timing_maps = self.timing_maps_t_us = None
+        self._set_timing(StreamingOffE(sensor, self.offe_config)
+                         if self.event_timing and self.events_only is None else None)
+
+    def _set_timing(self, sums: StreamingOffE | None) -> None:
+        """``sums`` as the event-timing state, with no OffE maps of it taken yet."""
+        self.timing, self.timing_maps = sums, None
+        self.timing_maps_t_us = self.timing_reason = None
 
     def _feed_events_only(self, ev: np.ndarray, now_s: float) -> CalibrationUpdate | None:
         """Events of a camera without frames: into the streaming OffE sums; an update once
@@ -408,8 +412,7 @@ class CameraState:
             log.info("camera %s: frames arrived, moving from the events-only estimate to "
                      "OnEI", self.id)
             if self.event_timing:  # the same sums: every event since the start
-                self.timing, self.timing_maps, self.timing_maps_t_us = (
-                    self.events_only, None, None)
+                self._set_timing(self.events_only)
             self.events_only = None
             self._offe_next_t_us = None
         out: list[Output] = []
@@ -453,11 +456,12 @@ class CameraState:
     def _fused(self, cal: Calibration, t_us: int) -> Calibration:
         """OnEI's maps fused with OffE's of the same events (:func:`evcal.fusion.fuse`);
         OffE's maps taken again once ``offe_period_us`` of sensor time has passed since they
-        were (or when the sensor's time went back), OnEI's kept, and why, while OffE has none."""
+        were (a new time base starts the sums afresh), OnEI's kept, and why, while OffE has
+        none."""
         est = self.timing
         assert est is not None
         last = self.timing_maps_t_us
-        if last is None or t_us >= last + self.offe_period_us or t_us < last:
+        if last is None or t_us >= last + self.offe_period_us:
             try:
                 self.timing_maps = est.calibration()
                 self.timing_reason = None
@@ -659,7 +663,7 @@ class CameraState:
             raise StateError(f"not a camera snapshot: {type(exc).__name__}: {exc}") from None
         self.calibrator, self.guard, self.counters = calibrator, guard, counters
         self.events_only, self._offe_next_t_us = events_only, None
-        self.timing, self.timing_maps, self.timing_maps_t_us = timing, None, None
+        self._set_timing(timing)
         self.calibration_seq, self.calibration_t_us = calibration_seq, calibration_t_us
         self.calibration_msg = msg or None
         self.calibration = None

@@ -236,8 +236,7 @@ def _offe_layout() -> dict[str, tuple[np.dtype[Any], tuple[int, ...]]]:
     return {k: (a.dtype, a.shape[1:]) for k, a in st.items() if a.dtype.kind != "U"}
 
 
-def _check_offe(members: dict[str, _Member], sensor: SensorSize, prefix: str = OFFE
-                ) -> None:
+def _check_offe(members: dict[str, _Member], sensor: SensorSize, prefix: str) -> None:
     """A streaming OffE's fields under ``prefix`` (the events-only estimator's, the event
     timing's), when the snapshot has them: every one of them, each ``(n_pixels, ...)`` of
     its dtype."""
