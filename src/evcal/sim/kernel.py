@@ -21,8 +21,12 @@ depend on the order pixels are visited in, and there is no global RNG state.
 
 Speed: most pixels cannot fire in a given step, which a branch-free pass over all pixels tells
 from bounds in the intensity domain (no logarithm); only the others run the crossing search.
-The search's arithmetic is that of the plain per-pixel version, so the shortcut changes no
-event (``run_steps(..., shortcut=False)`` runs the search everywhere, for tests).
+With a photoreceptor low-pass (or thresholds that grow in the dark beside a leak) the
+intensity-domain bounds do not hold: that pass then computes each pixel's comparator input
+(the filter's log and exp) and compares it with the levels as the search would, so only
+pixels that can fire are searched there too. The search's arithmetic is that of the plain
+per-pixel version, so the shortcut changes no event (``run_steps(..., shortcut=False)`` runs
+the search everywhere, for tests).
 """
 
 from __future__ import annotations
@@ -161,6 +165,19 @@ def _sort_step(t_f: np.ndarray, t_i: np.ndarray, pix: np.ndarray, pol: np.ndarra
         t_f[start + q] = tmp_f[o]
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _lowpassed(a: float, inten: float, log_offset: float, dt_s: float, tl_exp: float,
+               tl_ref: float, bw_cutoff_hz: float, bw_ref_dn: float, bw_min_hz: float
+               ) -> Any:  # pragma: no cover - compiled
+    """The photoreceptor low-pass's output at the end of a step of ``dt_s`` seconds from
+    ``a``, the input's response at the step's end ``inten`` (DN), its cutoff growing with the
+    light (:class:`~evcal.sim.effects.Bandwidth`)."""
+    lraw = _response(inten + log_offset, tl_exp, tl_ref)
+    fc_hz = max(bw_min_hz, bw_cutoff_hz * (inten + log_offset) / bw_ref_dn)
+    alpha = 1.0 - math.exp(-TWO_PI * fc_hz * dt_s)
+    return a + alpha * (lraw - a)
+
+
 @numba.njit(cache=True, nogil=True)
 def _search(j0: np.ndarray, n_slow: np.ndarray, slow_idx: np.ndarray, k: int,
             intensity: np.ndarray, times: np.ndarray, log_offset: np.ndarray, lf: np.ndarray,
@@ -171,21 +188,22 @@ def _search(j0: np.ndarray, n_slow: np.ndarray, slow_idx: np.ndarray, k: int,
             shot_next: np.ndarray, th_sigma: np.ndarray, refr_us: np.ndarray,
             refr_delay: np.ndarray, shot_rate_hz: np.ndarray, shot_ref_dn: np.ndarray,
             shot_exp: np.ndarray, bw_cutoff_hz: np.ndarray, bw_ref_dn: np.ndarray,
-            bw_min_hz: np.ndarray, tl_exp: float, tl_ref: np.ndarray,
+            bw_min_hz: np.ndarray, tl_exp: float, tl_ref: np.ndarray, lb: np.ndarray,
             t_f: np.ndarray, t_i: np.ndarray, pix: np.ndarray, pol: np.ndarray,
             lab: np.ndarray, n: int) -> Any:  # pragma: no cover - compiled
     """The exact crossing search of step ``k`` for the pixels ``slow_idx[j0:n_slow]``;
     returns ``(n, j)``, ``j < n_slow`` when the buffers have no room for pixel
-    ``slow_idx[j]`` (nothing of it done: grow them and call again from ``j``)."""
+    ``slow_idx[j]`` (nothing of it done: grow them and call again from ``j``). Where pass 1
+    computed the comparator's input at the step's end (``lb`` not empty: a low-pass, or
+    light-dependent thresholds with a leak), it is ``lb``."""
     cap = t_f.size
     drop = refr_us > 0.0 and not refr_delay
     delay = refr_us > 0.0 and refr_delay
-    bw = bw_cutoff_hz > 0.0
     shot = shot_rate_hz > 0.0
+    resp = lb.size > 0
     t0 = times[k]
     t1 = times[k + 1]
     dt = float(t1 - t0)
-    dt_s = dt * 1e-6
     for j in range(j0, n_slow):
         i = slow_idx[j]
         inten32 = intensity[k, i]
@@ -193,13 +211,7 @@ def _search(j0: np.ndarray, n_slow: np.ndarray, slow_idx: np.ndarray, k: int,
         r = ref[i]
         a = lf[i] if lf_ok[i] else _response(np.float64(i_prev[i]) + log_offset, tl_exp,
                                              tl_ref[i])
-        lraw = _response(inten + log_offset, tl_exp, tl_ref[i])
-        if bw:
-            fc_hz = max(bw_min_hz, bw_cutoff_hz * (inten + log_offset) / bw_ref_dn)
-            alpha = 1.0 - math.exp(-TWO_PI * fc_hz * dt_s)
-            b = a + alpha * (lraw - a)
-        else:
-            b = lraw
+        b = lb[i] if resp else _response(inten + log_offset, tl_exp, tl_ref[i])
         # worst case of this pixel's events (thresholds are >= 0.2 of nominal); nothing of
         # the pixel's step is done yet when there is no room
         th_min = 0.2 * min(th_on_nom[i], th_off_nom[i])
@@ -318,7 +330,7 @@ def _search(j0: np.ndarray, n_slow: np.ndarray, slow_idx: np.ndarray, k: int,
                         dead_until[i] = tf + refr_us
         ref[i] = r
         lf[i] = b
-        if not bw:
+        if not resp:
             # float32 rounds by far less than the margin, except below its normal range:
             # there hi goes to 0 (no shortcut) and lo up to the smallest normal; the
             # response is monotone, so its levels have images in the intensity domain
@@ -419,6 +431,9 @@ def run_steps(
     tmp_f = np.empty(0, np.float64)
     slow = np.empty(n_all, np.uint8)
     slow_idx = np.empty(n_all, np.int64)
+    # the comparator's input at each step's end, from pass 1 (see below)
+    resp = bw or (tl_exp != 0.0 and leak)
+    lb = np.empty(n_all if resp else 0, np.float64)
     for k in range(k_steps):
         t0 = times[k]
         t1 = times[k + 1]
@@ -432,8 +447,12 @@ def run_steps(
         # the intensity-domain bounds need the comparator to see a function of I + dark
         # alone (not with a low-pass, which runs the exact search everywhere), and with leak
         # a bound moved by the drift as ln's is (not a light-dependent threshold's)
-        exact = bw or (tl_exp != 0.0 and leak) or not shortcut
-        fused = leak and leak_light_exp == 0.0 and not exact
+        # with a low-pass the filter moves every pixel every step, and with thresholds that
+        # grow in the dark a leak's drift moves the levels' intensity-domain images unlike
+        # ln's: pass 1 then computes the comparator's input (a log, and the low-pass's exp,
+        # per pixel) and tests it against the levels where pass 2 compares them
+        exact = not resp and not shortcut
+        fused = leak and leak_light_exp == 0.0 and not exact and not resp
         if leak and not fused:
             for i in range(lo_pix, hi_pix):
                 rate = leak_rate[i]
@@ -444,7 +463,25 @@ def run_steps(
                 ref[i] = ref[i] - d
                 leak_debt[i] += d
         t1f = float(t1)
-        if exact:
+        if resp:
+            for i in range(lo_pix, hi_pix):
+                a = lf[i] if lf_ok[i] else _response(np.float64(i_prev[i]) + log_offset,
+                                                     tl_exp, tl_ref[i])
+                inten = np.float64(intensity[k, i])
+                if bw:
+                    b = _lowpassed(a, inten, log_offset, dt_s, tl_exp, tl_ref[i],
+                                   bw_cutoff_hz, bw_ref_dn, bw_min_hz)
+                else:
+                    b = _response(inten + log_offset, tl_exp, tl_ref[i])
+                lb[i] = b
+                quiet = (max(a, b) < ref[i] + th_on[i]) & (min(a, b) > ref[i] - th_off[i])
+                quiet &= shortcut
+                if drop:
+                    quiet &= dead_until[i] <= t0
+                if shot:
+                    quiet &= shot_next[i] >= t1f
+                slow[i] = np.uint8(not quiet)
+        elif exact:
             for i in range(lo_pix, hi_pix):
                 slow[i] = 1
         elif fused:
@@ -488,8 +525,8 @@ def run_steps(
                            i_prev, hi_i, lo_i, ref_i, ref, th_on_nom, th_off_nom, th_on,
                            th_off, dead_until, last_fire, leak_debt, rng_state, shot_next,
                            th_sigma, refr_us, refr_delay, shot_rate_hz, shot_ref_dn, shot_exp,
-                           bw_cutoff_hz, bw_ref_dn, bw_min_hz, tl_exp, tl_ref, t_f, t_i, pix,
-                           pol, lab, n)
+                           bw_cutoff_hz, bw_ref_dn, bw_min_hz, tl_exp, tl_ref, lb, t_f, t_i,
+                           pix, pol, lab, n)
             if j < n_slow:
                 t_f = _grow(t_f, n)
                 t_i = _grow(t_i, n)
@@ -497,9 +534,15 @@ def run_steps(
                 pol = _grow(pol, n)
                 lab = _grow(lab, n)
         # every pixel moves on to this step's intensity; lf is up to date where pass 2 ran
-        for i in range(lo_pix, hi_pix):
-            i_prev[i] = intensity[k, i]
-            lf_ok[i] = slow[i]
+        if resp:  # the comparator's input is every pixel's
+            for i in range(lo_pix, hi_pix):
+                i_prev[i] = intensity[k, i]
+                lf[i] = lb[i]
+                lf_ok[i] = 1
+        else:
+            for i in range(lo_pix, hi_pix):
+                i_prev[i] = intensity[k, i]
+                lf_ok[i] = slow[i]
         m = n - n_start
         # delayed events may leave their step: the caller sorts those globally
         if m > 1 and not delay:
