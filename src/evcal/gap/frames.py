@@ -32,7 +32,7 @@ import numpy as np
 from ..recording import Frames, Recording
 from ..sim.effects import ApsFpn, Exposure
 from .effects import FitContext, FitResult, Fitted, NoEvidence
-from .pixelfit import fit_from_sums, residual_from_sums, window_sums
+from .pixelfit import fit_from_sums, offset_window_sums, residual_from_sums, window_sums
 from .stats import Observation
 
 if TYPE_CHECKING:
@@ -106,18 +106,18 @@ def offset_residuals(observations: list[Observation], grid_dn: np.ndarray,
     w = obs0.usable[:, cols].astype(np.float64)
     f_min = F.min(0) if cols.size else np.zeros(0)
     out = [np.full((grid_dn.size, n_pix), np.nan) for _ in observations]
-    counts = [((o.on - o.off)[:, cols], (o.on + o.off)[:, cols]) for o in observations]
-    for i, o in enumerate(grid_dn):  # a few dozen offsets, each vectorised over pixels
-        L = np.log(np.maximum(F - o, 0.0) + log_offset)
-        dL = np.diff(L, axis=0)
-        for j, (P, E) in enumerate(counts):
-            sums = window_sums(P, E, dL, w)
-            c, b, ok = fit_from_sums(*sums[:6])
-            ssr = residual_from_sums(sums, np.nan_to_num(c), np.nan_to_num(b))
-            tss = sums[6]
-            frac = np.where(ok & (tss > 0), ssr / np.maximum(tss, 1e-30), np.nan)
-            # the darkest frame must stay above the offset (F >= o + 0.5 DN)
-            out[j][i, cols] = np.where(f_min - o >= 0.5, frac, np.inf)
+    all_sums = offset_window_sums(F, w, [(o.on - o.off)[:, cols] for o in observations],
+                                  [(o.on + o.off)[:, cols] for o in observations], grid_dn,
+                                  log_offset)
+    # the darkest frame must stay above the offset (F >= o + 0.5 DN)
+    inside = f_min[None, :] - grid_dn[:, None] >= 0.5
+    for j, sums in enumerate(all_sums):  # [n_grid, 7, those]: fitted as one batch
+        sums = np.moveaxis(sums, 1, 0)
+        c, b, ok = fit_from_sums(*sums[:6])
+        ssr = residual_from_sums(sums, np.nan_to_num(c), np.nan_to_num(b))
+        tss = sums[6]
+        frac = np.where(ok & (tss > 0), ssr / np.maximum(tss, 1e-30), np.nan)
+        out[j][:, cols] = np.where(inside, frac, np.inf)
     return out
 
 

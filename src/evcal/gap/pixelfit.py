@@ -72,6 +72,66 @@ def _window_sums_by_pixel(P: np.ndarray, E: np.ndarray, dL: np.ndarray, w: np.nd
     return out
 
 
+@numba.njit(cache=True, nogil=True)
+def _offset_window_sums(F: np.ndarray, w: np.ndarray, P: np.ndarray, E: np.ndarray,
+                        offsets_dn: np.ndarray, log_offset: float
+                        ) -> Any:  # pragma: no cover - compiled
+    """:func:`_window_sums_by_pixel` of every observation (``P``, ``E`` ``[n_obs, npix,
+    n_w]``) against ``dL`` the window changes of ``log(max(F - o, 0) + log_offset)`` (``F``
+    ``[npix, n_w + 1]``) for each ``o`` of ``offsets_dn``: ``[n_obs, n_o, 7, npix]``, each
+    pixel's windows summed in the same order."""
+    n_obs, npix, n_w = P.shape
+    n_o = offsets_dn.size
+    out = np.zeros((n_obs, n_o, 7, npix))
+    L = np.empty(n_w + 1)
+    for i in range(npix):
+        for g in range(n_o):
+            o = offsets_dn[g]
+            for k in range(n_w + 1):
+                L[k] = np.log(max(F[i, k] - o, 0.0) + log_offset)
+            for j in range(n_obs):
+                # in registers, added in the order _add adds them
+                spp = spe = see = spy = sey = se = syy = 0.0
+                for k in range(n_w):
+                    wi = np.float64(w[i, k])
+                    if wi == 0.0:
+                        continue
+                    p = np.float64(P[j, i, k])
+                    e = np.float64(E[j, i, k])
+                    y = L[k + 1] - L[k]
+                    spp += wi * p * p
+                    spe += wi * p * e
+                    see += wi * e * e
+                    spy += wi * p * y
+                    sey += wi * e * y
+                    se += wi * e
+                    syy += wi * y * y
+                out[j, g, 0, i] = spp
+                out[j, g, 1, i] = spe
+                out[j, g, 2, i] = see
+                out[j, g, 3, i] = spy
+                out[j, g, 4, i] = sey
+                out[j, g, 5, i] = se
+                out[j, g, 6, i] = syy
+    return out
+
+
+def offset_window_sums(F: np.ndarray, w: np.ndarray, P: list[np.ndarray],
+                       E: list[np.ndarray], offsets_dn: np.ndarray, log_offset: float
+                       ) -> np.ndarray:
+    """Per observation ``j`` and dark offset ``o``: :func:`window_sums` of ``P[j]``,
+    ``E[j]``, ``w`` (``[windows, pixels]``) and ``dL`` the changes of ``log(max(F - o, 0) +
+    log_offset)`` over the frames ``F`` (``[windows + 1, pixels]``), ``[n_obs, n_o, 7,
+    npix]``: one pass that takes each pixel's logarithms once for every observation and
+    allocates no ``[windows, pixels]`` array per offset."""
+    f = np.ascontiguousarray(np.asarray(F, np.float64).T)
+    pe = [np.stack([np.asarray(a).T for a in arrs]) for arrs in (P, E)]
+    out: np.ndarray = _offset_window_sums(f, np.ascontiguousarray(np.asarray(w).T), pe[0],
+                                          pe[1], np.asarray(offsets_dn, np.float64),
+                                          float(log_offset))
+    return out
+
+
 def window_sums(P: np.ndarray, E: np.ndarray, dL: np.ndarray, wgt: np.ndarray,
                 split: int | None = None) -> np.ndarray:
     """Per-pixel weighted sums ``[7, npix]`` of P P, P E, E E, P dL, E dL, E, dL dL over the
